@@ -1,0 +1,422 @@
+"""Every tunable constant of the project, in one place, with named presets.
+
+The config is a tree of frozen dataclasses.  ``get_config(preset)`` returns a
+preset, ``apply_overrides(cfg, ["ppo.num_envs=512", ...])`` changes keys with
+type checking, and ``config_to_dict`` / ``config_from_dict`` round-trip it
+through JSON (run folders and checkpoints store it).  Values come from
+``SPEC.md`` §2-§3; where a number is ours, not the paper's, the field says so.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import typing
+from dataclasses import dataclass, field
+from typing import Any
+
+Q_LIMIT = 3.0543  # ±175° on every AUBO-i5 joint (SPEC §1); the URDF holds the same value.
+
+# Home pose: damped-least-squares IK seeded from SPEC §2's vector, solved once by
+# ``sagrasp_jax.robot.solve_home_pose`` and pasted here (tests re-solve and compare).
+HOME_SEED = (1.1538, -0.4919, -1.8145, 0.2482, -1.5708, 0.0)
+HOME_Q = (
+    1.1538174961752017,
+    -0.49293447743928726,
+    -1.8197668542055943,
+    0.2439639500285898,
+    -1.5707963267948966,
+    0.0,
+)
+HOME_GRIPPER_CENTRE = (0.0, -0.30, 0.35)
+
+
+@dataclass(frozen=True)
+class ControlConfig:
+    """One control step (SPEC §2 steps 1-5)."""
+
+    q_max: float = 0.05  # rad per step at |a| = 1
+    slowdown_enabled: bool = True
+    d_slow: float = 0.08  # m
+    slow_factor: float = 0.3
+    finetune_enabled: bool = True
+    d_fine: float = 0.10  # m
+    fine_tilt_deg: float = 10.0
+    fine_gain: float = 1.0  # k
+    fine_damping: float = 0.05  # λ
+    fine_clip: float = 0.015  # c = 0.3·q_max, rad
+    q_limit: float = Q_LIMIT
+    mode: str = "kinematic"  # "kinematic" | "dynamic"
+    control_dt: float = 0.05  # s (20 Hz)
+    physics_dt: float = 0.01  # s, dynamic mode
+    substeps: int = 5  # physics steps per control step, dynamic mode
+
+
+@dataclass(frozen=True)
+class RewardConfig:
+    """R = F_d·R_distance + F_s·R_success + F_o·R_obstacle (SPEC §2)."""
+
+    ratio: float = 10.0  # per metre of approach
+    rc: float = 0.05  # grab-zone bonus
+    d_grab: float = 0.05  # m
+    rc_mode: str = "entry"  # "entry" (potential-based, default) | "per_step" (paper, ablation)
+    success_reward: float = 1.0
+    failure_reward: float = -1.0  # collision or timeout
+    collision_penalty: float = -1.0
+    near_miss_distance: float = 0.05  # m
+    near_miss_scale: float = 0.5
+    clean_success_bonus: float = 1.0  # success with an obstacle never nearer than near_miss_distance
+    f_d0: float = 2.0  # F_d = f_d0 + f_d1·p
+    f_d1: float = -1.0
+    f_s0: float = 0.5  # F_s = f_s0 + f_s1·p
+    f_s1: float = 1.0
+    f_o: float = 0.5
+
+
+@dataclass(frozen=True)
+class TaskConfig:
+    """Start state, observation, success and episode length (SPEC §2)."""
+
+    home_q: tuple[float, ...] = HOME_Q
+    start_noise: float = 0.05  # rad, uniform per joint
+    obs_noise_std: float = 0.005  # rad on the joint entries
+    obs_noise_growth: float = 0.0  # std multiplier grows by this × progress (0 = fixed)
+    max_steps: int = 200
+    success_xy: float = 0.010  # m
+    success_dz_min: float = 0.005  # m above the target centre
+    success_dz_max: float = 0.020
+    success_tilt_deg: float = 10.0
+    obstacle_dist_clip: float = 1.0  # m, Δpo clip
+    no_obstacle_pos: tuple[float, float, float] = (0.0, 0.0, -1.0)
+
+
+@dataclass(frozen=True)
+class SamplingConfig:
+    """Target and dynamic-obstacle sampling (SPEC §1)."""
+
+    target_size: tuple[float, float, float] = (0.02, 0.02, 0.05)
+    target_x: tuple[float, float] = (-0.35, 0.35)
+    target_y: tuple[float, float] = (-0.60, -0.25)
+    target_yaw: tuple[float, float] = (-math.pi / 4, math.pi / 4)
+    target_radius: tuple[float, float] = (0.25, 0.65)
+    target_candidates: int = 16
+    obstacle_prob: float = 0.2
+    max_obstacles: int = 2
+    sphere_radius: tuple[float, float] = (0.03, 0.06)
+    sphere_z: tuple[float, float] = (0.12, 0.30)
+    cylinder_radius: tuple[float, float] = (0.02, 0.05)
+    cylinder_height: tuple[float, float] = (0.10, 0.30)
+    box_half: tuple[float, float] = (0.02, 0.06)
+    obstacle_disc_radius: float = 0.15
+    home_xy: tuple[float, float] = (0.0, -0.30)
+    target_clearance: float = 0.10  # m, obstacle surface to target centre, horizontal
+    robot_clearance: float = 0.10  # m, obstacle to every robot geometry at the start pose
+    obstacle_candidates: int = 16  # per slot, first feasible wins
+    scene_redraws: int = 4  # whole-scene re-draws before falling back to "no obstacle"
+
+
+@dataclass(frozen=True)
+class EnvConfig:
+    control: ControlConfig = field(default_factory=ControlConfig)
+    reward: RewardConfig = field(default_factory=RewardConfig)
+    task: TaskConfig = field(default_factory=TaskConfig)
+    sampling: SamplingConfig = field(default_factory=SamplingConfig)
+
+
+@dataclass(frozen=True)
+class NetworkConfig:
+    policy_hidden: tuple[int, ...] = (64, 64)
+    value_hidden: tuple[int, ...] = (64, 64)
+    activation: str = "tanh"
+
+
+@dataclass(frozen=True)
+class PPOConfig:
+    num_envs: int = 16
+    unroll_length: int = 128
+    num_minibatches: int = 8
+    num_epochs: int = 10
+    clip_eps: float = 0.2
+    gamma: float = 0.99
+    gae_lambda: float = 0.95
+    entropy_coef: float = 0.0
+    value_coef: float = 0.5
+    max_grad_norm: float = 0.5
+    learning_rate: float = 3e-4
+    normalize_advantages: bool = True
+    obs_std_floor: float = 0.01
+    obs_clip: float = 5.0
+    network: NetworkConfig = field(default_factory=NetworkConfig)
+
+
+@dataclass(frozen=True)
+class SAConfig:
+    """Simulated-annealing learning-rate plateau schedule (SPEC §3)."""
+
+    enabled: bool = True  # False = the paper's PPO baseline (--algo ppo)
+    cycle_steps: int = 0  # env steps per cycle; 0 = total_steps / num_cycles
+    num_cycles: int = 200
+    metric: str = "return"  # "return" (p = 1 weights) | "success"
+    eval_episodes: int = 128
+    eval_seed: int = 12345
+    lr0: float = 3e-4
+    decay: float = 0.98
+    lr_min: float = 1e-6
+    tol: float = 0.05
+    min_delta: float = 0.02
+    patience: int = 5
+    max_rollbacks: int = 3
+    t0: float = 0.1
+    kappa: float = 1.0
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    total_steps: int = 20_000_000
+    seed: int = 0
+    log_every: int = 1  # iterations between JSONL rows
+    checkpoint_every_cycles: int = 10
+    metrics_window: int = 256  # finished episodes in the training-episode window
+
+
+@dataclass(frozen=True)
+class Config:
+    env: EnvConfig = field(default_factory=EnvConfig)
+    ppo: PPOConfig = field(default_factory=PPOConfig)
+    sa: SAConfig = field(default_factory=SAConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+
+
+class ConfigError(ValueError):
+    """A preset, key or value that the config does not accept."""
+
+
+def _paper() -> Config:
+    return Config()
+
+
+def _cpu_quick() -> Config:
+    base = Config()
+    return dataclasses.replace(
+        base,
+        ppo=dataclasses.replace(
+            base.ppo,
+            num_envs=256,
+            unroll_length=16,
+            num_minibatches=4,
+            num_epochs=4,
+            entropy_coef=1e-3,
+            network=NetworkConfig(policy_hidden=(32, 32, 32, 32), value_hidden=(64, 64, 64)),
+        ),
+        sa=dataclasses.replace(base.sa, eval_episodes=128),
+        train=dataclasses.replace(base.train, total_steps=3_000_000),
+    )
+
+
+def _gpu() -> Config:
+    base = Config()
+    return dataclasses.replace(
+        base,
+        ppo=dataclasses.replace(
+            base.ppo,
+            num_envs=4096,
+            unroll_length=16,
+            num_minibatches=16,
+            num_epochs=4,
+            entropy_coef=1e-3,
+            network=NetworkConfig(policy_hidden=(128, 128, 128), value_hidden=(256, 256, 256)),
+        ),
+        sa=dataclasses.replace(base.sa, eval_episodes=1024),
+        train=dataclasses.replace(base.train, total_steps=20_000_000),
+    )
+
+
+PRESETS: dict[str, typing.Callable[[], Config]] = {
+    "paper": _paper,
+    "cpu-quick": _cpu_quick,
+    "gpu": _gpu,
+}
+
+
+def get_config(preset: str = "cpu-quick") -> Config:
+    if preset not in PRESETS:
+        raise ConfigError(f"unknown preset {preset!r}; valid presets: {', '.join(PRESETS)}")
+    return PRESETS[preset]()
+
+
+def _field_types(cls: type) -> dict[str, Any]:
+    return typing.get_type_hints(cls)
+
+
+def _parse_value(text: str, annotation: Any, key: str) -> Any:
+    origin = typing.get_origin(annotation)
+    try:
+        if annotation is bool:
+            lowered = text.strip().lower()
+            if lowered in ("true", "1", "yes"):
+                return True
+            if lowered in ("false", "0", "no"):
+                return False
+            raise ValueError("expected true/false")
+        if annotation is int:
+            value = float(text) if any(c in text for c in ".eE") else int(text)
+            if isinstance(value, float):
+                if not value.is_integer():
+                    raise ValueError("expected an integer")
+                value = int(value)
+            return value
+        if annotation is float:
+            value = float(text)
+            if not math.isfinite(value):
+                raise ValueError("expected a finite number")
+            return value
+        if annotation is str:
+            return text
+        if origin is tuple:
+            parsed = json.loads(text if text.strip().startswith("[") else f"[{text}]")
+            args = typing.get_args(annotation)
+            elem = args[0]
+            return tuple(_parse_value(json.dumps(v), elem, key) if not isinstance(v, str) else v for v in parsed)
+    except (ValueError, json.JSONDecodeError) as exc:
+        raise ConfigError(f"bad value {text!r} for {key} ({annotation}): {exc}") from None
+    raise ConfigError(f"key {key} has a type that cannot be set from the command line")
+
+
+_CHOICES = {
+    "env.control.mode": ("kinematic", "dynamic"),
+    "env.reward.rc_mode": ("entry", "per_step"),
+    "sa.metric": ("return", "success"),
+    "ppo.network.activation": ("tanh", "relu", "silu", "elu"),
+}
+
+
+def valid_keys(cfg: Config | None = None) -> list[str]:
+    """All dotted keys that ``apply_overrides`` accepts."""
+    cfg = cfg or Config()
+    keys: list[str] = []
+
+    def walk(obj: Any, prefix: str) -> None:
+        for f in dataclasses.fields(obj):
+            value = getattr(obj, f.name)
+            if dataclasses.is_dataclass(value):
+                walk(value, f"{prefix}{f.name}.")
+            else:
+                keys.append(f"{prefix}{f.name}")
+
+    walk(cfg, "")
+    return keys
+
+
+def _set(obj: Any, path: list[str], text: str, full_key: str) -> Any:
+    names = {f.name for f in dataclasses.fields(obj)}
+    head = path[0]
+    if head not in names:
+        raise ConfigError(
+            f"unknown config key {full_key!r}; valid keys: {', '.join(valid_keys())}"
+        )
+    current = getattr(obj, head)
+    if len(path) == 1:
+        if dataclasses.is_dataclass(current):
+            raise ConfigError(f"{full_key!r} is a section, not a value; set one of its keys")
+        value = _parse_value(text, _field_types(type(obj))[head], full_key)
+    else:
+        if not dataclasses.is_dataclass(current):
+            raise ConfigError(f"unknown config key {full_key!r}; valid keys: {', '.join(valid_keys())}")
+        value = _set(current, path[1:], text, full_key)
+    return dataclasses.replace(obj, **{head: value})
+
+
+def apply_overrides(cfg: Config, overrides: list[str]) -> Config:
+    """Apply ``key=value`` strings, e.g. ``ppo.num_envs=512``; validates the result."""
+    for item in overrides:
+        if "=" not in item:
+            raise ConfigError(f"override {item!r} is not of the form key=value")
+        key, text = item.split("=", 1)
+        cfg = _set(cfg, key.strip().split("."), text.strip(), key.strip())
+    validate(cfg)
+    return cfg
+
+
+def validate(cfg: Config) -> None:
+    """Reject values that would make training meaningless or crash later."""
+    for key, choices in _CHOICES.items():
+        value = get_key(cfg, key)
+        if value not in choices:
+            raise ConfigError(f"{key}={value!r} is not one of {', '.join(choices)}")
+    checks = [
+        ("ppo.num_envs", cfg.ppo.num_envs >= 1),
+        ("ppo.unroll_length", cfg.ppo.unroll_length >= 1),
+        ("ppo.num_minibatches", cfg.ppo.num_minibatches >= 1
+         and (cfg.ppo.num_envs * cfg.ppo.unroll_length) % cfg.ppo.num_minibatches == 0),
+        ("ppo.num_epochs", cfg.ppo.num_epochs >= 1),
+        ("ppo.learning_rate", cfg.ppo.learning_rate > 0),
+        ("ppo.gamma", 0 < cfg.ppo.gamma <= 1),
+        ("ppo.gae_lambda", 0 <= cfg.ppo.gae_lambda <= 1),
+        ("ppo.clip_eps", cfg.ppo.clip_eps > 0),
+        ("ppo.obs_std_floor", cfg.ppo.obs_std_floor > 0),
+        ("sa.lr0", cfg.sa.lr0 > 0),
+        ("sa.lr_min", 0 < cfg.sa.lr_min <= cfg.sa.lr0),
+        ("sa.decay", 0 < cfg.sa.decay <= 1),
+        ("sa.num_cycles", cfg.sa.num_cycles >= 1),
+        ("sa.eval_episodes", cfg.sa.eval_episodes >= 1),
+        ("sa.patience", cfg.sa.patience >= 1),
+        ("sa.max_rollbacks", cfg.sa.max_rollbacks >= 1),
+        ("sa.t0", cfg.sa.t0 > 0),
+        ("train.total_steps", cfg.train.total_steps >= 1),
+        ("env.task.max_steps", cfg.env.task.max_steps >= 1),
+        ("env.control.q_max", cfg.env.control.q_max > 0),
+        ("env.control.substeps", cfg.env.control.substeps >= 1),
+        ("env.task.home_q", len(cfg.env.task.home_q) == 6),
+        ("env.sampling.obstacle_prob", 0 <= cfg.env.sampling.obstacle_prob <= 1),
+    ]
+    for key, ok in checks:
+        if not ok:
+            raise ConfigError(f"invalid value for {key}: {get_key(cfg, key)!r}")
+    if cfg.ppo.num_minibatches and (cfg.ppo.num_envs * cfg.ppo.unroll_length) % cfg.ppo.num_minibatches:
+        raise ConfigError("ppo.num_envs × ppo.unroll_length must be divisible by ppo.num_minibatches")
+
+
+def get_key(cfg: Config, key: str) -> Any:
+    obj: Any = cfg
+    for name in key.split("."):
+        obj = getattr(obj, name)
+    return obj
+
+
+def config_to_dict(cfg: Any) -> dict[str, Any]:
+    return dataclasses.asdict(cfg)
+
+
+def _from_dict(cls: type, data: dict[str, Any], prefix: str) -> Any:
+    hints = _field_types(cls)
+    kwargs = {}
+    known = {f.name for f in dataclasses.fields(cls)}
+    unknown = set(data) - known
+    if unknown:
+        raise ConfigError(f"unknown config keys in saved config: {', '.join(prefix + u for u in sorted(unknown))}")
+    for f in dataclasses.fields(cls):
+        if f.name not in data:
+            continue
+        value = data[f.name]
+        hint = hints[f.name]
+        if dataclasses.is_dataclass(hint):
+            kwargs[f.name] = _from_dict(hint, value, f"{prefix}{f.name}.")
+        elif typing.get_origin(hint) is tuple:
+            kwargs[f.name] = tuple(value)
+        else:
+            kwargs[f.name] = value
+    return cls(**kwargs)
+
+
+def config_from_dict(data: dict[str, Any]) -> Config:
+    cfg = _from_dict(Config, data, "")
+    validate(cfg)
+    return cfg
+
+
+def config_hash(cfg: Config) -> str:
+    """Short stable hash of the env part: what a policy was trained on."""
+    blob = json.dumps(config_to_dict(cfg.env), sort_keys=True).encode()
+    return hashlib.sha256(blob).hexdigest()[:12]
