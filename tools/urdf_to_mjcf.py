@@ -1,0 +1,221 @@
+"""Regenerate ``mjcf/aubo_i5_eg2.xml`` (robot) and ``mjcf/scene.xml`` (robot + cell) from the URDF.
+
+MuJoCo's own importer (``mujoco.MjSpec``) reads the URDF; this tool adds what MJCF
+needs and URDF lacks: position actuators tuned for 20 Hz joint-target control,
+joint armature and damping, gravity compensation (the AUBO controller compensates
+gravity), ``flange`` and ``gripper_center`` sites, and, for the scene, the table,
+gantry, camera (body and MJCF camera), the target and the dynamic-obstacle slots,
+all from ``sagrasp_jax.scene.SCENE``.
+
+Usage: ``python tools/urdf_to_mjcf.py [--urdf PATH] [--out-dir mjcf]``.  On a
+missing or malformed URDF it exits non-zero naming the file and writes nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import xml.etree.ElementTree as ET
+
+import mujoco
+import numpy as np
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+
+from sagrasp_jax.robot import ARM_JOINTS, FINGER_JOINTS, URDF_PATH, URDFError, parse_urdf  # noqa: E402
+from sagrasp_jax.scene import SCENE  # noqa: E402
+
+# Position servo gains per arm joint (N·m/rad) and velocity feedback (N·m·s/rad). With gravity
+# compensation on, the servo only fights inertia; these track a 0.05 rad step within one 0.05 s
+# control period (see tests/test_mjcf.py).
+ARM_KP = (3000.0, 3000.0, 3000.0, 300.0, 300.0, 300.0)
+ARM_KV = (150.0, 150.0, 150.0, 10.0, 10.0, 10.0)
+ARM_ARMATURE = (0.2, 0.2, 0.2, 0.02, 0.02, 0.02)
+ARM_DAMPING = 1.0
+FINGER_KP, FINGER_KV, FINGER_FORCE = 400.0, 10.0, 20.0
+PARK_Z = -5.0  # unused obstacle slots wait below the floor
+CONTACT_GEOMS = ("left_finger", "right_finger")  # robot geoms that touch things in the physical grasp check
+
+
+def _quat(rot: np.ndarray) -> np.ndarray:
+    q = np.zeros(4)
+    mujoco.mju_mat2Quat(q, np.asarray(rot, dtype=float).reshape(9))
+    return q
+
+
+def _urdf_colours(path: str) -> dict[str, list[float]]:
+    colours = {}
+    for link in ET.parse(path).getroot().findall("link"):
+        colour = link.find("visual/material/color")
+        if colour is not None:
+            colours[link.get("name")] = [float(v) for v in colour.get("rgba").split()]
+    return colours
+
+
+def build_robot_spec(urdf_path: str) -> mujoco.MjSpec:
+    """The robot alone: URDF import plus actuators, sites and joint dynamics."""
+    robot = parse_urdf(urdf_path)  # validates the URDF with messages that name the file
+    try:
+        spec = mujoco.MjSpec.from_file(urdf_path)
+    except Exception as exc:  # mujoco raises ValueError with its own parser message
+        raise URDFError(f"{urdf_path}: MuJoCo could not import the URDF ({exc})") from None
+    spec.modelname = "aubo_i5_eg2"
+    spec.compiler.fusestatic = False
+    spec.compiler.discardvisual = False  # keep contype-0 geoms: they are the collision primitives
+    spec.option.timestep = 0.01
+    spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
+    colours = _urdf_colours(urdf_path)
+    for body in spec.bodies:
+        if body.name == "world":
+            continue
+        body.gravcomp = 1.0
+        for geom in body.geoms:
+            geom.name = f"{body.name}_geom"
+            geom.rgba = colours.get(body.name, [0.8, 0.8, 0.8, 1.0])
+            touching = body.name in CONTACT_GEOMS
+            geom.contype = 1 if touching else 0
+            geom.conaffinity = 1 if touching else 0
+            geom.friction = [1.5, 0.01, 0.001] if touching else geom.friction
+    for i, name in enumerate(ARM_JOINTS):
+        joint = spec.joint(name)
+        joint.armature = ARM_ARMATURE[i]
+        joint.damping = [ARM_DAMPING, 0.0, 0.0]
+        joint.actgravcomp = True
+        act = spec.add_actuator(name=f"{name}_servo", target=name, trntype=mujoco.mjtTrn.mjTRN_JOINT)
+        act.set_to_position(kp=ARM_KP[i], kv=ARM_KV[i])
+        act.ctrlrange = [float(robot.q_lower[i]), float(robot.q_upper[i])]
+        act.ctrllimited = True
+        act.forcerange = [-float(robot.effort_limit[i]), float(robot.effort_limit[i])]
+        act.forcelimited = True
+    for name in FINGER_JOINTS:
+        joint = spec.joint(name)
+        joint.armature = 0.01
+        joint.damping = [1.0, 0.0, 0.0]
+        act = spec.add_actuator(name=f"{name}_servo", target=name, trntype=mujoco.mjtTrn.mjTRN_JOINT)
+        act.set_to_position(kp=FINGER_KP, kv=FINGER_KV)
+        act.ctrlrange = [0.0, robot.finger_open]
+        act.ctrllimited = True
+        act.forcerange = [-FINGER_FORCE, FINGER_FORCE]
+        act.forcelimited = True
+    wrist3 = spec.body(robot.link_names[-1])
+    wrist3.add_site(name="flange", pos=robot.flange_local[:3, 3], quat=_quat(robot.flange_local[:3, :3]), size=[0.005, 0, 0])
+    wrist3.add_site(name="gripper_center", pos=robot.gripper_centre_local, size=[0.005, 0, 0], rgba=[0, 1, 0, 1])
+    return spec
+
+
+def add_scene(spec: mujoco.MjSpec) -> None:
+    """Add the cell of ``SCENE`` to a robot spec."""
+    world = spec.worldbody
+    spec.modelname = "sagrasp_scene"
+    spec.visual.headlight.ambient = [0.4, 0.4, 0.4]
+    spec.visual.global_.offwidth = SCENE.camera.resolution[0]
+    spec.visual.global_.offheight = SCENE.camera.resolution[1]
+    world.add_light(name="sun", pos=[0, -0.3, 2.5], dir=[0, 0, -1], diffuse=[0.7, 0.7, 0.7])
+    table = SCENE.table
+    world.add_geom(
+        name="table",
+        type=mujoco.mjtGeom.mjGEOM_PLANE,
+        pos=[table.centre_xy[0], table.centre_xy[1], table.top_z],
+        size=[table.half_extents[0], table.half_extents[1], 0.01],
+        rgba=list(table.rgba),
+        contype=1,
+        conaffinity=1,
+    )
+    kind_to_geom = {0: mujoco.mjtGeom.mjGEOM_SPHERE, 1: mujoco.mjtGeom.mjGEOM_CAPSULE,
+                    2: mujoco.mjtGeom.mjGEOM_BOX, 3: mujoco.mjtGeom.mjGEOM_CYLINDER}
+    for part in SCENE.static_parts:
+        world.add_geom(
+            name=part.name,
+            type=kind_to_geom[part.kind],
+            pos=list(part.pos),
+            quat=_quat(part.rot),
+            size=list(part.size),
+            rgba=list(part.rgba),
+            contype=0,
+            conaffinity=0,
+        )
+    cam = SCENE.camera
+    world.add_camera(
+        name="depth_camera",
+        pos=list(cam.pos),
+        quat=_quat(cam.mujoco_rot),
+        fovy=cam.fovy_deg,
+        resolution=list(cam.resolution),
+    )
+    world.add_camera(name="overview", pos=[1.3, -1.6, 1.1], xyaxes=[0.78, 0.63, 0, -0.25, 0.31, 0.92], fovy=50)
+    target = world.add_body(name="target", mocap=True, pos=[0.0, -0.45, SCENE.target_size[2] / 2])
+    target.add_geom(
+        name="target_geom",
+        type=mujoco.mjtGeom.mjGEOM_BOX,
+        size=[s / 2 for s in SCENE.target_size],
+        rgba=list(SCENE.target_rgba),
+        mass=0.05,
+        contype=1,
+        conaffinity=1,
+        friction=[1.5, 0.01, 0.001],
+    )
+    for slot in range(SCENE.obstacles.count):
+        body = world.add_body(name=f"obstacle_{slot}", mocap=True, pos=[0.0, 0.0, PARK_Z])
+        for kind in SCENE.obstacles.kinds:
+            label = {0: "sphere", 2: "box", 3: "cylinder"}[kind]
+            # Unit sizes; the renderer and the physical check set sizes per episode.
+            body.add_geom(
+                name=f"obstacle_{slot}_{label}",
+                type=kind_to_geom[kind],
+                size=[0.05, 0.05, 0.05],
+                rgba=list(SCENE.obstacles.rgba),
+                contype=0,
+                conaffinity=0,
+            )
+
+
+def generate(urdf_path: str) -> dict[str, str]:
+    """Return {filename: xml text}; raises URDFError on a bad URDF."""
+    robot_spec = build_robot_spec(urdf_path)
+    robot_spec.compile()
+    scene_spec = build_robot_spec(urdf_path)
+    add_scene(scene_spec)
+    scene_spec.compile()
+    header = "<!-- Generated by tools/urdf_to_mjcf.py from urdf/aubo_i5_eg2.urdf and sagrasp_jax/scene.py; do not edit. -->\n"
+    return {"aubo_i5_eg2.xml": header + robot_spec.to_xml(), "scene.xml": header + scene_spec.to_xml()}
+
+
+def write_atomically(files: dict[str, str], out_dir: str) -> None:
+    os.makedirs(out_dir, exist_ok=True)
+    temps = []
+    try:
+        for name, text in files.items():
+            fd, tmp = tempfile.mkstemp(dir=out_dir, prefix=f".{name}.", suffix=".tmp")
+            with os.fdopen(fd, "w") as fh:
+                fh.write(text)
+            os.chmod(tmp, 0o644)
+            temps.append((tmp, os.path.join(out_dir, name)))
+        for tmp, final in temps:
+            os.replace(tmp, final)
+    finally:
+        for tmp, _ in temps:
+            if os.path.exists(tmp):
+                os.remove(tmp)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--urdf", default=URDF_PATH, help="input URDF (default: the project URDF)")
+    parser.add_argument("--out-dir", default=os.path.join(ROOT, "mjcf"), help="output folder")
+    args = parser.parse_args(argv)
+    try:
+        files = generate(args.urdf)
+    except URDFError as exc:
+        print(f"urdf_to_mjcf: error: {exc}", file=sys.stderr)
+        return 2
+    write_atomically(files, args.out_dir)
+    for name in files:
+        print(f"wrote {os.path.join(args.out_dir, name)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
