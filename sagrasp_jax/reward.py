@@ -1,0 +1,151 @@
+"""Reward, success test and terminal-outcome precedence (SPEC §2), for every backend.
+
+R = F_d·R_distance + F_s·R_success + F_o·R_obstacle with progress-dependent weights.
+Written once, with the array module passed in (``xp`` = numpy or jax.numpy) and no
+Python control flow on array values, so the MJX env, the PyBullet reference env and
+the evaluation tools score an episode identically.  This module must not import jax.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, NamedTuple
+
+from sagrasp_jax.config import RewardConfig, TaskConfig
+
+RC_MODES = ("entry", "per_step")
+
+
+class RewardTerms(NamedTuple):
+    """The three reward terms and their weights, logged per episode."""
+
+    r_distance: Any
+    r_success: Any
+    r_obstacle: Any
+    f_d: Any
+    f_s: Any
+    f_o: Any
+
+
+class Outcome(NamedTuple):
+    """Mutually exclusive terminal flags after precedence collision > success > timeout."""
+
+    collision: Any
+    success: Any
+    timeout: Any
+
+
+def reward_weights(p: Any, cfg: RewardConfig) -> tuple[Any, Any, Any]:
+    """(F_d, F_s, F_o) at training progress ``p`` ∈ [0, 1]: distance shaping fades and the
+    terminal verdict gains weight as training goes on (defaults: 2 − p, 0.5 + p, 0.5)."""
+    f_d = cfg.f_d0 + cfg.f_d1 * p
+    f_s = cfg.f_s0 + cfg.f_s1 * p
+    f_o = cfg.f_o + 0 * p  # same shape/type as the other two
+    return f_d, f_s, f_o
+
+
+def success_flag(xp: Any, cfg: TaskConfig, gripper_centre: Any, target_pos: Any, tilt: Any) -> Any:
+    """Kinematic grasp success (without the no-collision part, see ``resolve_outcome``).
+
+    Horizontal offset ≤ success_xy, gripper centre success_dz_min..success_dz_max above
+    the target centre (the open pads then embrace the cube and clear the table), and
+    tilt ≤ success_tilt_deg.
+    """
+    offset = xp.asarray(gripper_centre) - xp.asarray(target_pos)
+    horizontal = xp.sqrt(offset[..., 0] ** 2 + offset[..., 1] ** 2)
+    dz = offset[..., 2]
+    return (
+        (horizontal <= cfg.success_xy)
+        & (dz >= cfg.success_dz_min)
+        & (dz <= cfg.success_dz_max)
+        & (xp.asarray(tilt) <= math.radians(cfg.success_tilt_deg))
+    )
+
+
+def _as_bool(xp: Any, flag: Any) -> Any:
+    return xp.asarray(flag) != 0
+
+
+def resolve_outcome(xp: Any, collision: Any, success_raw: Any, timeout: Any) -> Outcome:
+    """Apply the SPEC's precedence collision > success > timeout to raw per-step flags.
+
+    A step can satisfy several raw conditions at once (e.g. the success pose reached
+    while touching the table, or success on the 200th step); exactly one verdict must
+    be paid, and the returned flags are mutually exclusive booleans.
+    """
+    col = _as_bool(xp, collision)
+    suc = _as_bool(xp, success_raw) & ~col
+    tmo = _as_bool(xp, timeout) & ~col & ~suc
+    return Outcome(collision=col, success=suc, timeout=tmo)
+
+
+def step_reward(
+    xp: Any,
+    cfg: RewardConfig,
+    *,
+    progress: Any,
+    d_prev: Any,
+    d_now: Any,
+    collision: Any,
+    success: Any,
+    timeout: Any,
+    obstacle_dist: Any,
+    obstacle_present: Any,
+    clean_so_far: Any,
+) -> tuple[Any, RewardTerms]:
+    """Reward of one step; returns (total, RewardTerms).
+
+    ``collision``, ``success`` and ``timeout`` are the raw flags; precedence
+    collision > success > timeout is applied here (``resolve_outcome``), so a colliding
+    step that also meets the success pose pays the collision verdict only.
+
+    * R_distance = ratio·(d_prev − d_now) + grab-zone term.  ``rc_mode="entry"``: RC·(g_t −
+      g_{t−1}), g = [d ≤ d_grab] — potential-based, paid once on entry and taken back on
+      leaving, so hovering earns nothing.  ``"per_step"``: RC·g_t on every step (the
+      paper's literal form; PPO learns to hover inside d_grab — kept for the ablation).
+    * R_success = success_reward on success, failure_reward on collision or timeout.
+    * R_obstacle = collision_penalty on collision; on non-terminal steps a near-miss
+      penalty −near_miss_scale·(1 − Δpo/near_miss_distance) while an obstacle is present
+      and Δpo < near_miss_distance; clean_success_bonus on success when an obstacle was
+      present and never came nearer than near_miss_distance (``clean_so_far`` must
+      already include this step).
+    """
+    if cfg.rc_mode not in RC_MODES:
+        raise ValueError(f"rc_mode must be one of {RC_MODES}, got {cfg.rc_mode!r}")
+    d_prev = xp.asarray(d_prev)
+    d_now = xp.asarray(d_now)
+    dtype = xp.result_type(d_prev, d_now)
+    outcome = resolve_outcome(xp, collision, success, timeout)
+    present = _as_bool(xp, obstacle_present)
+    clean = _as_bool(xp, clean_so_far)
+    terminal = outcome.collision | outcome.success | outcome.timeout
+
+    g_now = (d_now <= cfg.d_grab).astype(dtype)
+    g_prev = (d_prev <= cfg.d_grab).astype(dtype)
+    grab = g_now - g_prev if cfg.rc_mode == "entry" else g_now
+    r_distance = cfg.ratio * (d_prev - d_now) + cfg.rc * grab
+
+    r_success = xp.where(
+        outcome.success,
+        cfg.success_reward,
+        xp.where(outcome.collision | outcome.timeout, cfg.failure_reward, 0.0),
+    ).astype(dtype)
+
+    # clip(1 − Δpo/dist, 0, 1) is 0 outside the near-miss band and bounded at contact.
+    closeness = xp.clip(1.0 - xp.asarray(obstacle_dist) / cfg.near_miss_distance, 0.0, 1.0)
+    near_miss = xp.where(present & ~terminal, -cfg.near_miss_scale * closeness, 0.0)
+    clean_bonus = xp.where(outcome.success & present & clean, cfg.clean_success_bonus, 0.0)
+    r_obstacle = xp.where(outcome.collision, cfg.collision_penalty, near_miss + clean_bonus).astype(dtype)
+
+    f_d, f_s, f_o = reward_weights(xp.asarray(progress, dtype=dtype), cfg)
+    total = f_d * r_distance + f_s * r_success + f_o * r_obstacle
+    shape = total.shape
+    terms = RewardTerms(
+        r_distance=xp.broadcast_to(r_distance, shape),
+        r_success=xp.broadcast_to(r_success, shape),
+        r_obstacle=xp.broadcast_to(r_obstacle, shape),
+        f_d=xp.broadcast_to(f_d, shape),
+        f_s=xp.broadcast_to(f_s, shape),
+        f_o=xp.broadcast_to(f_o, shape),
+    )
+    return total, terms
