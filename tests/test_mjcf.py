@@ -1,0 +1,117 @@
+"""Generated MJCF: up to date with the URDF and scene, loads in MJX, camera where the SPEC says."""
+
+import math
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import sagrasp_jax  # noqa: F401
+from sagrasp_jax import config, robot, scene
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+TOOL = os.path.join(ROOT, "tools", "urdf_to_mjcf.py")
+
+
+def test_committed_mjcf_is_what_the_tool_generates(tmp_path):
+    out = subprocess.run([sys.executable, TOOL, "--out-dir", str(tmp_path)], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    for name in ("aubo_i5_eg2.xml", "scene.xml"):
+        with open(os.path.join(ROOT, "mjcf", name)) as committed, open(tmp_path / name) as fresh:
+            assert committed.read() == fresh.read(), f"mjcf/{name} is stale: run python tools/urdf_to_mjcf.py"
+
+
+@pytest.mark.parametrize("content, needle", [(None, "not found"), ("<robot><link>", "malformed"),
+                                             ("<robot name='x'><link name='a'/></robot>", "missing")])
+def test_bad_urdf_exits_nonzero_and_writes_nothing(tmp_path, content, needle):
+    urdf = tmp_path / "bad.urdf"
+    if content is not None:
+        urdf.write_text(content)
+    out_dir = tmp_path / "out"
+    result = subprocess.run([sys.executable, TOOL, "--urdf", str(urdf), "--out-dir", str(out_dir)],
+                            capture_output=True, text=True)
+    assert result.returncode != 0
+    assert "bad.urdf" in result.stderr and needle in result.stderr
+    assert not out_dir.exists() or not any(out_dir.iterdir())
+
+
+def test_scene_contents():
+    import mujoco
+
+    model = mujoco.MjModel.from_xml_path(os.path.join(ROOT, "mjcf", "scene.xml"))
+    names = {model.geom(i).name for i in range(model.ngeom)}
+    for part in scene.SCENE.static_parts:
+        assert part.name in names
+    assert {"table", "target_geom", "obstacle_1_box"} <= names
+    assert model.nu == 8 and model.nmocap == 3
+    post = model.geom("gantry_post_right")
+    np.testing.assert_allclose(post.pos, [0.60, -0.40, 0.77])
+    np.testing.assert_allclose(2 * post.size, [0.04, 0.04, 1.54])
+
+
+def test_mjx_accepts_scene_and_steps_without_nan():
+    import jax
+    import jax.numpy as jnp
+    import mujoco
+    from mujoco import mjx
+
+    model = mujoco.MjModel.from_xml_path(os.path.join(ROOT, "mjcf", "scene.xml"))
+    model.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_CONTACT
+    mx = mjx.put_model(model)
+    home = jnp.concatenate([jnp.asarray(config.HOME_Q, jnp.float32), jnp.full(2, 0.033)])
+
+    def one(noise):
+        d = mjx.make_data(mx).replace(qpos=home + jnp.pad(noise, (0, 2)), ctrl=home)
+        return mjx.step(mx, d)
+
+    noise = jax.random.uniform(jax.random.PRNGKey(0), (8, 6), minval=-0.05, maxval=0.05)
+    d = jax.jit(jax.vmap(one))(noise)
+    assert d.qpos.shape == (8, 8)
+    assert bool(jnp.all(jnp.isfinite(d.qpos)))
+
+
+def test_camera_pose_and_field_of_view_cover_the_target_region():
+    import mujoco
+
+    model = mujoco.MjModel.from_xml_path(os.path.join(ROOT, "mjcf", "scene.xml"))
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    cam = data.camera("depth_camera")
+    np.testing.assert_allclose(cam.xpos, [-0.16208, -0.40337, 1.40824], atol=1e-9)
+    view = -cam.xmat.reshape(3, 3)[:, 2]  # MuJoCo cameras look along their −z
+    np.testing.assert_allclose(view, scene.SCENE.camera.optical_axis, atol=1e-6)  # quat printed to 1e-7
+    s = config.SamplingConfig()
+    worst = 0.0
+    for x in np.linspace(*s.target_x, 36):
+        for y in np.linspace(*s.target_y, 36):
+            if not s.target_radius[0] <= math.hypot(x, y) <= s.target_radius[1]:
+                continue
+            ray = np.array([x, y, 0.025]) - cam.xpos
+            worst = max(worst, math.degrees(math.acos(ray @ view / np.linalg.norm(ray))))
+    assert 10.0 < worst < 20.0
+    assert worst < scene.SCENE.camera.fovy_deg / 2
+
+
+def test_dynamic_servo_tracks_a_small_step():
+    """Position servos + gravity compensation: hold the home pose and follow a 0.05 rad step."""
+    import mujoco
+
+    model = mujoco.MjModel.from_xml_path(os.path.join(ROOT, "mjcf", "scene.xml"))
+    data = mujoco.MjData(model)
+    home = np.array(config.HOME_Q)
+    data.qpos[:6] = home
+    data.qpos[6:8] = 0.033
+    data.ctrl[:6] = home
+    data.ctrl[6:8] = 0.033
+    for _ in range(50):
+        mujoco.mj_step(model, data)
+    assert np.abs(data.qpos[:6] - home).max() < 1e-6  # gravity compensated
+    data.ctrl[:6] = home + 0.05
+    for _ in range(10):  # two control periods
+        mujoco.mj_step(model, data)
+    assert np.abs(data.qpos[:6] - (home + 0.05)).max() < 0.01
+    mujoco.mj_kinematics(model, data)
+    kin = robot.forward_kinematics(np, robot.load_robot(), data.qpos[:6])
+    assert np.linalg.norm(kin.gripper_centre - data.site("gripper_center").xpos) < 1e-9
