@@ -1,0 +1,169 @@
+"""Safety layer between the policy and the real arm: refuse, never clip (SPEC §5).
+
+Every joint target the deployment loop is about to send passes ``SafetyLayer.check``.
+A command that breaks a rule raises ``SafetyViolation`` naming the joint or axis, the
+value and the limit; the loop must then stop the arm.  Clipping silently would hide a
+policy, calibration or control-step bug behind a motion nobody asked for.
+
+Rules (all NumPy, robot facts from the URDF via ``robot.load_robot``):
+
+1. joint limits: ``q_lower ≤ q ≤ q_upper`` per joint;
+2. per-step motion: ``|q − q_prev| ≤ min(velocity_limit·control_dt, q_max)`` per joint,
+   with ``q_prev`` the previous commanded target (the target accumulates, SPEC §2 step 4);
+   with the defaults q_max = 0.05 rad is the binding bound (2.5964 rad/s × 0.05 s = 0.13 rad);
+3. workspace box for the gripper centre (``WorkspaceBox``, derivation below);
+4. table: every primitive on a moving link above the shoulder (upper arm, forearm, wrists,
+   flange, gripper body, fingers) stays above the table top z = 0 (+ ``table_clearance``).
+   The base and shoulder are excluded: their height never changes (joint 1 turns about z)
+   and the shoulder capsule of the URDF dips 1 cm into the table by construction;
+5. optionally, a caller-supplied ``collision_check(q) -> message | None`` (self-collision
+   and static-cell checks from ``sagrasp_jax.geometry`` once the deployment loop wires them).
+
+Default workspace box (world = URDF base frame, metres), derived from SPEC §1:
+
+* x ∈ [−0.50, 0.50]: the gantry posts' inner faces are at |x| = 0.58; 0.50 keeps the
+  gripper body (half-width 0.045) 3.5 cm clear of them, and leaves 0.13 m beyond the
+  trained target range |x| ≤ 0.35 (+0.02 detection margin).
+* y ∈ [−0.85, 0.30]: targets lie in y ∈ [−0.60, −0.25] and the home gripper centre at
+  y = −0.30; −0.85 leaves room for approach swings past the far edge, +0.30 lets the
+  gripper pass the base side but not swing behind the robot.
+* z ∈ [0.0, 1.0]: above the table; the camera body's bottom is at ≈ 1.37 m, so with the
+  gripper pointing down its flange (0.128 m above the centre) and wrist stay ≥ 0.2 m below it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+
+from sagrasp_jax.config import EnvConfig
+from sagrasp_jax.robot import (
+    ARM_JOINTS,
+    BOX,
+    CAPSULE,
+    CYLINDER,
+    SPHERE,
+    RobotModel,
+    forward_kinematics,
+    load_robot,
+    primitive_poses,
+)
+
+_TOL = 1e-9  # float slack: the control step clips to the limit exactly, do not refuse that
+_FIRST_CHECKED_LINK = 2  # upper arm; base (0) and shoulder (1) never change height
+
+
+class SafetyViolation(RuntimeError):
+    """A joint command that must not reach the robot; the message says which rule and by how much."""
+
+
+@dataclass(frozen=True)
+class WorkspaceBox:
+    """Axis-aligned box the gripper centre must stay in (world frame, m); see module docstring."""
+
+    lower: tuple[float, float, float] = (-0.50, -0.85, 0.0)
+    upper: tuple[float, float, float] = (0.50, 0.30, 1.0)
+
+    def __post_init__(self) -> None:
+        if not all(lo < hi for lo, hi in zip(self.lower, self.upper)):
+            raise ValueError(f"workspace box lower {self.lower} must be below upper {self.upper} on every axis")
+
+
+def lowest_points(robot: RobotModel, prim_pos: np.ndarray, prim_rot: np.ndarray) -> np.ndarray:
+    """Lowest world z (G,) of every robot primitive at the given poses (exact for each shape)."""
+    kind = robot.prim_kind
+    size = robot.prim_size
+    rz = prim_rot[:, 2, :]  # world z component of each local axis
+    centre_z = prim_pos[:, 2]
+    box = np.sum(np.abs(rz) * size, axis=-1)
+    axial = np.abs(rz[:, 2])
+    sphere = size[:, 0]
+    capsule = axial * size[:, 1] + size[:, 0]
+    cylinder = axial * size[:, 1] + size[:, 0] * np.sqrt(np.clip(1.0 - axial**2, 0.0, 1.0))
+    extent = np.select([kind == SPHERE, kind == CAPSULE, kind == BOX, kind == CYLINDER], [sphere, capsule, box, cylinder])
+    return centre_z - extent
+
+
+class SafetyLayer:
+    """Checks joint commands against the robot's limits and the cell; raises SafetyViolation."""
+
+    def __init__(
+        self,
+        env_cfg: EnvConfig | None = None,
+        robot: RobotModel | None = None,
+        workspace: WorkspaceBox | None = None,
+        table_clearance: float = 0.0,
+        collision_check: Callable[[np.ndarray], str | None] | None = None,
+    ) -> None:
+        cfg = env_cfg or EnvConfig()
+        self.robot = robot or load_robot()
+        self.workspace = workspace or WorkspaceBox()
+        self.table_clearance = float(table_clearance)
+        self.collision_check = collision_check
+        self.joint_names = tuple(f"joint {i + 1} ({name})" for i, name in enumerate(ARM_JOINTS))
+        self.control_dt = float(cfg.control.control_dt)
+        self.q_max = float(cfg.control.q_max)
+        # Per-joint bound on one control step's change of the commanded target.
+        self.step_limit = np.minimum(self.robot.velocity_limit * self.control_dt, self.q_max)
+        self._checked_prims = np.nonzero(self.robot.prim_link >= _FIRST_CHECKED_LINK)[0]
+
+    def _as_q(self, q: Any, what: str) -> np.ndarray:
+        q = np.asarray(q, dtype=float)
+        if q.shape != (6,):
+            raise SafetyViolation(f"{what} must be 6 joint values, got shape {q.shape}")
+        if not np.isfinite(q).all():
+            bad = ", ".join(self.joint_names[i] for i in np.nonzero(~np.isfinite(q))[0])
+            raise SafetyViolation(f"{what} has NaN/inf for {bad}")
+        return q
+
+    def check_pose(self, q: Any, what: str = "commanded target") -> np.ndarray:
+        """Static rules (limits, workspace, table, collision hook) for one joint vector."""
+        q = self._as_q(q, what)
+        lo, hi = self.robot.q_lower, self.robot.q_upper
+        for i in range(6):
+            if not lo[i] - _TOL <= q[i] <= hi[i] + _TOL:
+                raise SafetyViolation(
+                    f"{what}: {self.joint_names[i]} = {q[i]:.4f} rad is outside its limit [{lo[i]:.4f}, {hi[i]:.4f}] rad"
+                )
+        kin = forward_kinematics(np, self.robot, q)
+        centre = kin.gripper_centre
+        for axis, name in enumerate("xyz"):
+            a, b = self.workspace.lower[axis], self.workspace.upper[axis]
+            if not a <= centre[axis] <= b:
+                raise SafetyViolation(
+                    f"{what}: gripper centre {name} = {centre[axis]:.4f} m is outside the workspace box "
+                    f"[{a:.3f}, {b:.3f}] m (gripper centre at {np.round(centre, 4).tolist()})"
+                )
+        prim_pos, prim_rot = primitive_poses(np, self.robot, kin)
+        low = lowest_points(self.robot, prim_pos, prim_rot)[self._checked_prims]
+        worst = int(np.argmin(low))
+        floor = self.table_clearance
+        if low[worst] <= floor:
+            name = self.robot.primitives[self._checked_prims[worst]].name
+            raise SafetyViolation(
+                f"{what}: {name} reaches z = {low[worst]:.4f} m, not above the table top + clearance {floor:.4f} m"
+            )
+        if self.collision_check is not None:
+            message = self.collision_check(q)
+            if message:
+                raise SafetyViolation(f"{what}: {message}")
+        return q
+
+    def check(self, q_cmd: Any, q_prev: Any) -> np.ndarray:
+        """All rules for a command following ``q_prev`` (previous command, or the measured q at start).
+
+        Returns the command unchanged (as a float array) so the caller sends exactly what passed.
+        """
+        q_prev = self._as_q(q_prev, "previous target")
+        q = self._as_q(q_cmd, "commanded target")
+        step = np.abs(q - q_prev)
+        for i in range(6):
+            if step[i] > self.step_limit[i] + _TOL:
+                raise SafetyViolation(
+                    f"commanded target: {self.joint_names[i]} moves {step[i]:.4f} rad in one step, over the limit "
+                    f"{self.step_limit[i]:.4f} rad = min(velocity {self.robot.velocity_limit[i]:.4f} rad/s × "
+                    f"{self.control_dt:g} s, q_max {self.q_max:g} rad)"
+                )
+        return self.check_pose(q, "commanded target")
