@@ -113,8 +113,8 @@ class SamplingConfig:
     home_xy: tuple[float, float] = (0.0, -0.30)
     target_clearance: float = 0.10  # m, obstacle surface to target centre, horizontal
     robot_clearance: float = 0.10  # m, obstacle to every robot geometry at the start pose
-    obstacle_candidates: int = 16  # per slot, first feasible wins
-    scene_redraws: int = 4  # whole-scene re-draws before falling back to "no obstacle"
+    obstacle_candidates: int = 8  # per slot, first feasible wins
+    scene_redraws: int = 2  # whole-scene re-draws before falling back to "no obstacle"
 
 
 @dataclass(frozen=True)
@@ -369,6 +369,7 @@ def validate(cfg: Config) -> None:
         ("env.control.q_max", cfg.env.control.q_max > 0),
         ("env.control.substeps", cfg.env.control.substeps >= 1),
         ("env.task.home_q", len(cfg.env.task.home_q) == 6),
+        ("env.sampling.max_obstacles", cfg.env.sampling.max_obstacles == 2),  # the MJCF has two slots
         ("env.sampling.obstacle_prob", 0 <= cfg.env.sampling.obstacle_prob <= 1),
     ]
     for key, ok in checks:
