@@ -1,0 +1,518 @@
+"""SA-PPO / PPO trainer: ``python -m sagrasp_jax.train --preset cpu-quick --out runs/NAME``.
+
+The loop is a handful of named steps on a :class:`Trainer`: ``run_iteration`` (one jitted PPO
+iteration: rollout + update), ``evaluate`` (fixed-seed deterministic episodes at p = 1),
+``anneal`` (the SA schedule, once per cycle, on the evaluation metric), ``save_checkpoint``.
+Everything that changes the numbers lives in jax arrays or in the checkpoint's host state,
+so a killed run resumed from its last checkpoint continues exactly as if uninterrupted.
+
+Run folder: ``config.json``, ``metrics.jsonl`` (one row per iteration), ``tb/`` (TensorBoard),
+``checkpoint.ckpt`` (every ``train.checkpoint_every_cycles`` cycles and at the end) and
+``policy.npz`` (the final policy in the ``sagrasp_jax.runtime`` format).
+"""
+
+from __future__ import annotations
+
+import sagrasp_jax  # noqa: F401  (sets XLA_FLAGS and the compile-cache dir before jax is imported)
+
+import argparse
+import dataclasses
+import json
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass
+from typing import Any, Callable, TextIO
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from sagrasp_jax import checkpoint, ppo, runtime, sa_schedule
+from sagrasp_jax.checkpoint import CheckpointError
+from sagrasp_jax.config import (
+    PRESETS, Config, ConfigError, apply_overrides, config_from_dict, config_to_dict, get_config, validate,
+)
+
+ALGOS = ("sa-ppo", "ppo")
+CONFIG_FILE = "config.json"
+METRICS_FILE = "metrics.jsonl"
+CHECKPOINT_FILE = "checkpoint.ckpt"
+POLICY_FILE = "policy.npz"
+TB_DIR = "tb"
+# Row fields that depend on wall-clock time, not on the training maths.
+TIME_FIELDS = ("time_s", "steps_per_s", "compile_s", "eval_s", "eta_s")
+
+EnvFactory = Callable[[Config], tuple[ppo.Env, ppo.Env]]  # config -> (auto-reset train env, eval env)
+
+
+def enable_compilation_cache() -> None:
+    """Point jax's persistent cache at the dir sagrasp_jax/__init__ chose (in case jax came first)."""
+    cache = os.environ.get("JAX_COMPILATION_CACHE_DIR")
+    if cache:
+        jax.config.update("jax_compilation_cache_dir", cache)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs",
+                          float(os.environ.get("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "1")))
+
+
+def default_envs(cfg: Config) -> tuple[ppo.Env, ppo.Env]:
+    from sagrasp_jax.env import GraspEnv
+    from sagrasp_jax.wrappers import AutoReset
+
+    return AutoReset(GraspEnv(cfg.env)), GraspEnv(cfg.env)
+
+
+def build_config(preset: str = "cpu-quick", algo: str = "sa-ppo", seed: int | None = None,
+                 total_steps: int | None = None, overrides: list[str] | None = None) -> Config:
+    """Preset + ``--algo`` + ``--seed`` + ``--total-steps`` + ``--set`` overrides, validated."""
+    if algo not in ALGOS:
+        raise ConfigError(f"unknown algo {algo!r}; valid algos: {', '.join(ALGOS)}")
+    cfg = get_config(preset)
+    sets = [f"sa.enabled={algo == 'sa-ppo'}"]
+    if seed is not None:
+        sets.append(f"train.seed={seed}")
+    if total_steps is not None:
+        sets.append(f"train.total_steps={total_steps}")
+    return apply_overrides(cfg, sets + list(overrides or []))
+
+
+@dataclass(frozen=True)
+class Schedule:
+    steps_per_iteration: int
+    num_iterations: int
+    iterations_per_cycle: int
+
+    @property
+    def cycle_steps(self) -> int:
+        return self.steps_per_iteration * self.iterations_per_cycle
+
+
+def make_schedule(cfg: Config) -> Schedule:
+    """Cycles are whole iterations: ``sa.cycle_steps`` (0 → total / num_cycles), rounded."""
+    per_iter = cfg.ppo.num_envs * cfg.ppo.unroll_length
+    cycle_steps = cfg.sa.cycle_steps or cfg.train.total_steps / cfg.sa.num_cycles
+    return Schedule(per_iter, ppo.num_iterations(cfg.train.total_steps, cfg.ppo),
+                    max(1, round(cycle_steps / per_iter)))
+
+
+@dataclass
+class HostState:
+    """Host-side counters; JSON-safe, stored in the checkpoint header."""
+
+    iteration: int = 0  # completed PPO iterations
+    env_steps: int = 0
+    cycle_start: int = 0  # iteration at which the current cycle began
+    entropy_sum: float = 0.0  # over the current cycle's iterations
+    entropy_n: int = 0
+    nonfinite: int = 0  # iterations rolled back for NaN/inf
+
+
+def _json_safe(value: Any) -> Any:
+    if isinstance(value, (np.generic, np.ndarray)):
+        value = value.item() if np.ndim(value) == 0 else value.tolist()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def export_policy(path: str, cfg: Config, params: ppo.Params, normaliser: ppo.Normaliser, obs_size: int) -> str:
+    """Write the deterministic policy (weights + normaliser) as ``runtime``'s ``policy.npz``."""
+    layers = jax.device_get(params.policy["params"])
+    weights = [(np.asarray(layers[f"hidden_{i}"]["kernel"]), np.asarray(layers[f"hidden_{i}"]["bias"]))
+               for i in range(len(layers))]
+    layout = runtime.OBS_LAYOUT if obs_size == len(runtime.OBS_LAYOUT) else tuple(f"obs_{i}" for i in range(obs_size))
+    return runtime.save_policy_npz(path, weights=weights, activation=cfg.ppo.network.activation,
+                                   obs_mean=np.asarray(normaliser.mean), obs_std=np.asarray(normaliser.std),
+                                   config=cfg, obs_layout=layout)
+
+
+class Trainer:
+    """One training run bound to a run folder."""
+
+    def __init__(self, cfg: Config, out_dir: str, *, env_factory: EnvFactory | None = None, resume: bool = False,
+                 progress: bool = True, stream: TextIO | None = None) -> None:
+        enable_compilation_cache()
+        self.cfg = cfg
+        self.out_dir = out_dir
+        self.progress = progress
+        self.stream = stream if stream is not None else sys.stderr
+        self.mesh = ppo.make_mesh()
+        if cfg.ppo.num_envs % self.mesh.size:
+            raise ConfigError(f"ppo.num_envs={cfg.ppo.num_envs} must be divisible by the {self.mesh.size} local devices")
+        self.train_env, self.eval_env = (env_factory or default_envs)(cfg)
+        self.obs_size, self.action_size = self.train_env.observation_size, self.train_env.action_size
+        self.schedule = make_schedule(cfg)
+        self.networks = ppo.make_networks(cfg.ppo.network, self.obs_size, self.action_size, cfg.ppo.obs_clip)
+        self.optimizer = ppo.make_optimizer(cfg.ppo, cfg.sa.lr0 if cfg.sa.enabled else cfg.ppo.learning_rate)
+        self._iteration = ppo.make_iteration(self.train_env, self.networks, self.optimizer, cfg.ppo, self.mesh)
+        self._evaluate = ppo.make_evaluator(self.networks, self.eval_env, cfg.env.task.max_steps)
+        keys = ppo.eval_keys(cfg.sa.eval_seed, cfg.sa.eval_episodes)
+        self.eval_keys = (ppo.shard_batch(keys, self.mesh) if cfg.sa.eval_episodes % self.mesh.size == 0
+                          else ppo.replicate(keys, self.mesh))
+        self._compiled_iteration: Any = None
+        self._compiled_eval: Any = None
+        self.compile_s: dict[str, float] = {}
+        self._fresh_state()
+        if resume:
+            self._load(os.path.join(out_dir, CHECKPOINT_FILE))
+
+    # ------------------------------------------------------------------ state
+
+    def _fresh_state(self) -> None:
+        cfg = self.cfg
+        k_params, k_env, k_train = jax.random.split(jax.random.PRNGKey(cfg.train.seed), 3)
+        ts = ppo.init_training_state(k_params, self.networks, self.optimizer, self.obs_size)
+        self.train_state: ppo.TrainingState = ppo.replicate(ts, self.mesh)
+        self.snapshot: ppo.TrainingState = self.train_state
+        reset = ppo.make_reset(self.train_env, self.mesh)
+        self.env_state = reset(ppo.shard_batch(jax.random.split(k_env, cfg.ppo.num_envs), self.mesh))
+        self.train_key = ppo.replicate(k_train, self.mesh)
+        sa_state = sa_schedule.init(cfg.sa)
+        if not cfg.sa.enabled:
+            sa_state = dataclasses.replace(sa_state, lr=cfg.ppo.learning_rate)
+        self.sa_state = sa_state
+        self.sa_rng = np.random.default_rng([cfg.train.seed, 0x5A])
+        self.host = HostState()
+        self.windows: dict[str, np.ndarray] = {}
+
+    def _trees(self) -> dict[str, Any]:
+        return {"train_state": self.train_state, "snapshot": self.snapshot, "env_state": self.env_state,
+                "train_key": self.train_key}
+
+    def save_checkpoint(self) -> str:
+        """Atomically write everything an exact resume needs."""
+        path = os.path.join(self.out_dir, CHECKPOINT_FILE)
+        host = {"counters": dataclasses.asdict(self.host), "sa_state": self.sa_state.to_dict(),
+                "sa_rng": self.sa_rng.bit_generator.state}
+        checkpoint.save(path, trees={**self._trees(), "windows": self.windows}, host=host, config=self.cfg)
+        return path
+
+    def _load(self, path: str) -> None:
+        ckpt = checkpoint.load(path)
+        checkpoint.check_config(ckpt, self.cfg)
+        try:
+            host = ckpt.host
+            counters = HostState(**host["counters"])
+            sa_state = sa_schedule.SAState.from_dict(host["sa_state"])
+            rng = np.random.default_rng()
+            rng.bit_generator.state = host["sa_rng"]
+        except (KeyError, TypeError, ValueError) as exc:
+            raise CheckpointError(f"{path}: incompatible checkpoint host state ({exc})") from None
+        trees = {name: checkpoint.restore_tree(tmpl, ckpt.trees.get(name, {}), name, path)
+                 for name, tmpl in self._trees().items()}
+        self.train_state = ppo.replicate(trees["train_state"], self.mesh)
+        self.snapshot = ppo.replicate(trees["snapshot"], self.mesh)
+        self.env_state = ppo.shard_batch(trees["env_state"], self.mesh)
+        self.train_key = ppo.replicate(trees["train_key"], self.mesh)
+        self.windows = {k[2:-2]: np.asarray(v) for k, v in ckpt.trees.get("windows", {}).items()}
+        self.host, self.sa_state, self.sa_rng = counters, sa_state, rng
+
+    @property
+    def lr(self) -> float:
+        return self.sa_state.lr
+
+    def _apply_lr(self) -> None:
+        """Make the optimizer state's lr the schedule's (after a decay or a restore)."""
+        opt = self.train_state.opt_state
+        if ppo.get_learning_rate(opt) != np.float32(self.lr):
+            self.train_state = self.train_state._replace(opt_state=ppo.set_learning_rate(opt, self.lr))
+
+    # ------------------------------------------------------------------ compiled steps
+
+    def _iteration_args(self) -> tuple[Any, ...]:
+        key = jax.random.fold_in(self.train_key, self.host.iteration)
+        progress = jnp.float32(min(1.0, self.host.env_steps / self.cfg.train.total_steps))
+        return (self.train_state, self.env_state, ppo.replicate(key, self.mesh), ppo.replicate(progress, self.mesh))
+
+    def compile(self) -> dict[str, float]:
+        """Compile the iteration and the evaluation ahead of time, timing each."""
+        if self._compiled_iteration is None:
+            t = time.perf_counter()
+            self._compiled_iteration = self._iteration.lower(*self._iteration_args()).compile()
+            self.compile_s["iteration"] = time.perf_counter() - t
+            t = time.perf_counter()
+            self._compiled_eval = self._evaluate.lower(self.train_state.params, self.train_state.normaliser,
+                                                       self.eval_keys).compile()
+            self.compile_s["eval"] = time.perf_counter() - t
+        return self.compile_s
+
+    def run_iteration(self) -> dict[str, Any]:
+        """One PPO iteration (rollout + update); a non-finite result restores the snapshot."""
+        self.compile()
+        t = time.perf_counter()
+        ts, env_state, metrics = self._compiled_iteration(*self._iteration_args())
+        metrics = jax.device_get(metrics)
+        dt = time.perf_counter() - t
+        self.env_state = env_state
+        progress = self.host.env_steps / self.cfg.train.total_steps
+        self.host.iteration += 1
+        self.host.env_steps += self.schedule.steps_per_iteration
+        finished = self._update_windows(metrics.pop("episodes"))
+        row: dict[str, Any] = {"iteration": self.host.iteration - 1, "env_steps": self.host.env_steps,
+                               "progress": progress, "steps_per_s": self.schedule.steps_per_iteration / dt,
+                               "episodes_finished": finished}
+        row.update({k: float(v) for k, v in metrics.items() if k != "finite"})
+        row.update(self.window_means())
+        if bool(metrics["finite"]):
+            self.train_state = ts
+            self.host.entropy_sum += float(metrics["entropy"])
+            self.host.entropy_n += 1
+        else:
+            self.host.nonfinite += 1
+            self.sa_state, decision = sa_schedule.force_reject_and_decay(self.cfg.sa, self.sa_state)
+            self.train_state = self.snapshot
+            self._apply_lr()
+            self._start_cycle()
+            row.update(event="nonfinite", sa_decision=decision.kind, sa_decayed=decision.decayed)
+        return row
+
+    def _update_windows(self, episodes: dict[str, np.ndarray]) -> int:
+        """Append the episodes that finished this iteration to the recent-episode window."""
+        done = np.asarray(episodes.pop("done")) > 0
+        size = self.cfg.train.metrics_window
+        for key, values in episodes.items():
+            new = np.asarray(values, np.float32)[done]
+            old = self.windows.get(key, np.zeros((0,), np.float32))
+            self.windows[key] = np.concatenate([old, new])[-size:]
+        return int(done.sum())
+
+    def window_means(self) -> dict[str, Any]:
+        """Training-episode metrics over the last ``train.metrics_window`` finished episodes."""
+        if not self.windows or self.windows["success"].size == 0:
+            return {}
+        out: dict[str, Any] = {k: float(np.mean(v)) for k, v in self.windows.items() if k != "steps"}
+        out["episode_steps"] = float(np.mean(self.windows["steps"]))
+        ok = self.windows["success"] > 0
+        out["steps_to_success"] = float(np.mean(self.windows["steps"][ok])) if ok.any() else None
+        out["window_episodes"] = int(self.windows["success"].size)
+        return out
+
+    def evaluate(self) -> ppo.EvalResult:
+        """The fixed-seed deterministic evaluation at p = 1 (the SA metric's source)."""
+        self.compile()
+        ts = self.train_state
+        return jax.device_get(self._compiled_eval(ts.params, ts.normaliser, self.eval_keys))
+
+    def anneal(self, metric: float, entropy: float) -> sa_schedule.Decision:
+        """SA decision for the cycle: accept → snapshot, reject → restore the snapshot; set the lr."""
+        self.sa_state, decision = sa_schedule.update(self.cfg.sa, self.sa_state, metric, entropy, self.sa_rng,
+                                                     n_actions=self.action_size)
+        if decision.kind == "reject":
+            self.train_state = self.snapshot
+        else:
+            self.snapshot = self.train_state
+        self._apply_lr()
+        return decision
+
+    def _start_cycle(self) -> None:
+        self.host.cycle_start = self.host.iteration
+        self.host.entropy_sum, self.host.entropy_n = 0.0, 0
+
+    def cycle_due(self) -> bool:
+        done = self.host.iteration - self.host.cycle_start
+        return done >= self.schedule.iterations_per_cycle or self.host.iteration >= self.schedule.num_iterations
+
+    def end_cycle(self) -> dict[str, Any]:
+        """Evaluate, anneal, start the next cycle; returns the row fields."""
+        t = time.perf_counter()
+        ev = self.evaluate()
+        eval_s = time.perf_counter() - t
+        metric = float(ev.mean_return if self.cfg.sa.metric == "return" else ev.success_rate)
+        entropy = self.host.entropy_sum / max(self.host.entropy_n, 1)
+        decision = self.anneal(metric, entropy)
+        self._start_cycle()
+        counts = self.sa_state
+        return {
+            "cycle": counts.cycle, "eval_s": eval_s, "eval_return": float(ev.mean_return),
+            "eval_success": float(ev.success_rate), "eval_steps_to_success": float(ev.steps_to_success),
+            "eval_collision": float(ev.collision_rate), "eval_timeout": float(ev.timeout_rate),
+            "sa_metric": metric, "cycle_entropy": entropy, "sa_decision": decision.kind,
+            "sa_decayed": decision.decayed, "sa_delta_e": decision.delta_e, "sa_accept_prob": decision.accept_prob,
+            "temperature": decision.temperature, "sa_accepts": counts.n_accept,
+            "sa_accept_worse": counts.n_accept_worse, "sa_rejects": counts.n_reject, "sa_decays": counts.decays,
+        }
+
+    # ------------------------------------------------------------------ run
+
+    def train(self, stop_after_cycles: int | None = None) -> dict[str, Any]:
+        """Train to ``train.total_steps`` (or stop, checkpointed, after ``stop_after_cycles`` cycles)."""
+        os.makedirs(self.out_dir, exist_ok=True)
+        logger = RunLogger(self.out_dir, resume_iteration=self.host.iteration, resume_step=self.host.env_steps)
+        sched = self.schedule
+        bar = _progress_bar(self.progress, sched, self.host.env_steps, self.stream)
+        t_start = time.perf_counter()
+        start_steps = self.host.env_steps
+        last_row: dict[str, Any] = {}
+        last_metric: float | None = None
+        compile_s = sum(self.compile().values())
+        if bar is not None:
+            bar.write(f"compiled in {compile_s:.1f} s (iteration {self.compile_s['iteration']:.1f} s, "
+                      f"eval {self.compile_s['eval']:.1f} s); {sched.num_iterations} iterations, "
+                      f"{sched.iterations_per_cycle} per cycle, {self.mesh.size} device(s)")
+        try:
+            while self.host.iteration < sched.num_iterations:
+                row = self.run_iteration()
+                cycle_ended = False
+                if "event" not in row and self.cycle_due():
+                    row.update(self.end_cycle())
+                    cycle_ended = True
+                row["lr"] = self.lr
+                row.setdefault("temperature", self.sa_state.temperature)
+                elapsed = time.perf_counter() - t_start
+                rate = (self.host.env_steps - start_steps) / max(elapsed, 1e-9)
+                row.update(time_s=elapsed, compile_s=compile_s,
+                           eta_s=(sched.num_iterations - self.host.iteration) * sched.steps_per_iteration / rate)
+                if (cycle_ended or "event" in row or row["iteration"] % self.cfg.train.log_every == 0
+                        or self.host.iteration == sched.num_iterations):
+                    logger.write(row)
+                last_row = row
+                last_metric = row.get("sa_metric", last_metric)
+                if bar is not None:
+                    bar.update(sched.steps_per_iteration)
+                    bar.set_postfix(sps=f"{rate:,.0f}", success=_fmt(row.get("success")), lr=f"{self.lr:.2e}",
+                                    M=_fmt(last_metric), refresh=False)
+                    if "event" in row:
+                        bar.write(f"iteration {row['iteration']}: non-finite loss/params -> rolled back to the "
+                                  f"snapshot, lr {self.lr:.3g}")
+                cycles = self.sa_state.cycle
+                finished = self.host.iteration >= sched.num_iterations
+                stop = cycle_ended and stop_after_cycles is not None and cycles >= stop_after_cycles
+                if finished or stop or (cycle_ended and cycles % self.cfg.train.checkpoint_every_cycles == 0):
+                    self.save_checkpoint()
+                if stop and not finished:
+                    return last_row
+            if self.host.iteration >= sched.num_iterations:
+                export_policy(os.path.join(self.out_dir, POLICY_FILE), self.cfg, self.train_state.params,
+                              self.train_state.normaliser, self.obs_size)
+        finally:
+            logger.close()
+            if bar is not None:
+                bar.close()
+        return last_row
+
+
+def _fmt(value: Any) -> str:
+    return "-" if value is None else f"{value:.3g}"
+
+
+def _progress_bar(enabled: bool, sched: Schedule, initial: int, stream: TextIO) -> Any:
+    if not enabled:
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=sched.num_iterations * sched.steps_per_iteration, initial=initial, unit="step",
+                unit_scale=True, dynamic_ncols=True, mininterval=1.0, file=stream)
+
+
+class RunLogger:
+    """metrics.jsonl + TensorBoard; on resume drops rows past the checkpoint so the log stays exact."""
+
+    def __init__(self, out_dir: str, resume_iteration: int, resume_step: int) -> None:
+        from tensorboardX import SummaryWriter
+
+        self.path = os.path.join(out_dir, METRICS_FILE)
+        if os.path.exists(self.path):
+            keep = [line for line in read_metrics(self.path) if line.get("iteration", -1) < resume_iteration]
+            text = "".join(json.dumps(r, allow_nan=False) + "\n" for r in keep)
+            checkpoint.atomic_write_bytes(self.path, text.encode())
+        self.file = open(self.path, "a", encoding="utf-8")
+        self.tb = SummaryWriter(os.path.join(out_dir, TB_DIR), purge_step=resume_step + 1 if resume_step else None)
+
+    def write(self, row: dict[str, Any]) -> None:
+        clean = {k: _json_safe(v) for k, v in row.items()}
+        self.file.write(json.dumps(clean, allow_nan=False) + "\n")
+        self.file.flush()
+        step = int(row["env_steps"])
+        for key, value in clean.items():
+            if isinstance(value, (int, float)) and not isinstance(value, bool) and key not in ("iteration", "env_steps"):
+                self.tb.add_scalar(f"train/{key}", value, step)
+
+    def close(self) -> None:
+        self.file.close()
+        self.tb.close()
+
+
+def read_metrics(path: str) -> list[dict[str, Any]]:
+    with open(path, encoding="utf-8") as f:
+        return [json.loads(line) for line in f if line.strip()]
+
+
+# ---------------------------------------------------------------------- CLI
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m sagrasp_jax.train", description=__doc__.split("\n\n")[0])
+    p.add_argument("--preset", default=None, help=f"one of {', '.join(PRESETS)} (default cpu-quick)")
+    p.add_argument("--algo", default=None, help=f"one of {', '.join(ALGOS)} (default sa-ppo)")
+    p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--out", required=True, help="run folder (refused if it exists and is not empty, unless --resume)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="config override, repeatable (e.g. ppo.num_envs=512)")
+    p.add_argument("--total-steps", type=int, default=None)
+    p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.ckpt")
+    p.add_argument("--stop-after-cycles", type=int, default=None,
+                   help="checkpoint and stop after this many SA cycles (simulates a preemption)")
+    p.add_argument("--no-progress", action="store_true", help="no live progress bar")
+    return p
+
+
+def resolve_config(args: argparse.Namespace) -> Config:
+    """The run's config; on --resume without config options it is the run folder's config.json."""
+    explicit = any(v is not None for v in (args.preset, args.algo, args.seed, args.total_steps)) or args.overrides
+    if args.resume and not explicit:
+        path = os.path.join(args.out, CONFIG_FILE)
+        try:
+            with open(path, encoding="utf-8") as f:
+                return config_from_dict(json.load(f))
+        except FileNotFoundError:
+            raise CheckpointError(f"{path}: cannot resume, the run folder has no config.json") from None
+        except (json.JSONDecodeError, TypeError, ValueError) as exc:
+            raise CheckpointError(f"{path}: unreadable config ({exc})") from None
+    return build_config(args.preset or "cpu-quick", args.algo or "sa-ppo", args.seed, args.total_steps,
+                        args.overrides)
+
+
+def check_run_dir(out: str, resume: bool) -> None:
+    """Refuse to overwrite a run, or to resume one that has no checkpoint."""
+    if resume:
+        if not os.path.isfile(os.path.join(out, CHECKPOINT_FILE)):
+            raise CheckpointError(f"{os.path.join(out, CHECKPOINT_FILE)}: cannot resume, no checkpoint found")
+        return
+    if os.path.exists(out) and not os.path.isdir(out):
+        raise FileExistsError(f"{out} exists and is not a folder")
+    if os.path.isdir(out) and os.listdir(out):
+        raise FileExistsError(f"{out} exists and is not empty; choose a new --out or pass --resume")
+
+
+def write_config(out: str, cfg: Config) -> None:
+    os.makedirs(out, exist_ok=True)
+    text = json.dumps(config_to_dict(cfg), indent=2, sort_keys=True) + "\n"
+    checkpoint.atomic_write_bytes(os.path.join(out, CONFIG_FILE), text.encode())
+
+
+def run(cfg: Config, out: str, *, resume: bool = False, env_factory: EnvFactory | None = None,
+        progress: bool = True, stop_after_cycles: int | None = None) -> Trainer:
+    """Library entry point: validate, prepare the folder, train; returns the finished trainer."""
+    validate(cfg)
+    check_run_dir(out, resume)
+    trainer = Trainer(cfg, out, env_factory=env_factory, resume=resume, progress=progress)  # writes nothing
+    if not resume:
+        write_config(out, cfg)
+    trainer.train(stop_after_cycles=stop_after_cycles)
+    return trainer
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    try:
+        cfg = resolve_config(args)
+        run(cfg, args.out, resume=args.resume, progress=not args.no_progress,
+            stop_after_cycles=args.stop_after_cycles)
+    except (ConfigError, CheckpointError, FileExistsError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
