@@ -79,14 +79,18 @@ def restore_tree(template: Any, flat: dict[str, np.ndarray], name: str, path: st
     values = []
     for key, (_, leaf) in zip(keys, leaves):
         saved = flat[key]
-        ref = jax.random.key_data(leaf) if _is_key(leaf) else np.asarray(leaf)
+        python_scalar = type(leaf) in (bool, int, float)  # not np.float64, a float subclass
+        if _is_key(leaf):
+            ref = jax.random.key_data(leaf)
+        else:
+            ref = np.asarray(jax.numpy.asarray(leaf) if python_scalar else leaf)
         if saved.shape != ref.shape or saved.dtype != ref.dtype:
             raise CheckpointError(
                 f"{path}: incompatible checkpoint: {name}{key} is {saved.dtype}{list(saved.shape)}, "
                 f"this run expects {ref.dtype}{list(ref.shape)}")
         if _is_key(leaf):
             saved = jax.random.wrap_key_data(saved, impl=jax.random.key_impl(leaf))
-        elif getattr(leaf, "weak_type", False) and saved.shape == ():
+        elif (python_scalar or getattr(leaf, "weak_type", False)) and saved.shape == ():
             saved = saved.item()  # a Python scalar stays weakly typed: same jit signature, no recompile
         values.append(saved)
     return jax.tree_util.tree_unflatten(treedef, values)

@@ -299,7 +299,7 @@ def sgd_epochs(params: Params, opt_state: optax.OptState, normaliser: Normaliser
         minibatch, k = xs
         (_, metrics), grads = loss_and_grad(params, normaliser, minibatch, k, networks, cfg)
         updates, opt_state = optimizer.update(grads, opt_state, params)
-        metrics["grad_norm"] = optax.global_norm(grads)
+        metrics["grad_norm"] = optax.tree.norm(grads)
         return (optax.apply_updates(params, updates), opt_state), metrics
 
     def epoch(carry: tuple[Params, optax.OptState], k: jax.Array):

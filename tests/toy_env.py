@@ -22,6 +22,11 @@ EPISODE_KEYS = (
 )
 
 
+def _flag(b: jax.Array) -> jax.Array:
+    """0/1 in the default float dtype (float64 under x64, so scan carries keep one type)."""
+    return jnp.where(b, 1.0, 0.0)
+
+
 class PointReach:
     """Move a point in [-1, 1]^2 onto a random target, around an optional disc obstacle."""
 
@@ -47,7 +52,7 @@ class PointReach:
         obstacle = jnp.where(has_obstacle, jnp.append(centre, 1.0), jnp.array([0.0, 0.0, 0.0]))
         zero = jnp.zeros(())
         episode = {k: zero for k in EPISODE_KEYS}
-        episode["obstacle_present"] = has_obstacle.astype(jnp.float32)
+        episode["obstacle_present"] = _flag(has_obstacle)
         info = {
             "rng": rng, "progress": zero, "steps": zero, "pos": pos, "target": target,
             "obstacle": obstacle, "acc": episode, "episode": dict(episode),
@@ -74,16 +79,16 @@ class PointReach:
         if self.nan_progress is not None:
             lo, hi = self.nan_progress
             reward = jnp.where((p >= lo) & (p < hi), jnp.nan, reward)
-        done = (hit | success | timeout).astype(jnp.float32)
+        done = _flag(hit | success | timeout)
         ep = dict(info["acc"])
         ep["return"] = ep["return"] + reward
         ep["r_distance"] = ep["r_distance"] + r_distance
         ep["r_success"] = ep["r_success"] + r_success
         ep["r_obstacle"] = ep["r_obstacle"] + r_obstacle
-        ep["success"] = success.astype(jnp.float32)
-        ep["collision"] = hit.astype(jnp.float32)
-        ep["hit_obstacle"] = hit.astype(jnp.float32)
-        ep["timeout"] = timeout.astype(jnp.float32)
+        ep["success"] = _flag(success)
+        ep["collision"] = _flag(hit)
+        ep["hit_obstacle"] = _flag(hit)
+        ep["timeout"] = _flag(timeout)
         ep["steps"] = steps
         new_info = dict(info, pos=pos, steps=steps, acc=ep, episode=dict(ep))
         return state.replace(obs=self._obs(pos, target, obstacle), reward=reward, done=done,

@@ -1,0 +1,186 @@
+"""Evaluate a trained run: ``python -m sagrasp_jax.evaluate --run runs/NAME --episodes 1000``.
+
+The run's latest checkpoint is played with the deterministic policy (tanh of the Gaussian
+mean) and reward weights frozen at p = 1, one episode per seed from a held-out evaluation
+seed (by default ``sa.eval_seed + 1``, so the SA selection set is not reused).  Reported:
+success rate with its 95 % Wilson interval, mean steps per successful grasp, collision rate
+(and what was hit, from the episodes' ``hit_*`` flags), timeout rate, each overall and split by
+obstacle present / absent.  The JSON goes atomically into the run folder.
+"""
+
+from __future__ import annotations
+
+import sagrasp_jax  # noqa: F401  (sets XLA_FLAGS before jax is imported)
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from typing import Any, Callable
+
+import jax
+import numpy as np
+
+from sagrasp_jax import checkpoint, ppo
+from sagrasp_jax.checkpoint import CheckpointError
+from sagrasp_jax.config import Config, ConfigError, config_from_dict
+
+RESULT_FILE = "evaluation.json"
+EvalEnvFactory = Callable[[Config], ppo.Env]
+
+
+def default_eval_env(cfg: Config) -> ppo.Env:
+    from sagrasp_jax.env import GraspEnv
+
+    return GraspEnv(cfg.env)
+
+
+def wilson_interval(successes: float, n: int, z: float = 1.959964) -> tuple[float, float]:
+    """Wilson score interval for a binomial proportion (sane at 0 % and 100 %, unlike Wald)."""
+    if n <= 0:
+        return (math.nan, math.nan)
+    p = successes / n
+    denom = 1.0 + z * z / n
+    centre = (p + z * z / (2 * n)) / denom
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
+    return (max(0.0, centre - half), min(1.0, centre + half))
+
+
+def load_policy_state(run_dir: str, obs_size: int, action_size: int) -> tuple[Config, ppo.Params, ppo.Normaliser,
+                                                                                dict[str, Any]]:
+    """Config, params and normaliser of the run's latest checkpoint (and its counters)."""
+    from sagrasp_jax.train import CHECKPOINT_FILE, CONFIG_FILE
+
+    cfg_path = os.path.join(run_dir, CONFIG_FILE)
+    try:
+        with open(cfg_path, encoding="utf-8") as f:
+            cfg = config_from_dict(json.load(f))
+    except FileNotFoundError:
+        raise CheckpointError(f"{cfg_path}: not a run folder (no config.json)") from None
+    except (json.JSONDecodeError, TypeError, ValueError) as exc:
+        raise CheckpointError(f"{cfg_path}: unreadable config ({exc})") from None
+    ckpt = checkpoint.load(os.path.join(run_dir, CHECKPOINT_FILE))
+    checkpoint.check_config(ckpt, cfg)
+    networks = ppo.make_networks(cfg.ppo.network, obs_size, action_size, cfg.ppo.obs_clip)
+    optimizer = ppo.make_optimizer(cfg.ppo, cfg.sa.lr0)
+    template = ppo.init_training_state(jax.random.PRNGKey(0), networks, optimizer, obs_size)
+    ts = checkpoint.restore_tree(template, ckpt.trees.get("train_state", {}), "train_state", ckpt.path)
+    return cfg, ts.params, ts.normaliser, ckpt.host.get("counters", {})
+
+
+def summarise(episodes: dict[str, np.ndarray], mask: np.ndarray) -> dict[str, Any]:
+    """Rates over the episodes selected by ``mask``."""
+    n = int(mask.sum())
+    if n == 0:
+        return {"episodes": 0}
+    sel = {k: np.asarray(v)[mask] for k, v in episodes.items()}
+    success = sel["success"] > 0
+    lo, hi = wilson_interval(float(success.sum()), n)
+    hits = {k[4:]: float(np.mean(v > 0)) for k, v in sorted(sel.items()) if k.startswith("hit_")}
+    return {
+        "episodes": n,
+        "success_rate": float(success.mean()),
+        "success_ci95": [lo, hi],
+        "mean_steps_per_success": float(sel["steps"][success].mean()) if success.any() else None,
+        "collision_rate": float(np.mean(sel["collision"] > 0)),
+        "collision_by": hits,
+        "timeout_rate": float(np.mean(sel["timeout"] > 0)),
+        "unfinished": int(np.sum(sel["finished"] == 0)),
+        "mean_return": float(sel["return"].mean()),
+    }
+
+
+def evaluate_run(run_dir: str, episodes: int = 1000, seed: int | None = None, max_steps: int | None = None,
+                 env_factory: EvalEnvFactory | None = None) -> dict[str, Any]:
+    """Play ``episodes`` fixed-seed episodes with the run's policy and summarise them."""
+    if episodes < 1:
+        raise ConfigError(f"--episodes must be >= 1, got {episodes}")
+    from sagrasp_jax.train import CONFIG_FILE
+
+    with open(os.path.join(run_dir, CONFIG_FILE), encoding="utf-8") as f:
+        env = (env_factory or default_eval_env)(config_from_dict(json.load(f)))
+    cfg, params, normaliser, counters = load_policy_state(run_dir, env.observation_size, env.action_size)
+    networks = ppo.make_networks(cfg.ppo.network, env.observation_size, env.action_size, cfg.ppo.obs_clip)
+    seed = cfg.sa.eval_seed + 1 if seed is None else seed
+    steps = max_steps or cfg.env.task.max_steps
+    t = time.perf_counter()
+    result = jax.device_get(ppo.make_evaluator(networks, env, steps)(params, normaliser, ppo.eval_keys(seed, episodes)))
+    wall = time.perf_counter() - t
+    eps = {k: np.asarray(v) for k, v in result.episodes.items()}
+    present = eps["obstacle_present"] > 0 if "obstacle_present" in eps else np.zeros(episodes, bool)
+    everyone = np.ones(episodes, bool)
+    return {
+        "run": os.path.abspath(run_dir),
+        "episodes": episodes,
+        "seed": seed,
+        "max_steps": steps,
+        "progress_weights": 1.0,
+        "policy": "deterministic",
+        "checkpoint_iteration": counters.get("iteration"),
+        "checkpoint_env_steps": counters.get("env_steps"),
+        "wall_s": wall,
+        "overall": summarise(eps, everyone),
+        "obstacle_present": summarise(eps, present),
+        "obstacle_absent": summarise(eps, ~present),
+    }
+
+
+def write_results(path: str, results: dict[str, Any]) -> str:
+    text = json.dumps(results, indent=2, sort_keys=True, allow_nan=False) + "\n"
+    checkpoint.atomic_write_bytes(path, text.encode())
+    return path
+
+
+def format_table(results: dict[str, Any]) -> str:
+    """A plain-text table: one column per episode group."""
+    groups = [("all", results["overall"]), ("obstacle", results["obstacle_present"]),
+              ("no obstacle", results["obstacle_absent"])]
+    hit_keys = sorted({k for _, g in groups for k in g.get("collision_by", {})})
+
+    def pct(v: Any) -> str:
+        return "-" if v is None else f"{100 * v:.1f} %"
+
+    rows: list[tuple[str, list[str]]] = [
+        ("episodes", [str(g["episodes"]) for _, g in groups]),
+        ("success", [pct(g.get("success_rate")) for _, g in groups]),
+        ("  95 % CI (Wilson)", [("-" if "success_ci95" not in g else
+                                 f"{100 * g['success_ci95'][0]:.1f}-{100 * g['success_ci95'][1]:.1f} %")
+                                for _, g in groups]),
+        ("steps / success", [("-" if g.get("mean_steps_per_success") is None else f"{g['mean_steps_per_success']:.1f}")
+                             for _, g in groups]),
+        ("collision", [pct(g.get("collision_rate")) for _, g in groups]),
+    ]
+    rows += [(f"  hit {k}", [pct(g.get("collision_by", {}).get(k)) for _, g in groups]) for k in hit_keys]
+    rows += [("timeout", [pct(g.get("timeout_rate")) for _, g in groups]),
+             ("mean return (p=1)", [("-" if g.get("mean_return") is None else f"{g['mean_return']:.3f}")
+                                    for _, g in groups])]
+    width = max(len(r[0]) for r in rows) + 2
+    lines = [f"{results['episodes']} episodes, seed {results['seed']}, deterministic policy, reward weights at p = 1",
+             "".ljust(width) + "".join(name.rjust(14) for name, _ in groups)]
+    lines += [label.ljust(width) + "".join(c.rjust(14) for c in cells) for label, cells in rows]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m sagrasp_jax.evaluate", description=__doc__.split("\n\n")[0])
+    p.add_argument("--run", required=True, help="run folder written by sagrasp_jax.train")
+    p.add_argument("--episodes", type=int, default=1000)
+    p.add_argument("--seed", type=int, default=None, help="evaluation seed (default sa.eval_seed + 1)")
+    p.add_argument("--max-steps", type=int, default=None, help="step cap per episode (default env.task.max_steps)")
+    p.add_argument("--out", default=None, help=f"result JSON (default RUN/{RESULT_FILE})")
+    args = p.parse_args(argv)
+    try:
+        results = evaluate_run(args.run, args.episodes, args.seed, args.max_steps)
+    except (ConfigError, CheckpointError, FileNotFoundError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    path = write_results(args.out or os.path.join(args.run, RESULT_FILE), results)
+    print(format_table(results))
+    print(f"written to {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,50 @@
+"""Shared fixtures: a toy-env trainer setup for fast unit tests and a trained grasp policy.
+
+``toy_config`` keeps every toy test on the same array shapes, so one compilation (cached by
+jax's persistent cache) serves the whole session.  ``trained_run`` trains the real grasp env
+once per session (cpu-quick, a few minutes on 2 cores) for tests that need a working policy.
+"""
+
+from __future__ import annotations
+
+import sagrasp_jax  # noqa: F401  (sets XLA_FLAGS before jax is imported)
+
+import os
+import sys
+from typing import Any
+
+import pytest
+
+sys.path.insert(0, os.path.dirname(__file__))
+
+from toy_env import AutoReset, PointReach  # noqa: E402
+
+from sagrasp_jax import train  # noqa: E402
+from sagrasp_jax.config import Config  # noqa: E402
+
+TOY_ITER_STEPS = 32 * 16  # num_envs × unroll_length
+
+
+def toy_config(cycles: int = 6, algo: str = "sa-ppo", extra: list[str] | None = None,
+               iterations_per_cycle: int = 2) -> Config:
+    """Small PPO batch on the toy env; ``cycles`` SA cycles of ``iterations_per_cycle`` iterations."""
+    total = TOY_ITER_STEPS * iterations_per_cycle * cycles
+    sets = ["ppo.num_envs=32", "ppo.unroll_length=16", "ppo.num_minibatches=4", "ppo.num_epochs=2",
+            f"sa.num_cycles={cycles}", "sa.eval_episodes=32", "env.task.max_steps=30",
+            "train.checkpoint_every_cycles=2", "train.metrics_window=64"]
+    return train.build_config("cpu-quick", algo, 0, total, sets + list(extra or []))
+
+
+def toy_factory(nan_progress: tuple[float, float] | None = None) -> Any:
+    def factory(cfg: Config) -> tuple[Any, Any]:
+        return AutoReset(PointReach(max_steps=cfg.env.task.max_steps, nan_progress=nan_progress)), \
+            PointReach(max_steps=cfg.env.task.max_steps)
+    return factory
+
+
+@pytest.fixture(scope="session")
+def toy_run(tmp_path_factory: pytest.TempPathFactory) -> str:
+    """A finished toy run folder (config, metrics, checkpoint, policy)."""
+    out = str(tmp_path_factory.mktemp("toy") / "run")
+    train.run(toy_config(), out, env_factory=toy_factory(), progress=False)
+    return out

@@ -1,0 +1,110 @@
+"""Checkpoint files: exact round trip, atomic writes, and loud failures on damage or mismatch."""
+
+from __future__ import annotations
+
+import sagrasp_jax  # noqa: F401  (sets XLA_FLAGS before jax is imported)
+
+import json
+import os
+import struct
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from sagrasp_jax import checkpoint
+from sagrasp_jax.checkpoint import CheckpointError
+from sagrasp_jax.config import apply_overrides, get_config
+
+
+def _trees():
+    return {
+        "state": {"w": jnp.arange(6, dtype=jnp.float32).reshape(2, 3), "n": jnp.array(3, jnp.int32),
+                  "flag": jnp.array([True, False]), "eps": jnp.asarray(0.0)},
+        "keys": {"raw": jax.random.split(jax.random.PRNGKey(4), 3), "typed": jax.random.key(5)},
+        "tuple": (jnp.ones(2, jnp.uint32), np.float64(2.5)),
+    }
+
+
+def _write(tmp_path, cfg=None):
+    path = str(tmp_path / "c.ckpt")
+    checkpoint.save(path, trees=_trees(), host={"iteration": 7, "sa": {"lr": 3e-4, "m_acc": None}},
+                    config=cfg or get_config("cpu-quick"))
+    return path
+
+
+def test_round_trip_is_exact_and_leaves_no_temp_files(tmp_path):
+    path = _write(tmp_path)
+    assert os.listdir(tmp_path) == ["c.ckpt"]
+    ck = checkpoint.load(path)
+    assert ck.host == {"iteration": 7, "sa": {"lr": 3e-4, "m_acc": None}}
+    assert ck.header["package_version"] == sagrasp_jax.__version__
+    template = jax.tree_util.tree_map(lambda x: x, _trees())
+    for name, tmpl in template.items():
+        restored = checkpoint.restore_tree(tmpl, ck.trees[name], name, path)
+        for a, b in zip(jax.tree_util.tree_leaves(restored), jax.tree_util.tree_leaves(tmpl)):
+            if jax.dtypes.issubdtype(getattr(b, "dtype", np.float64), jax.dtypes.prng_key):
+                np.testing.assert_array_equal(jax.random.key_data(a), jax.random.key_data(b))
+            else:
+                np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+                assert jnp.asarray(a).dtype == jnp.asarray(b).dtype
+
+
+def test_weak_scalars_stay_weak_so_resumed_jit_signatures_match(tmp_path):
+    path = _write(tmp_path)
+    restored = checkpoint.restore_tree(_trees()["state"], checkpoint.load(path).trees["state"], "state", path)
+    assert jax.device_put(restored["eps"]).weak_type
+
+
+def _damage(path, fn):
+    with open(path, "rb") as f:
+        blob = bytearray(f.read())
+    with open(path, "wb") as f:
+        f.write(fn(blob))
+
+
+@pytest.mark.parametrize("damage,message", [
+    (lambda b: b[:-10], "truncated"),
+    (lambda b: b[:20], "truncated"),
+    (lambda b: b"X" + b[1:], "bad magic"),
+    (lambda b: b[:-5] + bytes([b[-5] ^ 0xFF]) + b[-4:], "checksum"),
+    (lambda b: b[:len(checkpoint.MAGIC) + 9] + b"X" + b[len(checkpoint.MAGIC) + 10:], "corrupt checkpoint header"),
+    (lambda b: b"", "bad magic"),
+])
+def test_damaged_files_raise_checkpoint_error(tmp_path, damage, message):
+    path = _write(tmp_path)
+    _damage(path, damage)
+    with pytest.raises(CheckpointError, match=message):
+        checkpoint.load(path)
+
+
+def test_other_format_version_is_refused(tmp_path):
+    path = _write(tmp_path)
+    with open(path, "rb") as f:
+        blob = f.read()
+    start = len(checkpoint.MAGIC) + 8
+    (n,) = struct.unpack("<Q", blob[len(checkpoint.MAGIC):start])
+    header = json.loads(blob[start:start + n])
+    header["format_version"] = 99
+    head = json.dumps(header).encode()
+    with open(path, "wb") as f:
+        f.write(checkpoint.MAGIC + struct.pack("<Q", len(head)) + head + blob[start + n:])
+    with pytest.raises(CheckpointError, match="format version 99"):
+        checkpoint.load(path)
+
+
+def test_missing_file_and_incompatible_contents(tmp_path):
+    with pytest.raises(CheckpointError, match="no checkpoint found"):
+        checkpoint.load(str(tmp_path / "nothing.ckpt"))
+    path = _write(tmp_path)
+    ck = checkpoint.load(path)
+    with pytest.raises(CheckpointError, match="config differs: ppo.num_envs"):
+        checkpoint.check_config(ck, apply_overrides(get_config("cpu-quick"), ["ppo.num_envs=64"]))
+    checkpoint.check_config(ck, get_config("cpu-quick"))
+    wrong_shape = dict(_trees()["state"], w=jnp.zeros((3, 2), jnp.float32))
+    with pytest.raises(CheckpointError, match="incompatible checkpoint"):
+        checkpoint.restore_tree(wrong_shape, ck.trees["state"], "state", path)
+    extra_leaf = dict(_trees()["state"], more=jnp.zeros(1))
+    with pytest.raises(CheckpointError, match="different structure"):
+        checkpoint.restore_tree(extra_leaf, ck.trees["state"], "state", path)
