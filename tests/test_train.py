@@ -1,0 +1,167 @@
+"""Trainer loop on the toy env: exact resume, SA rollback, non-finite rollback, CLI refusals."""
+
+from __future__ import annotations
+
+import sagrasp_jax  # noqa: F401  (sets XLA_FLAGS before jax is imported)
+
+import json
+import os
+
+import jax
+import numpy as np
+import pytest
+
+from conftest import toy_config, toy_factory
+
+from sagrasp_jax import ppo, runtime, train
+from sagrasp_jax.checkpoint import CheckpointError
+
+
+def _leaves_equal(a, b) -> bool:
+    return all(np.array_equal(np.asarray(x), np.asarray(y))
+               for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)))
+
+
+def _rows(run_dir):
+    return [{k: v for k, v in r.items() if k not in train.TIME_FIELDS}
+            for r in train.read_metrics(os.path.join(run_dir, train.METRICS_FILE))]
+
+
+def test_run_folder_contents(toy_run):
+    files = set(os.listdir(toy_run))
+    assert {"config.json", "metrics.jsonl", "checkpoint.ckpt", "policy.npz", "tb"} <= files
+    rows = train.read_metrics(os.path.join(toy_run, train.METRICS_FILE))
+    sched = train.make_schedule(toy_config())
+    assert [r["iteration"] for r in rows] == list(range(sched.num_iterations))
+    for key in ("env_steps", "steps_per_s", "compile_s", "return", "r_distance", "r_success", "r_obstacle",
+                "success", "collision", "timeout", "steps_to_success", "lr", "entropy", "loss", "policy_loss",
+                "value_loss"):
+        assert key in rows[-1], key
+    cycle_rows = [r for r in rows if "sa_decision" in r]
+    assert len(cycle_rows) == 6 and all("eval_return" in r and "temperature" in r for r in cycle_rows)
+    assert os.listdir(os.path.join(toy_run, "tb"))
+    policy = runtime.load_policy(os.path.join(toy_run, "policy.npz"))
+    assert policy.obs_size == 7 and policy.action_size == 2
+
+
+def test_kill_and_resume_matches_an_uninterrupted_run(tmp_path):
+    cfg = toy_config(cycles=6, extra=["sa.tol=0.0", "sa.t0=0.5"])
+    full = train.run(cfg, str(tmp_path / "full"), env_factory=toy_factory(), progress=False)
+    half_dir = str(tmp_path / "half")
+    half = train.run(cfg, half_dir, env_factory=toy_factory(), progress=False, stop_after_cycles=3)
+    assert half.sa_state.cycle == 3 and half.host.iteration < full.host.iteration
+    assert not os.path.exists(os.path.join(half_dir, train.POLICY_FILE))
+    # A crash after the checkpoint leaves extra rows behind; the resume must drop them.
+    with open(os.path.join(half_dir, train.METRICS_FILE), "a") as f:
+        f.write(json.dumps({"iteration": 10**6, "env_steps": 0}) + "\n")
+    resumed = train.run(cfg, half_dir, env_factory=toy_factory(), progress=False, resume=True)
+    assert _rows(half_dir) == _rows(str(tmp_path / "full"))
+    assert _leaves_equal(resumed.train_state, full.train_state)
+    assert _leaves_equal(resumed.env_state, full.env_state)
+    assert resumed.sa_state == full.sa_state
+    decisions = [r["sa_decision"] for r in _rows(half_dir) if "sa_decision" in r]
+    assert len(decisions) == 6
+
+
+def test_sa_reject_restores_the_snapshot_bit_for_bit(tmp_path):
+    cfg = toy_config(extra=["sa.max_rollbacks=3", "sa.patience=5"])
+    tr = train.Trainer(cfg, str(tmp_path), env_factory=toy_factory(), progress=False)
+    tr.run_iteration()
+    first = tr.anneal(metric=1.0, entropy=0.5)
+    assert first.kind == "accept"
+    accepted = tr.train_state
+    assert tr.snapshot is accepted
+    env_before = tr.env_state
+    for _ in range(2):
+        tr.run_iteration()
+    assert not _leaves_equal(tr.train_state.params, accepted.params)
+    decision = tr.anneal(metric=-1e9, entropy=0.5)
+    assert decision.kind == "reject" and not decision.decayed
+    assert _leaves_equal(tr.train_state.params, accepted.params)
+    assert _leaves_equal(tr.train_state.opt_state, accepted.opt_state)
+    assert _leaves_equal(tr.train_state.normaliser, accepted.normaliser)
+    assert not _leaves_equal(tr.env_state.obs, env_before.obs)  # envs keep running
+    # Three rejections in a row decay the lr, and the restored optimizer state carries it.
+    tr.anneal(metric=-1e9, entropy=0.5)
+    third = tr.anneal(metric=-1e9, entropy=0.5)
+    assert third.decayed and tr.lr == pytest.approx(cfg.sa.lr0 * cfg.sa.decay)
+    assert ppo.get_learning_rate(tr.train_state.opt_state) == pytest.approx(tr.lr)
+    assert _leaves_equal(tr.train_state.params, accepted.params)
+
+
+def test_nonfinite_iterations_are_rolled_back_and_training_continues(tmp_path):
+    cfg = toy_config(cycles=4)
+    out = str(tmp_path / "nan")
+    tr = train.run(cfg, out, env_factory=toy_factory(nan_progress=(0.5, 0.6)), progress=False)
+    rows = train.read_metrics(os.path.join(out, train.METRICS_FILE))
+    events = [r for r in rows if r.get("event") == "nonfinite"]
+    assert events and all(r["sa_decision"] == "reject" and r["sa_decayed"] for r in events)
+    assert events[0]["loss"] is None  # NaN is logged as null, the JSON stays valid
+    assert rows[-1]["iteration"] == train.make_schedule(cfg).num_iterations - 1
+    assert rows[-1]["lr"] == pytest.approx(cfg.sa.lr0 * cfg.sa.decay ** tr.sa_state.decays)
+    assert tr.host.nonfinite == len(events)
+    assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree_util.tree_leaves(tr.train_state.params))
+
+
+def test_ppo_baseline_keeps_a_constant_learning_rate(tmp_path):
+    cfg = toy_config(cycles=3, algo="ppo", extra=["ppo.learning_rate=2e-4"])
+    assert not cfg.sa.enabled
+    out = str(tmp_path / "ppo")
+    train.run(cfg, out, env_factory=toy_factory(), progress=False)
+    rows = train.read_metrics(os.path.join(out, train.METRICS_FILE))
+    assert {r["lr"] for r in rows} == {2e-4}
+    assert {r["sa_decision"] for r in rows if "sa_decision" in r} == {"accept"}
+
+
+@pytest.mark.parametrize("argv,message", [
+    (["--preset", "nope"], "valid presets: paper, cpu-quick, gpu"),
+    (["--algo", "a2c"], "valid algos: sa-ppo, ppo"),
+    (["--set", "ppo.nonsense=3"], "valid keys:"),
+    (["--set", "ppo.num_envs=many"], "bad value 'many' for ppo.num_envs"),
+    (["--set", "sa.metric=reward"], "sa.metric='reward' is not one of return, success"),
+    (["--set", "ppo.num_envs"], "not of the form key=value"),
+])
+def test_bad_options_fail_clearly_and_write_nothing(tmp_path, capsys, argv, message):
+    out = tmp_path / "run"
+    assert train.main(["--out", str(out), *argv]) == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_existing_output_and_resume_without_checkpoint_are_refused(tmp_path, capsys):
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "notes.txt").write_text("keep me")
+    assert train.main(["--out", str(out)]) == 2
+    assert "not empty" in capsys.readouterr().err
+    assert train.main(["--out", str(out), "--resume"]) == 2
+    assert "cannot resume" in capsys.readouterr().err
+    assert os.listdir(out) == ["notes.txt"]
+
+
+def test_resume_refuses_a_corrupt_checkpoint_and_changes_nothing(toy_run, tmp_path):
+    import shutil
+
+    run = str(tmp_path / "copy")
+    shutil.copytree(toy_run, run)
+    ckpt = os.path.join(run, train.CHECKPOINT_FILE)
+    with open(ckpt, "r+b") as f:
+        f.seek(-100, os.SEEK_END)
+        f.write(b"\0" * 10)
+    before = {name: os.path.getmtime(os.path.join(run, name)) for name in os.listdir(run)}
+    with pytest.raises(CheckpointError, match="checksum"):
+        train.run(toy_config(), run, env_factory=toy_factory(), progress=False, resume=True)
+    assert {name: os.path.getmtime(os.path.join(run, name)) for name in os.listdir(run)} == before
+    with pytest.raises(CheckpointError, match="config differs"):
+        shutil.copy(os.path.join(toy_run, train.CHECKPOINT_FILE), ckpt)
+        train.run(toy_config(extra=["ppo.entropy_coef=0.01"]), run, env_factory=toy_factory(), progress=False,
+                  resume=True)
+
+
+def test_cycle_length_rounds_to_whole_iterations():
+    cfg = train.build_config("cpu-quick")
+    sched = train.make_schedule(cfg)
+    assert sched.steps_per_iteration == 256 * 16
+    assert sched.iterations_per_cycle == round(3_000_000 / 200 / 4096)
+    explicit = train.make_schedule(train.build_config("cpu-quick", overrides=["sa.cycle_steps=20000"]))
+    assert explicit.iterations_per_cycle == 5
