@@ -9,8 +9,8 @@ jits, vmaps and costs the same for every env.
 
 Feasibility of an obstacle (SPEC §1): (a) horizontal clearance from its surface to the
 target centre ≥ ``target_clearance``; (b) every robot primitive at the (noisy) start
-pose ≥ ``robot_clearance`` from the obstacle — measured against the obstacle's bounding
-sphere, exact for spheres and conservative for cylinders and boxes; (c) the two
+pose ≥ ``robot_clearance`` from the obstacle — measured between the obstacle's bounding
+sphere and the robot's conservative sphere cover (``collision.py``), so never optimistic; (c) the two
 obstacles' bounding spheres do not overlap (conservative).  When a slot has no feasible
 candidate the whole scene (target too) is re-drawn, up to ``scene_redraws`` times; the
 rare fallback is an obstacle-free scene, counted in ``fallback``.
@@ -21,7 +21,8 @@ from __future__ import annotations
 from typing import Any, NamedTuple
 
 from sagrasp_jax.config import SamplingConfig, TaskConfig
-from sagrasp_jax.robot import BOX, CAPSULE, CYLINDER, SPHERE, RobotModel, forward_kinematics, primitive_poses
+from sagrasp_jax import collision
+from sagrasp_jax.robot import BOX, CYLINDER, SPHERE, RobotModel, forward_kinematics
 
 OBSTACLE_KINDS = (SPHERE, CYLINDER, BOX)
 _PER_CANDIDATE = 8  # kind, 3 sizes, disc radius, disc angle, height, yaw
@@ -88,24 +89,12 @@ def horizontal_clearance(xp: Any, kind: Any, pos: Any, yaw: Any, size: Any, poin
     return xp.where(kind == BOX, box_gap, round_gap)
 
 
-def _sphere_to_primitives(xp: Any, robot: RobotModel, prim_pos: Any, prim_rot: Any, centre: Any, radius: Any) -> Any:
-    """Distance from a sphere (centre (..., 3)) to every robot primitive (..., G); exact."""
-    kinds = robot.prim_kind
-    sizes = xp.asarray(robot.prim_size)
-    rel = centre[..., None, :] - prim_pos  # (..., G, 3)
-    local = xp.sum(rel[..., :, None] * prim_rot, axis=-2)  # R^T·rel; plain products vectorise better than einsum here
-    # capsule / cylinder / sphere share the axial decomposition
-    axial = local[..., 2]
-    radial = xp.sqrt(local[..., 0] ** 2 + local[..., 1] ** 2)
-    seg = xp.clip(axial, -sizes[:, 1], sizes[:, 1])
-    capsule = xp.sqrt(radial**2 + (axial - seg) ** 2) - sizes[:, 0]
-    sphere = xp.sqrt(xp.sum(local**2, axis=-1)) - sizes[:, 0]
-    dr, dz = radial - sizes[:, 0], xp.abs(axial) - sizes[:, 1]
-    cylinder = xp.sqrt(xp.maximum(dr, 0.0) ** 2 + xp.maximum(dz, 0.0) ** 2) + xp.minimum(xp.maximum(dr, dz), 0.0)
-    q = xp.abs(local) - sizes
-    box = xp.sqrt(xp.sum(xp.maximum(q, 0.0) ** 2, axis=-1)) + xp.minimum(xp.max(q, axis=-1), 0.0)
-    dist = xp.where(kinds == CAPSULE, capsule, xp.where(kinds == CYLINDER, cylinder, xp.where(kinds == BOX, box, sphere)))
-    return dist - radius[..., None]
+def _sphere_to_robot(xp: Any, robot: RobotModel, kin: Any, centre: Any, radius: Any) -> Any:
+    """Distance (...,) from spheres (centre (..., 3)) to the robot's collision cover (collision.py)."""
+    cover = collision.sphere_cover(robot)
+    spheres = collision.cover_centres(xp, robot, kin)  # (S, 3)
+    d = xp.sqrt(xp.sum((centre[..., None, :] - spheres) ** 2, axis=-1)) - xp.asarray(cover.radius, dtype=spheres.dtype)
+    return xp.min(d, axis=-1) - radius
 
 
 def sample_reset(xp: Any, robot: RobotModel, cfg: SamplingConfig, task: TaskConfig, u: Any) -> ResetSpec:
@@ -153,9 +142,8 @@ def sample_reset(xp: Any, robot: RobotModel, cfg: SamplingConfig, task: TaskConf
 
     clear_target = horizontal_clearance(xp, kind, pos, oyaw, size, target_xy[:, None, None, :]) >= cfg.target_clearance
     kin = forward_kinematics(xp, robot, q0)
-    prim_pos, prim_rot = primitive_poses(xp, robot, kin)
     bound = bounding_radius(xp, kind, size)
-    robot_gap = xp.min(_sphere_to_primitives(xp, robot, prim_pos, prim_rot, pos, bound), axis=-1)
+    robot_gap = _sphere_to_robot(xp, robot, kin, pos, bound)
     clear_robot = robot_gap >= cfg.robot_clearance
     ok_single = clear_target & clear_robot  # (attempts, slots, n_o)
 
