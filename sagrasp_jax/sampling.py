@@ -9,8 +9,8 @@ jits, vmaps and costs the same for every env.
 
 Feasibility of an obstacle (SPEC §1): (a) horizontal clearance from its surface to the
 target centre ≥ ``target_clearance``; (b) every robot primitive at the (noisy) start
-pose ≥ ``robot_clearance`` from the obstacle — measured between the obstacle's bounding
-sphere and the robot's conservative sphere cover (``collision.py``), so never optimistic; (c) the two
+pose ≥ ``robot_clearance`` from the obstacle — measured between the obstacle's exact shape
+and the robot's conservative sphere cover (``collision.py``), so never optimistic; (c) the two
 obstacles' bounding spheres do not overlap (conservative).  When a slot has no feasible
 candidate the whole scene (target too) is re-drawn, up to ``scene_redraws`` times; the
 rare fallback is an obstacle-free scene, counted in ``fallback``.
@@ -68,6 +68,8 @@ def _select(xp: Any, values: Any, index: Any, axis: int) -> Any:
     onehot = xp.moveaxis(onehot, -1, axis if axis >= 0 else values.ndim + axis)
     extra = values.ndim - onehot.ndim
     onehot = onehot.reshape(onehot.shape + (1,) * extra)
+    if values.dtype == bool:
+        return xp.any(onehot & values, axis=axis)
     return xp.sum(xp.where(onehot, values, 0), axis=axis)
 
 
@@ -89,12 +91,13 @@ def horizontal_clearance(xp: Any, kind: Any, pos: Any, yaw: Any, size: Any, poin
     return xp.where(kind == BOX, box_gap, round_gap)
 
 
-def _sphere_to_robot(xp: Any, robot: RobotModel, kin: Any, centre: Any, radius: Any) -> Any:
-    """Distance (...,) from spheres (centre (..., 3)) to the robot's collision cover (collision.py)."""
+def _obstacle_to_robot(xp: Any, robot: RobotModel, kin: Any, kind: Any, pos: Any, yaw: Any, size: Any) -> Any:
+    """Distance (...,) from obstacle candidates (exact upright shapes) to the robot's
+    conservative sphere cover (collision.py): the SPEC's "every robot collision geometry"."""
     cover = collision.sphere_cover(robot)
     spheres = collision.cover_centres(xp, robot, kin)  # (S, 3)
-    d = xp.sqrt(xp.sum((centre[..., None, :] - spheres) ** 2, axis=-1)) - xp.asarray(cover.radius, dtype=spheres.dtype)
-    return xp.min(d, axis=-1) - radius
+    sdf = collision.upright_sdf(xp, kind[..., None], pos[..., None, :], yaw[..., None], size[..., None, :], spheres)
+    return xp.min(sdf - xp.asarray(cover.radius, dtype=spheres.dtype), axis=-1)
 
 
 def sample_reset(xp: Any, robot: RobotModel, cfg: SamplingConfig, task: TaskConfig, u: Any) -> ResetSpec:
@@ -143,7 +146,7 @@ def sample_reset(xp: Any, robot: RobotModel, cfg: SamplingConfig, task: TaskConf
     clear_target = horizontal_clearance(xp, kind, pos, oyaw, size, target_xy[:, None, None, :]) >= cfg.target_clearance
     kin = forward_kinematics(xp, robot, q0)
     bound = bounding_radius(xp, kind, size)
-    robot_gap = _sphere_to_robot(xp, robot, kin, pos, bound)
+    robot_gap = _obstacle_to_robot(xp, robot, kin, kind, pos, oyaw, size)
     clear_robot = robot_gap >= cfg.robot_clearance
     ok_single = clear_target & clear_robot  # (attempts, slots, n_o)
 

@@ -1,0 +1,327 @@
+"""The MJX/JAX grasp env (SPEC §2): sampling, observation, collisions, solvability, batching, auto-reset."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+import sagrasp_jax  # noqa: F401
+import jax
+import jax.numpy as jnp
+
+from sagrasp_jax import collision, config, geometry, robot, sampling
+from sagrasp_jax.env import GraspEnv, OBS_SIZE
+from sagrasp_jax.scene import SCENE
+from sagrasp_jax.wrappers import AutoReset
+from scripted import scripted_action
+
+ROBOT = robot.load_robot()
+
+
+def env_config(mode: str = "kinematic", obstacle_prob: float | None = None) -> config.EnvConfig:
+    cfg = config.get_config("paper").env
+    sampling_cfg = cfg.sampling if obstacle_prob is None else dataclasses.replace(cfg.sampling, obstacle_prob=obstacle_prob)
+    return dataclasses.replace(cfg, control=dataclasses.replace(cfg.control, mode=mode), sampling=sampling_cfg)
+
+
+@pytest.fixture(scope="module")
+def resets_10k():
+    cfg = env_config()
+    n = sampling.uniforms_needed(cfg.sampling)
+    u = jax.random.uniform(jax.random.PRNGKey(7), (10_000, n))
+    fn = jax.jit(jax.vmap(lambda x: sampling.sample_reset(jnp, ROBOT, cfg.sampling, cfg.task, x)))
+    return cfg, jax.tree_util.tree_map(np.asarray, fn(u))
+
+
+def test_obstacle_frequency_and_fallback(resets_10k):
+    _, spec = resets_10k
+    freq = spec.obstacle_active[:, 0].mean()
+    assert abs(freq - 0.20) <= 0.02
+    two = spec.obstacle_active[:, 1].sum() / spec.obstacle_active[:, 0].sum()
+    assert abs(two - 0.5) < 0.06  # 1 or 2 obstacles, equally likely
+    assert spec.fallback.mean() < 0.01
+    kinds = spec.obstacle_kind[spec.obstacle_active]
+    for k in (robot.SPHERE, robot.CYLINDER, robot.BOX):
+        assert abs(np.mean(kinds == k) - 1 / 3) < 0.05
+
+
+def test_targets_inside_the_region(resets_10k):
+    cfg, spec = resets_10k
+    s = cfg.sampling
+    x, y, z = spec.target_pos.T
+    assert np.all((x >= s.target_x[0]) & (x <= s.target_x[1]) & (y >= s.target_y[0]) & (y <= s.target_y[1]))
+    r = np.hypot(x, y)
+    assert np.all((r >= s.target_radius[0]) & (r <= s.target_radius[1]))
+    np.testing.assert_allclose(z, 0.025)
+    assert np.all(np.abs(spec.target_yaw) <= math.pi / 4 + 1e-6)
+    assert np.all(np.abs(spec.q0 - np.array(cfg.task.home_q)) <= cfg.task.start_noise + 1e-6)
+
+
+def test_accepted_obstacles_are_feasible(resets_10k):
+    """No accepted obstacle within 0.10 m of the target (horizontally) or of the robot at its start pose."""
+    cfg, spec = resets_10k
+    rows, slots = np.nonzero(spec.obstacle_active)
+    assert len(rows) > 1500
+    for i, j in zip(rows[:600], slots[:600]):
+        kind, pos, yaw, size = spec.obstacle_kind[i, j], spec.obstacle_pos[i, j], spec.obstacle_yaw[i, j], spec.obstacle_size[i, j]
+        gap = sampling.horizontal_clearance(np, kind, pos, yaw, size, spec.target_pos[i, :2])
+        assert gap >= cfg.sampling.target_clearance - 1e-5
+        kin = robot.forward_kinematics(np, ROBOT, spec.q0[i].astype(float))
+        prim_pos, prim_rot = robot.primitive_poses(np, ROBOT, kin)
+        d = geometry.obstacle_distance_matrix(
+            np, ROBOT.prim_kind, prim_pos, prim_rot, ROBOT.prim_size,
+            np.array([kind]), pos[None].astype(float), collision.yaw_rotation(np, np.array([float(yaw)])), size[None].astype(float),
+        )
+        assert d.min() >= cfg.sampling.robot_clearance - 1e-5
+    # two obstacles never overlap
+    both = np.nonzero(spec.obstacle_active[:, 1])[0]
+    for i in both[:300]:
+        r = sampling.bounding_radius(np, spec.obstacle_kind[i], spec.obstacle_size[i])
+        assert np.linalg.norm(spec.obstacle_pos[i, 0] - spec.obstacle_pos[i, 1]) > r.sum() - 1e-6
+    # standing obstacles stand on the table, spheres float in their band
+    for i, j in zip(rows, slots):
+        kind, pos, size = spec.obstacle_kind[i, j], spec.obstacle_pos[i, j], spec.obstacle_size[i, j]
+        if kind == robot.SPHERE:
+            assert 0.12 - 1e-6 <= pos[2] <= 0.30 + 1e-6
+        elif kind == robot.CYLINDER:
+            assert pos[2] == pytest.approx(size[1], abs=1e-6)
+        else:
+            assert pos[2] == pytest.approx(size[2], abs=1e-6)
+
+
+def test_numpy_and_jax_sampling_agree():
+    cfg = env_config()
+    n = sampling.uniforms_needed(cfg.sampling)
+    u = np.random.default_rng(3).random((50, n))
+    jx = jax.jit(jax.vmap(lambda x: sampling.sample_reset(jnp, ROBOT, cfg.sampling, cfg.task, x)))(jnp.asarray(u, jnp.float32))
+    for i in range(50):
+        ref = sampling.sample_reset(np, ROBOT, cfg.sampling, cfg.task, u[i].astype(np.float32).astype(float))
+        np.testing.assert_allclose(np.asarray(jx.target_pos[i]), ref.target_pos, atol=1e-5)
+        np.testing.assert_array_equal(np.asarray(jx.obstacle_active[i]), ref.obstacle_active)
+        np.testing.assert_allclose(np.asarray(jx.obstacle_pos[i]), ref.obstacle_pos, atol=1e-5)
+
+
+def test_observation_layout_at_reset():
+    cfg = env_config(obstacle_prob=1.0)
+    env = GraspEnv(cfg)
+    state = jax.jit(env.reset)(jax.random.PRNGKey(11))
+    obs = np.asarray(state.obs)
+    assert obs.shape == (OBS_SIZE,)
+    spec = state.info["reset"]
+    q0 = np.asarray(spec.q0, float)
+    kin = robot.forward_kinematics(np, ROBOT, q0)
+    assert np.abs(obs[:6] - q0).max() < 0.03  # joint noise σ = 0.005
+    np.testing.assert_allclose(obs[6:9], kin.gripper_centre, atol=1e-5)
+    np.testing.assert_allclose(obs[9:12], spec.target_pos, atol=1e-6)
+    assert bool(spec.obstacle_active[0])
+    assert 0.0 < obs[15] < 1.0  # Δpo of a real obstacle, ≥ 0.10 at the start
+    assert obs[15] >= 0.10 - collision.sphere_cover(ROBOT).bulge.max() - 1e-6
+    assert math.degrees(obs[16]) < 4.0  # start noise ±0.05 rad tilts the gripper a little
+
+
+def test_no_obstacle_observation():
+    env = GraspEnv(env_config(obstacle_prob=0.0))
+    obs = np.asarray(jax.jit(env.reset)(jax.random.PRNGKey(0)).obs)
+    np.testing.assert_allclose(obs[12:15], [0.0, 0.0, -1.0])
+    assert obs[15] == pytest.approx(1.0)
+
+
+def _spec(q0, target=(0.1, -0.45, 0.025), obstacle=None) -> sampling.ResetSpec:
+    active = np.array([obstacle is not None, False])
+    kind = np.array([obstacle[0] if obstacle else robot.SPHERE, robot.SPHERE])
+    pos = np.array([obstacle[1] if obstacle else (0, 0, -5), (0, 0, -5)], float)
+    size = np.array([obstacle[2] if obstacle else (0.05, 0, 0), (0.05, 0, 0)], float)
+    return sampling.ResetSpec(
+        q0=np.asarray(q0, float), target_pos=np.asarray(target, float), target_yaw=np.array(0.0),
+        obstacle_active=active, obstacle_kind=kind, obstacle_pos=pos, obstacle_yaw=np.zeros(2),
+        obstacle_size=size, redraws=np.array(0), fallback=np.array(False),
+    )
+
+
+def _check(q, spec):
+    kin = robot.forward_kinematics(np, ROBOT, np.asarray(q, float))
+    return collision.check(np, ROBOT, kin, spec, env_config())
+
+
+def test_home_pose_is_collision_free():
+    res = _check(config.HOME_Q, _spec(config.HOME_Q))
+    assert not bool(res.any_collision)
+    assert all(not bool(v) for v in res.hits.values())
+
+
+def test_collision_flags_fire():
+    home = np.array(config.HOME_Q)
+    kin = robot.forward_kinematics(np, ROBOT, home)
+    centre = kin.gripper_centre
+    # a sphere obstacle right at the gripper centre
+    res = _check(home, _spec(home, obstacle=(robot.SPHERE, centre, (0.03, 0, 0))))
+    assert bool(res.hits["obstacle"]) and float(res.nearest_obstacle_dist) < 0
+    np.testing.assert_allclose(res.nearest_obstacle_pos, centre)
+    # 4 cm from the pads' outer faces along x: a near miss, no collision
+    near = centre + np.array([0.0, 0.0, -0.0165 - 0.04 - 0.03])
+    res = _check(home, _spec(home, obstacle=(robot.SPHERE, near, (0.03, 0, 0))))
+    assert not bool(res.hits["obstacle"])
+    assert 0.0 < float(res.nearest_obstacle_dist) < 0.05
+    # arm folded down into the table
+    down = home.copy()
+    down[1] += 1.2  # gripper centre ≈ 6 cm below the table top
+    assert bool(_check(down, _spec(down)).hits["table"])
+    # the cube between the open pads touches nothing; raised 3.5 cm it runs into the gripper body
+    assert not bool(_check(home, _spec(home, target=centre)).hits["target"])
+    res = _check(home, _spec(home, target=centre + np.array([0, 0, 0.035])))
+    assert bool(res.hits["target"]) and bool(res.any_collision)
+    # gripper centre in the success pose above the cube: no target collision
+    res = _check(home, _spec(home, target=centre - np.array([0, 0, 0.0125])))
+    assert not bool(res.hits["target"])
+
+
+def test_gantry_hit_and_camera_unreachable():
+    q = np.zeros(6)
+    q[1] = math.pi / 2  # arm stretched horizontally at shoulder height, reach 0.8865 m > 0.72 m to the posts
+    hits = []
+    for q1 in np.linspace(-math.pi, math.pi, 73):
+        q[0] = q1
+        hits.append(bool(_check(q, _spec(q)).hits["gantry"]))
+    assert 2 <= sum(hits) <= 20
+    # no pose of the arm reaches the camera, its bracket or the beam
+    qs = np.random.default_rng(0).uniform(-3.05, 3.05, (20_000, 6))
+    kin = robot.forward_kinematics(np, ROBOT, qs)
+    centres = collision.cover_centres(np, ROBOT, kin)
+    top = (centres[..., 2] + collision.sphere_cover(ROBOT).radius).max()
+    unreachable = [p for i, p in enumerate(SCENE.static_parts) if i not in collision.reachable_parts()]
+    assert {p.name for p in unreachable} == {"gantry_beam", "camera_bracket", "camera_body"}
+    assert top < min(collision.lowest_z(p) for p in unreachable) - 0.1
+
+
+def test_cover_distance_bounds_exact_distance():
+    """Δpo from the sphere cover lies within [exact − bulge, exact + capsule dip]."""
+    rng = np.random.default_rng(5)
+    cover = collision.sphere_cover(ROBOT)
+    bulge = cover.bulge[1:].max()
+    checked = 0
+    for trial in range(60):
+        q = np.array(config.HOME_Q) + rng.uniform(-0.6, 0.6, 6)
+        kin = robot.forward_kinematics(np, ROBOT, q)
+        kind = [robot.SPHERE, robot.CYLINDER, robot.BOX][trial % 3]
+        size = {robot.SPHERE: (0.05, 0, 0), robot.CYLINDER: (0.04, 0.1, 0), robot.BOX: (0.04, 0.05, 0.06)}[kind]
+        pos = kin.gripper_centre + rng.uniform(-0.15, 0.15, 3)
+        spec = _spec(q, obstacle=(kind, pos, size))
+        res = collision.check(np, ROBOT, kin, spec, env_config())
+        prim_pos, prim_rot = robot.primitive_poses(np, ROBOT, kin)
+        exact = geometry.obstacle_distance_matrix(
+            np, ROBOT.prim_kind[1:], prim_pos[1:], prim_rot[1:], ROBOT.prim_size[1:],
+            np.array([kind]), pos[None], np.eye(3)[None], np.array([size], float),
+        ).min()
+        got = float(res.nearest_obstacle_dist)
+        if exact >= 1.0:
+            continue
+        if exact > 0:
+            assert exact - bulge - 1e-9 <= got <= exact + collision.CAPSULE_DIP + 1e-9
+            checked += 1
+        elif exact < -collision.CAPSULE_DIP:
+            assert got < 0  # overlap is always reported as a collision
+    assert checked >= 10
+
+
+@pytest.mark.parametrize("mode", ["kinematic", "dynamic"])
+def test_scripted_controller_solves_the_task(mode):
+    """A scripted IK controller driven through ``step`` succeeds in ≥ 95 % of 200 obstacle-free episodes."""
+    cfg = env_config(mode=mode, obstacle_prob=0.0)
+    env = GraspEnv(cfg)
+    n = 200
+
+    def run(keys):
+        state = jax.vmap(env.reset)(keys)
+
+        def body(carry, _):
+            st, alive, success, steps = carry
+            q = st.pipeline_state.qpos[:, :6] if mode == "dynamic" else st.info["q_target"]
+            action = jax.vmap(lambda qq, t: scripted_action(cfg, qq, t))(q, st.info["reset"].target_pos)
+            nxt = jax.vmap(env.step)(st, action)
+            ended = alive & (nxt.done > 0)
+            success = jnp.where(ended, nxt.info["episode"]["success"], success)
+            steps = jnp.where(ended, nxt.info["episode"]["steps"], steps)
+            return (nxt, alive & ~ended, success, steps), None
+
+        zero = jnp.zeros(n)
+        (_, alive, success, steps), _ = jax.lax.scan(body, (state, jnp.ones(n, bool), zero, zero), None, length=cfg.task.max_steps)
+        return success, steps
+
+    success, steps = jax.jit(run)(jax.random.split(jax.random.PRNGKey(42), n))
+    success, steps = np.asarray(success), np.asarray(steps)
+    assert success.mean() >= 0.95
+    assert 17 <= steps[success > 0].mean() <= 60  # physical limit ≈ 17.6 steps (SPEC §6)
+
+
+def test_vmap_equals_single_env():
+    env = GraspEnv(env_config(obstacle_prob=0.5))
+    keys = jax.random.split(jax.random.PRNGKey(9), 64)
+    actions = jax.random.uniform(jax.random.PRNGKey(10), (20, 64, 6), minval=-1, maxval=1)
+    step_b, step_1 = jax.jit(jax.vmap(env.step)), jax.jit(env.step)
+    batch = jax.jit(jax.vmap(env.reset))(keys)
+    singles = [jax.jit(env.reset)(k) for k in keys[:8]]
+    for t in range(20):
+        batch = step_b(batch, actions[t])
+        singles = [step_1(s, actions[t, i]) for i, s in enumerate(singles)]
+    for i, s in enumerate(singles):
+        np.testing.assert_allclose(np.asarray(batch.obs[i]), np.asarray(s.obs), atol=1e-5)
+        assert float(batch.reward[i]) == pytest.approx(float(s.reward), abs=1e-5)
+        assert float(batch.done[i]) == float(s.done)
+
+
+def test_no_nan_after_1000_random_steps():
+    env = AutoReset(GraspEnv(env_config(obstacle_prob=0.5)))
+    state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(1), 256))
+
+    def body(st, key):
+        st = env.batch_step(st, jax.random.uniform(key, (256, 6), minval=-1, maxval=1))
+        return st, (jnp.all(jnp.isfinite(st.obs)) & jnp.all(jnp.isfinite(st.reward)), st.done.sum())
+
+    state, (finite, dones) = jax.jit(lambda s, k: jax.lax.scan(body, s, jax.random.split(k, 1000)))(state, jax.random.PRNGKey(2))
+    assert bool(np.all(np.asarray(finite)))
+    assert int(np.asarray(dones).sum()) > 256  # episodes ended and restarted
+
+
+@pytest.mark.parametrize("batched", [True, False])
+def test_auto_reset_draws_fresh_episodes(batched):
+    """Consecutive episodes of one slot get different targets; the finished episode's metrics survive."""
+    cfg = env_config()
+    # every env times out together: the batched refill (1 per step for 16 envs) must keep up
+    horizon = 17
+    cfg = dataclasses.replace(cfg, task=dataclasses.replace(cfg.task, max_steps=horizon))
+    env = AutoReset(GraspEnv(cfg))
+    n = 16
+    state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(3), n))
+    step = jax.jit(env.batch_step if batched else jax.vmap(env.step))
+    targets = [np.asarray(state.info["reset"].target_pos)]
+    stale = 0.0
+    for t in range(3 * horizon):
+        state = step(state, jnp.zeros((n, 6)))
+        stale += float(state.metrics["stale_resets"].sum())
+        if t % horizon == horizon - 1:
+            assert np.all(np.asarray(state.done) == 1.0)
+            np.testing.assert_allclose(np.asarray(state.info["episode"]["timeout"]), 1.0)
+            np.testing.assert_allclose(np.asarray(state.info["episode"]["steps"]), horizon)
+            assert np.all(np.asarray(state.info["steps"]) == 0)
+            targets.append(np.asarray(state.info["reset"].target_pos))
+    targets = np.stack(targets)  # (episodes, envs, 3)
+    assert np.all(np.linalg.norm(np.diff(targets, axis=0), axis=-1) > 1e-6)
+    assert stale == 0.0
+
+
+def test_dynamic_mode_tracks_kinematic_mode():
+    """Same actions: the dynamic (servo) gripper centre stays within a few cm of the kinematic one."""
+    keys = jax.random.PRNGKey(4)
+    kin_env, dyn_env = GraspEnv(env_config("kinematic", 0.0)), GraspEnv(env_config("dynamic", 0.0))
+    sk, sd = jax.jit(kin_env.reset)(keys), jax.jit(dyn_env.reset)(keys)
+    actions = 0.3 * jax.random.uniform(jax.random.PRNGKey(5), (30, 6), minval=-1, maxval=1)
+    step_k, step_d = jax.jit(kin_env.step), jax.jit(dyn_env.step)
+    gaps = []
+    for a in actions:
+        sk, sd = step_k(sk, a), step_d(sd, a)
+        gaps.append(np.linalg.norm(np.asarray(sk.obs[6:9]) - np.asarray(sd.obs[6:9])))
+    assert max(gaps) < 0.03
+    assert max(gaps) > 1e-5  # the servo really lags
