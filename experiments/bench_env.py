@@ -1,0 +1,146 @@
+"""Env throughput: env-steps/s of the JAX env for batch sizes 1…4096 in both modes.
+
+Measures (a) the bare env (``jax.vmap(env.step)``, no auto-reset) and (b) the training
+path (``AutoReset.batch_step``, fresh-sample resets) inside a jitted ``lax.scan`` of
+random actions; compile time is reported separately.  With ``--pybullet`` it also times
+the PyBullet reference env (raw stepping, one env, kinematic and dynamic) when the
+``reference`` extra is installed.  Prints a table and writes JSON.
+
+    python experiments/bench_env.py --out experiments/results/bench_env_cpu.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import platform
+import sys
+import tempfile
+import time
+
+import sagrasp_jax  # noqa: F401  (XLA flags)
+import jax
+import jax.numpy as jnp
+
+from sagrasp_jax import config
+from sagrasp_jax.env import GraspEnv
+from sagrasp_jax.wrappers import AutoReset
+
+
+def bench_jax(mode: str, batch: int, steps: int, auto_reset: bool) -> dict:
+    cfg = config.get_config("paper").env
+    cfg = dataclasses.replace(cfg, control=dataclasses.replace(cfg.control, mode=mode))
+    base = GraspEnv(cfg)
+    env = AutoReset(base) if auto_reset else base
+    step = env.batch_step if auto_reset else jax.vmap(base.step)
+
+    def rollout(state, key):
+        def body(st, k):
+            st = step(st, jax.random.uniform(k, (batch, 6), minval=-1.0, maxval=1.0))
+            return st, st.done.sum()
+
+        return jax.lax.scan(body, state, jax.random.split(key, steps))
+
+    reset = jax.jit(jax.vmap(env.reset))
+    run = jax.jit(rollout)
+    t0 = time.perf_counter()
+    state = reset(jax.random.split(jax.random.PRNGKey(0), batch))
+    jax.block_until_ready(state.obs)
+    out = run(state, jax.random.PRNGKey(1))
+    jax.block_until_ready(out)
+    compile_s = time.perf_counter() - t0
+    state = out[0]
+    best = float("inf")
+    for rep in range(2):
+        t0 = time.perf_counter()
+        state, dones = run(state, jax.random.PRNGKey(2 + rep))
+        jax.block_until_ready(dones)
+        best = min(best, time.perf_counter() - t0)
+    return {
+        "mode": mode,
+        "auto_reset": auto_reset,
+        "batch": batch,
+        "steps": steps,
+        "compile_s": round(compile_s, 2),
+        "env_steps_per_s": round(batch * steps / best, 1),
+    }
+
+
+def bench_pybullet(mode: str, steps: int) -> dict | None:
+    try:
+        from sagrasp_jax.reference.pybullet_env import PyBulletGraspEnv
+    except ImportError as exc:  # reference extra missing
+        print(f"skipping PyBullet ({exc})", file=sys.stderr)
+        return None
+    cfg = config.get_config("paper").env
+    cfg = dataclasses.replace(cfg, control=dataclasses.replace(cfg.control, mode=mode))
+    env = PyBulletGraspEnv(cfg)
+    env.reset(seed=0)
+    rng = jax.random.PRNGKey(0)
+    actions = jax.device_get(jax.random.uniform(rng, (steps, 6), minval=-1.0, maxval=1.0))
+    t0 = time.perf_counter()
+    for a in actions:
+        _, _, terminated, truncated, _ = env.step(a)
+        if terminated or truncated:
+            env.reset()
+    elapsed = time.perf_counter() - t0
+    env.close()
+    return {"mode": mode, "backend": "pybullet", "batch": 1, "steps": steps, "env_steps_per_s": round(steps / elapsed, 1)}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--batches", default="1,16,64,256,1024,4096", help="comma-separated batch sizes")
+    parser.add_argument("--modes", default="kinematic,dynamic")
+    parser.add_argument("--env-steps", type=int, default=100_000, help="env steps timed per cell (capped by --max-steps)")
+    parser.add_argument("--max-steps", type=int, default=200, help="max scan length per cell")
+    parser.add_argument("--dynamic-max-batch", type=int, default=1024, help="largest batch for dynamic mode on CPU")
+    parser.add_argument("--pybullet", action="store_true", help="also time the PyBullet reference env")
+    parser.add_argument("--out", default="experiments/results/bench_env.json")
+    args = parser.parse_args(argv)
+    try:
+        batches = [int(b) for b in args.batches.split(",")]
+    except ValueError:
+        parser.error(f"--batches must be comma-separated integers, got {args.batches!r}")
+    modes = args.modes.split(",")
+    for m in modes:
+        if m not in ("kinematic", "dynamic"):
+            parser.error(f"unknown mode {m!r}; choose kinematic, dynamic")
+    rows = []
+    print(f"{'mode':10s} {'reset':>6s} {'batch':>6s} {'steps':>6s} {'compile s':>10s} {'env-steps/s':>12s}")
+    for mode in modes:
+        for batch in batches:
+            if mode == "dynamic" and jax.default_backend() == "cpu" and batch > args.dynamic_max_batch:
+                continue
+            steps = max(5, min(args.max_steps, args.env_steps // batch))
+            if mode == "dynamic":
+                steps = max(5, steps // 10)
+            for auto in (False, True):
+                row = bench_jax(mode, batch, steps, auto)
+                rows.append(row)
+                print(f"{mode:10s} {'auto' if auto else 'none':>6s} {batch:6d} {steps:6d} {row['compile_s']:10.1f} {row['env_steps_per_s']:12.0f}", flush=True)
+    if args.pybullet:
+        for mode in modes:
+            row = bench_pybullet(mode, 2000 if mode == "kinematic" else 500)
+            if row:
+                rows.append(row)
+                print(f"{mode:10s} {'pyb':>6s} {1:6d} {row['steps']:6d} {'-':>10s} {row['env_steps_per_s']:12.0f}")
+    result = {
+        "machine": {"platform": platform.platform(), "processor": platform.processor(), "cpus": os.cpu_count(),
+                    "jax_backend": jax.default_backend(), "devices": [str(d) for d in jax.devices()]},
+        "versions": {"jax": jax.__version__, "sagrasp_jax": sagrasp_jax.__version__},
+        "rows": rows,
+    }
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=os.path.dirname(os.path.abspath(args.out)), suffix=".tmp")
+    with os.fdopen(fd, "w") as fh:
+        json.dump(result, fh, indent=2)
+    os.replace(tmp, args.out)
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
