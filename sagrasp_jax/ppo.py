@@ -261,9 +261,11 @@ def rollout(env: Env, networks: PPONetworks, params: Params, normaliser: Normali
     """Run the vmapped, auto-resetting env for ``unroll_length`` steps.
 
     Returns the final env state, [T, B] transitions, and [T, B] episode metrics (env's
-    ``info["episode"]`` plus ``done``) to be read only where ``done == 1``.
+    ``info["episode"]`` plus ``done``) to be read only where ``done == 1``.  A wrapper that
+    declares ``batched = True`` is stepped through its ``batch_step`` (whole batch at once,
+    so it can amortise reset sampling); otherwise ``step`` is vmapped.
     """
-    step_fn = jax.vmap(env.step)
+    step_fn = env.batch_step if getattr(env, "batched", False) else jax.vmap(env.step)
 
     def one_step(state: State, k: jax.Array) -> tuple[State, tuple[Transition, dict[str, jax.Array]]]:
         action, raw, log_prob = sample_action(networks, params, normaliser, state.obs, k)

@@ -341,11 +341,11 @@ class Trainer:
         logger = RunLogger(self.out_dir, resume_iteration=self.host.iteration, resume_step=self.host.env_steps)
         sched = self.schedule
         bar = _progress_bar(self.progress, sched, self.host.env_steps, self.stream)
-        t_start = time.perf_counter()
-        start_steps = self.host.env_steps
         last_row: dict[str, Any] = {}
         last_metric: float | None = None
         compile_s = sum(self.compile().values())
+        t_start = time.perf_counter()  # after compiling: time_s, rates and ETA are training only
+        start_steps = self.host.env_steps
         if bar is not None:
             bar.write(f"compiled in {compile_s:.1f} s (iteration {self.compile_s['iteration']:.1f} s, "
                       f"eval {self.compile_s['eval']:.1f} s); {sched.num_iterations} iterations, "

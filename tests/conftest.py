@@ -48,3 +48,25 @@ def toy_run(tmp_path_factory: pytest.TempPathFactory) -> str:
     out = str(tmp_path_factory.mktemp("toy") / "run")
     train.run(toy_config(), out, env_factory=toy_factory(), progress=False)
     return out
+
+
+TRAINED_STEPS = 600_000  # cpu-quick batch; ≈ 1.5-2 min on 2 cores plus compile
+TRAINED_ARGS = ["--preset", "cpu-quick", "--algo", "sa-ppo", "--seed", "0", "--total-steps", str(TRAINED_STEPS),
+                "--set", "sa.num_cycles=30", "--no-progress"]
+
+
+@pytest.fixture(scope="session")
+def trained_run(tmp_path_factory: pytest.TempPathFactory) -> str:
+    """Run folder of a short real-env SA-PPO run via the CLI (config, metrics, checkpoint, policy.npz).
+
+    It learns the grasp well past the untrained policy (≈ 65 % evaluated success after
+    600k steps); tests needing a working policy share it.
+    """
+    import subprocess
+
+    out = str(tmp_path_factory.mktemp("trained") / "run")
+    res = subprocess.run([sys.executable, "-m", "sagrasp_jax.train", "--out", out, *TRAINED_ARGS],
+                         capture_output=True, text=True, timeout=900,
+                         cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    return out

@@ -165,3 +165,28 @@ def test_cycle_length_rounds_to_whole_iterations():
     assert sched.iterations_per_cycle == round(3_000_000 / 200 / 4096)
     explicit = train.make_schedule(train.build_config("cpu-quick", overrides=["sa.cycle_steps=20000"]))
     assert explicit.iterations_per_cycle == 5
+
+
+@pytest.mark.slow
+def test_short_cpu_quick_run_learns_to_grasp(trained_run):
+    """The CLI run of the real env beats the untrained policy clearly on held-out episodes."""
+    from sagrasp_jax import evaluate
+    from sagrasp_jax.env import GraspEnv
+
+    assert train.main(["--out", trained_run]) == 2  # a finished run is not overwritten
+    assert evaluate.main(["--run", trained_run, "--episodes", "256"]) == 0
+    with open(os.path.join(trained_run, evaluate.RESULT_FILE)) as f:
+        trained = json.load(f)["overall"]
+    cfg = train.build_config("cpu-quick")
+    env = GraspEnv(cfg.env)
+    nets = ppo.make_networks(cfg.ppo.network, env.observation_size, env.action_size, cfg.ppo.obs_clip)
+    ts = ppo.init_training_state(jax.random.PRNGKey(0), nets, ppo.make_optimizer(cfg.ppo, 3e-4),
+                                 env.observation_size)
+    untrained = ppo.make_evaluator(nets, env, cfg.env.task.max_steps)(ts.params, ts.normaliser,
+                                                                       ppo.eval_keys(cfg.sa.eval_seed + 1, 256))
+    rows = train.read_metrics(os.path.join(trained_run, train.METRICS_FILE))
+    print(f"untrained success {float(untrained.success_rate):.3f}, trained {trained['success_rate']:.3f} "
+          f"(CI {trained['success_ci95']}), steps/success {trained['mean_steps_per_success']}, "
+          f"median train steps/s {np.median([r['steps_per_s'] for r in rows]):.0f}, compile {rows[-1]['compile_s']:.1f} s")
+    assert trained["success_rate"] >= float(untrained.success_rate) + 0.3
+    assert trained["success_ci95"][0] > float(untrained.success_rate)
