@@ -42,7 +42,7 @@ CHECKPOINT_FILE = "checkpoint.ckpt"
 POLICY_FILE = "policy.npz"
 TB_DIR = "tb"
 # Row fields that depend on wall-clock time, not on the training maths.
-TIME_FIELDS = ("time_s", "steps_per_s", "compile_s", "eval_s", "eta_s")
+TIME_FIELDS = ("time_s", "steps_per_s", "compile_s", "compile_iteration_s", "compile_eval_s", "eval_s", "eta_s")
 
 EnvFactory = Callable[[Config], tuple[ppo.Env, ppo.Env]]  # config -> (auto-reset train env, eval env)
 
@@ -361,7 +361,8 @@ class Trainer:
                 row.setdefault("temperature", self.sa_state.temperature)
                 elapsed = time.perf_counter() - t_start
                 rate = (self.host.env_steps - start_steps) / max(elapsed, 1e-9)
-                row.update(time_s=elapsed, compile_s=compile_s,
+                row.update(time_s=elapsed, compile_s=compile_s, compile_iteration_s=self.compile_s["iteration"],
+                           compile_eval_s=self.compile_s["eval"],
                            eta_s=(sched.num_iterations - self.host.iteration) * sched.steps_per_iteration / rate)
                 if (cycle_ended or "event" in row or row["iteration"] % self.cfg.train.log_every == 0
                         or self.host.iteration == sched.num_iterations):
@@ -389,7 +390,18 @@ class Trainer:
             logger.close()
             if bar is not None:
                 bar.close()
+        if last_row:
+            print(self.summary(last_row, self.host.env_steps - start_steps), file=self.stream)
         return last_row
+
+    def summary(self, row: dict[str, Any], steps: int) -> str:
+        """One line for the end of a run: speed, compile time, SA counts, last evaluation."""
+        sa = self.sa_state
+        return (f"{steps:,} env steps this session, {row['time_s']:.1f} s training ({steps / max(row['time_s'], 1e-9):,.0f} "
+                f"steps/s incl. evaluation) + {row['compile_s']:.1f} s compile; SA accept {sa.n_accept}, "
+                f"accept-worse {sa.n_accept_worse}, reject {sa.n_reject}, decays {sa.decays}, lr {sa.lr:.3g}; "
+                f"non-finite {self.host.nonfinite}; last eval success {_fmt(row.get('eval_success'))}, "
+                f"return {_fmt(row.get('eval_return'))}")
 
 
 def _fmt(value: Any) -> str:
