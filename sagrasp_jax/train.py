@@ -446,8 +446,17 @@ class RunLogger:
 
 
 def read_metrics(path: str) -> list[dict[str, Any]]:
+    """Rows of metrics.jsonl; a last line cut short by a kill is dropped, any other bad line raises."""
     with open(path, encoding="utf-8") as f:
-        return [json.loads(line) for line in f if line.strip()]
+        lines = [line for line in f if line.strip()]
+    rows = []
+    for i, line in enumerate(lines):
+        try:
+            rows.append(json.loads(line))
+        except json.JSONDecodeError:
+            if i < len(lines) - 1:
+                raise
+    return rows
 
 
 # ---------------------------------------------------------------------- CLI

@@ -53,7 +53,7 @@ def test_kill_and_resume_matches_an_uninterrupted_run(tmp_path):
     assert not os.path.exists(os.path.join(half_dir, train.POLICY_FILE))
     # A crash after the checkpoint leaves extra rows behind; the resume must drop them.
     with open(os.path.join(half_dir, train.METRICS_FILE), "a") as f:
-        f.write(json.dumps({"iteration": 10**6, "env_steps": 0}) + "\n")
+        f.write(json.dumps({"iteration": 10**6, "env_steps": 0}) + "\n" + '{"iteration": 10')
     resumed = train.run(cfg, half_dir, env_factory=toy_factory(), progress=False, resume=True)
     assert _rows(half_dir) == _rows(str(tmp_path / "full"))
     assert _leaves_equal(resumed.train_state, full.train_state)
