@@ -196,6 +196,21 @@ def test_gantry_hit_and_camera_unreachable():
     assert top < min(collision.lowest_z(p) for p in unreachable) - 0.1
 
 
+def test_box_overlap_test_agrees_with_exact_box_distance():
+    rng = np.random.default_rng(0)
+    overlaps = 0
+    for _ in range(1500):
+        rot_a, rot_b = (np.linalg.qr(rng.normal(size=(3, 3)))[0] for _ in range(2))
+        half_a, half_b = rng.uniform(0.01, 0.06, 3), rng.uniform(0.01, 0.06, 3)
+        pos_b = rng.uniform(-0.12, 0.12, 3)
+        exact = geometry.box_box_distance(np, np.zeros(3), rot_a, half_a, pos_b, rot_b, half_b)
+        overlap = bool(collision.boxes_overlap(np, np.zeros(3), rot_a, half_a, pos_b, rot_b, half_b))
+        overlaps += overlap
+        if abs(exact) > 1e-7:
+            assert overlap == (exact < 0)
+    assert 200 < overlaps < 1300
+
+
 def test_cover_distance_bounds_exact_distance():
     """Δpo from the sphere cover lies within [exact − bulge, exact + capsule dip]."""
     rng = np.random.default_rng(5)
