@@ -157,17 +157,28 @@ def yaw_rotation(xp: Any, yaw: Any) -> Any:
 
 def upright_sdf(xp: Any, kind: Any, pos: Any, yaw: Any, size: Any, points: Any) -> Any:
     """Signed distance from points (..., 3) to upright obstacles (sphere, z-axis cylinder,
-    z-yawed box); ``kind``/``pos``/``yaw``/``size`` broadcast against the points' batch dims."""
+    z-yawed box); ``kind``/``pos``/``yaw``/``size`` broadcast against the points' batch dims.
+    A Python-int ``kind`` computes only that shape; an array computes all three and selects."""
     d = points - pos
-    sphere = xp.sqrt(xp.sum(d**2, axis=-1)) - size[..., 0]
-    radial = xp.sqrt(d[..., 0] ** 2 + d[..., 1] ** 2) - size[..., 0]
-    axial = xp.abs(d[..., 2]) - size[..., 1]
-    cylinder = xp.sqrt(xp.maximum(radial, 0.0) ** 2 + xp.maximum(axial, 0.0) ** 2) + xp.minimum(xp.maximum(radial, axial), 0.0)
-    c, s = xp.cos(yaw), xp.sin(yaw)
-    local = xp.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1], d[..., 2]], axis=-1)
-    q = xp.abs(local) - size
-    box = xp.sqrt(xp.sum(xp.maximum(q, 0.0) ** 2, axis=-1)) + xp.minimum(xp.max(q, axis=-1), 0.0)
-    return xp.where(kind == SPHERE, sphere, xp.where(kind == CYLINDER, cylinder, box))
+
+    def sphere() -> Any:
+        return xp.sqrt(xp.sum(d**2, axis=-1)) - size[..., 0]
+
+    def cylinder() -> Any:
+        radial = xp.sqrt(d[..., 0] ** 2 + d[..., 1] ** 2) - size[..., 0]
+        axial = xp.abs(d[..., 2]) - size[..., 1]
+        return xp.sqrt(xp.maximum(radial, 0.0) ** 2 + xp.maximum(axial, 0.0) ** 2) + xp.minimum(xp.maximum(radial, axial), 0.0)
+
+    def box() -> Any:
+        c, s = xp.cos(yaw), xp.sin(yaw)
+        local = xp.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1], d[..., 2]], axis=-1)
+        q = xp.abs(local) - size
+        return xp.sqrt(xp.sum(xp.maximum(q, 0.0) ** 2, axis=-1)) + xp.minimum(xp.max(q, axis=-1), 0.0)
+
+    shapes = {SPHERE: sphere, CYLINDER: cylinder, BOX: box}
+    if isinstance(kind, (int, np.integer)):
+        return shapes[int(kind)]()
+    return xp.where(kind == SPHERE, sphere(), xp.where(kind == CYLINDER, cylinder(), box()))
 
 
 def lowest_z(part: Any) -> float:

@@ -21,6 +21,8 @@ from __future__ import annotations
 from typing import Any, NamedTuple
 
 from sagrasp_jax.config import SamplingConfig, TaskConfig
+import numpy as np
+
 from sagrasp_jax import collision
 from sagrasp_jax.robot import BOX, CYLINDER, SPHERE, RobotModel, forward_kinematics
 
@@ -91,12 +93,12 @@ def horizontal_clearance(xp: Any, kind: Any, pos: Any, yaw: Any, size: Any, poin
     return xp.where(kind == BOX, box_gap, round_gap)
 
 
-def _obstacle_to_robot(xp: Any, robot: RobotModel, kin: Any, kind: Any, pos: Any, yaw: Any, size: Any) -> Any:
-    """Distance (...,) from obstacle candidates (exact upright shapes) to the robot's
-    conservative sphere cover (collision.py): the SPEC's "every robot collision geometry"."""
+def _obstacle_to_robot(xp: Any, robot: RobotModel, kin: Any, kind: int, pos: Any, yaw: Any, size: Any) -> Any:
+    """Distance (...,) from obstacle candidates of one static kind (exact upright shapes) to the
+    robot's conservative sphere cover (collision.py): the SPEC's "every robot collision geometry"."""
     cover = collision.sphere_cover(robot)
     spheres = collision.cover_centres(xp, robot, kin)  # (S, 3)
-    sdf = collision.upright_sdf(xp, kind[..., None], pos[..., None, :], yaw[..., None], size[..., None, :], spheres)
+    sdf = collision.upright_sdf(xp, kind, pos[..., None, :], yaw[..., None], size[..., None, :], spheres)
     return xp.min(sdf - xp.asarray(cover.radius, dtype=spheres.dtype), axis=-1)
 
 
@@ -120,9 +122,16 @@ def sample_reset(xp: Any, robot: RobotModel, cfg: SamplingConfig, task: TaskConf
     target_xy = xp.stack([_select(xp, tx, it, 1), _select(xp, ty, it, 1)], axis=-1)  # (attempts, 2)
     target_yaw = _select(xp, tyaw, it, 1)
 
-    # Obstacle candidates for every attempt and slot.
-    kind_index = xp.minimum((u_obs[..., 0] * 3).astype(xp.int32), 2)
-    kind = xp.where(kind_index == 0, OBSTACLE_KINDS[0], xp.where(kind_index == 1, OBSTACLE_KINDS[1], OBSTACLE_KINDS[2]))
+    # Obstacle candidates for every attempt and slot: n_o/3 of each kind (static, so the robot
+    # clearance needs one shape's SDF per candidate), visited in the interleaved order
+    # kind (off), kind (off+1), kind (off+2), ... with a uniform random offset per slot, so the
+    # first candidate's kind is uniform.
+    per_kind = n_o // len(OBSTACLE_KINDS)
+    kind_pattern = np.repeat(np.asarray(OBSTACLE_KINDS), per_kind)  # (n_o,)
+    kind = xp.broadcast_to(xp.asarray(kind_pattern), u_obs.shape[:-1])
+    offset = xp.minimum((u_obs[..., 0, 0] * 3).astype(xp.int32), 2)  # (attempts, slots)
+    group, within = np.arange(n_o) // per_kind, np.arange(n_o) % per_kind
+    order = 3 * within + (group - offset[..., None]) % 3  # visiting position of each candidate
     s1, s2, s3 = u_obs[..., 1], u_obs[..., 2], u_obs[..., 3]
     zero = xp.zeros_like(s1)
     sph_r = _lerp(cfg.sphere_radius, s1)
@@ -146,14 +155,22 @@ def sample_reset(xp: Any, robot: RobotModel, cfg: SamplingConfig, task: TaskConf
     clear_target = horizontal_clearance(xp, kind, pos, oyaw, size, target_xy[:, None, None, :]) >= cfg.target_clearance
     kin = forward_kinematics(xp, robot, q0)
     bound = bounding_radius(xp, kind, size)
-    robot_gap = _obstacle_to_robot(xp, robot, kin, kind, pos, oyaw, size)
+    groups = [slice(g * per_kind, (g + 1) * per_kind) for g in range(len(OBSTACLE_KINDS))]
+    robot_gap = xp.concatenate(
+        [_obstacle_to_robot(xp, robot, kin, k, pos[..., sl, :], oyaw[..., sl], size[..., sl, :]) for k, sl in zip(OBSTACLE_KINDS, groups)],
+        axis=-1,
+    )
     clear_robot = robot_gap >= cfg.robot_clearance
     ok_single = clear_target & clear_robot  # (attempts, slots, n_o)
 
-    i0, has0 = _first_true(xp, ok_single[:, 0])
+    def first_in_order(mask: Any, slot: int) -> tuple[Any, Any]:
+        rank = xp.where(mask, order[:, slot], n_o + 1)
+        return xp.argmin(rank, axis=-1), xp.any(mask, axis=-1)
+
+    i0, has0 = first_in_order(ok_single[:, 0], 0)
     pos0, r0 = _select(xp, pos[:, 0], i0, 1), _select(xp, bound[:, 0], i0, 1)
     apart = xp.sqrt(xp.sum((pos[:, 1] - pos0[:, None, :]) ** 2, axis=-1)) > bound[:, 1] + r0[:, None]
-    i1, has1 = _first_true(xp, ok_single[:, 1] & apart)
+    i1, has1 = first_in_order(ok_single[:, 1] & apart, 1)
 
     want = u_present < cfg.obstacle_prob
     count = xp.where(u_count < 0.5, 1, 2)
