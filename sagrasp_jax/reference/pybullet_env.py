@@ -1,0 +1,554 @@
+"""PyBullet reference implementation of the grasping MDP (SPEC §1-§2), as a Gymnasium env.
+
+Why it exists: the MJX/JAX env (``sagrasp_jax.env.GraspEnv``) is fast but new; this env
+rebuilds the same task in the simulator the paper used, from the same URDF and the same
+scene description, so ``sagrasp_jax.parity`` can show step by step that both are one task.
+
+What is shared, never re-typed: the control step (``control.control_step``), the reward,
+success test and outcome precedence (``reward``), the collision rules
+(``collision.check``) and the reset sampler (``sampling.sample_reset``) all run here with
+``xp = numpy``.  What is PyBullet's own: the robot's pose.  After every control step the
+link frames are read back from PyBullet (``getLinkStates`` with forward kinematics) and
+packed into a ``robot.Kinematics``; the collision rules, tilt, distances and the
+observation are computed from that, not from the project's FK.
+
+Modes (``cfg.control.mode``):
+
+* ``kinematic``: joints are set with ``resetJointState`` (no physics step), the
+  equivalent of the MJX env's ``qpos = q_target``.
+* ``dynamic``: ``POSITION_CONTROL`` motors with forces = the URDF effort limits and
+  ``cfg.control.substeps`` × ``stepSimulation`` of ``physics_dt`` per 0.05 s control
+  period.  PyBullet's motor is a velocity constraint (after a substep
+  v = kp·(q* − q)/h + (1 − kd)·v), not MuJoCo's force servo; the default gains
+  (``DYNAMIC_POSITION_GAINS`` / ``DYNAMIC_VELOCITY_GAINS``) were fitted so that its
+  tracking lag matches the MJCF servos of the MJX env (kp 3000 / kv 150 on joints 1-3,
+  300 / 10 on 4-6, with gravity compensation); see ``docs/parity.md`` for the fit and
+  the remaining gap.
+
+The arm's weight is compensated exactly, as the MJCF's ``gravcomp`` does (the AUBO controller
+compensates gravity): the robot is the only dynamic body, so the world runs without gravity
+unless ``gravity_compensation=False``.  Contacts of the robot are switched off (collision filter
+mask 0) in both modes, as in the MJX env: collisions are the analytic rules of ``collision.check``; the scene bodies
+keep their collision shapes so PyBullet's own distance queries (``pybullet_distance``)
+can cross-check those rules.  A timeout is ``terminated`` (SPEC §2: the −1 is the task's
+verdict), so ``truncated`` is always False.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import math
+import os
+import sys
+from typing import Any, Iterator, SupportsFloat
+
+import numpy as np
+
+try:
+    import gymnasium as gym
+    from gymnasium import spaces
+    import pybullet as pb
+except ImportError as exc:  # pragma: no cover - exercised only without the extra
+    raise ImportError(
+        "the PyBullet reference env needs pybullet and gymnasium: pip install -e .[reference]"
+    ) from exc
+
+from sagrasp_jax import collision, config, control, reward, robot, sampling
+from sagrasp_jax.config import EnvConfig
+from sagrasp_jax.robot import BOX, CAPSULE, CYLINDER, SPHERE, Kinematics
+from sagrasp_jax.scene import SCENE
+
+ENV_ID = "SAGrasp-PyBullet-v0"
+OBS_SIZE = 17
+ACTION_SIZE = 6
+# Same keys as sagrasp_jax.env.EPISODE_KEYS (that module imports jax; a test checks equality).
+EPISODE_KEYS = (
+    "return",
+    "r_distance",
+    "r_success",
+    "r_obstacle",
+    "success",
+    "collision",
+    "timeout",
+    "steps",
+    "obstacle_present",
+    "redraws",
+    "fallback",
+    "min_obstacle_dist",
+) + tuple(f"hit_{name}" for name in collision.HIT_KINDS)
+
+# POSITION_CONTROL gains of the dynamic mode, per arm joint: positionGain kp and velocityGain kd of
+# PyBullet's motor constraint (after a substep h: v = kp·(q* − q)/h + (1 − kd)·v).  MuJoCo's
+# implicit PD servo of the MJCF (Kp, Kv + damping D, armature a) is v = (I·v + h·Kp·(q* − q))/(I + h·D),
+# i.e. kp = h²·Kp/(I + h·D), kd = h·D/(I + h·D) with I the joint inertia incl. armature; these values
+# were fitted (Nelder-Mead, 24 random-action episodes × 80 steps against MuJoCo at 0.01 s × 5) and match
+# that formula at the home pose for joints 1-3; the wrists differ because their MuJoCo servos saturate
+# at 13.5 N·m (docs/parity.md).
+DYNAMIC_POSITION_GAINS = (0.13, 0.07, 0.11, 0.29, 0.31, 0.26)
+DYNAMIC_VELOCITY_GAINS = (0.64, 0.37, 0.57, 1.0, 1.0, 0.88)
+GRAVITY = 9.81  # m/s², used only with gravity_compensation=False
+FINGER_FORCE_FALLBACK = 20.0  # N, used only if the URDF gives a finger no effort limit
+
+
+def rotation_to_quaternion(rot: np.ndarray) -> tuple[float, float, float, float]:
+    """3×3 rotation → PyBullet quaternion (x, y, z, w); Shepperd's method, stable for any angle."""
+    m = np.asarray(rot, dtype=float)
+    tr = m[0, 0] + m[1, 1] + m[2, 2]
+    if tr > 0:
+        s = 2.0 * math.sqrt(tr + 1.0)
+        w, x, y, z = 0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s
+    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
+        s = 2.0 * math.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
+        w, x, y, z = (m[2, 1] - m[1, 2]) / s, 0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s
+    elif m[1, 1] > m[2, 2]:
+        s = 2.0 * math.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
+        w, x, y, z = (m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s
+    else:
+        s = 2.0 * math.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
+        w, x, y, z = (m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s
+    return (x, y, z, w)
+
+
+def quaternions_to_rotations(quats: np.ndarray) -> np.ndarray:
+    """(..., 4) PyBullet quaternions (x, y, z, w) → (..., 3, 3) rotations, vectorised."""
+    q = np.asarray(quats, dtype=float)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    rows = [
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+    ]
+    return np.stack(rows, -2)
+
+
+@contextlib.contextmanager
+def _quiet_stdout() -> Iterator[None]:
+    """Silence C-level stdout (PyBullet's importer warnings) for the duration of the block."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    try:
+        with open(os.devnull, "w") as devnull:
+            os.dup2(devnull.fileno(), 1)
+            yield
+    finally:
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
+def _shape_kwargs(kind: int, size: Any, visual: bool) -> dict[str, Any]:
+    """createCollisionShape / createVisualShape arguments for a primitive in MuJoCo's size convention."""
+    size = [float(v) for v in size]
+    if kind == SPHERE:
+        return {"shapeType": pb.GEOM_SPHERE, "radius": size[0]}
+    if kind == BOX:
+        return {"shapeType": pb.GEOM_BOX, "halfExtents": size}
+    if kind in (CYLINDER, CAPSULE):
+        length_key = "length" if visual else "height"  # PyBullet names the same thing differently
+        shape = pb.GEOM_CYLINDER if kind == CYLINDER else pb.GEOM_CAPSULE
+        return {"shapeType": shape, "radius": size[0], length_key: 2 * size[1]}
+    raise ValueError(f"unknown primitive kind {kind}")
+
+
+def _as_numpy_spec(spec: sampling.ResetSpec) -> sampling.ResetSpec:
+    """A ResetSpec with plain float64 / bool / int NumPy leaves (it may come from JAX)."""
+    return sampling.ResetSpec(
+        q0=np.asarray(spec.q0, dtype=np.float64).reshape(6),
+        target_pos=np.asarray(spec.target_pos, dtype=np.float64).reshape(3),
+        target_yaw=np.asarray(spec.target_yaw, dtype=np.float64).reshape(()),
+        obstacle_active=np.asarray(spec.obstacle_active).astype(bool),
+        obstacle_kind=np.asarray(spec.obstacle_kind).astype(np.int32),
+        obstacle_pos=np.asarray(spec.obstacle_pos, dtype=np.float64),
+        obstacle_yaw=np.asarray(spec.obstacle_yaw, dtype=np.float64),
+        obstacle_size=np.asarray(spec.obstacle_size, dtype=np.float64),
+        redraws=np.asarray(spec.redraws).astype(np.int64).reshape(()),
+        fallback=np.asarray(spec.fallback).astype(bool).reshape(()),
+    )
+
+
+class PyBulletGraspEnv(gym.Env):
+    """AUBO-i5 + EG2 gripper reaching a cuboid among random obstacles, simulated in PyBullet.
+
+    ``reset(options={"reset_spec": spec})`` starts from an explicit ``sampling.ResetSpec``
+    (what ``GraspEnv.reset_to`` takes); otherwise a reset is sampled from ``np_random``
+    uniforms with the shared sampler.  ``progress`` (training progress p ∈ [0, 1] of the
+    reward weights) is an attribute, or ``options={"progress": p}`` at reset.
+    """
+
+    metadata = {"render_modes": ["human", "rgb_array"], "render_fps": 20}
+
+    def __init__(
+        self,
+        cfg: EnvConfig | None = None,
+        render_mode: str | None = None,
+        mode: str | None = None,
+        position_gains: tuple[float, ...] | None = None,
+        velocity_gains: tuple[float, ...] | None = None,
+        gravity_compensation: bool = True,
+    ) -> None:
+        cfg = cfg if cfg is not None else config.get_config("paper").env
+        if mode is not None:
+            cfg = dataclasses.replace(cfg, control=dataclasses.replace(cfg.control, mode=mode))
+        if cfg.control.mode not in ("kinematic", "dynamic"):
+            raise ValueError(f"control mode must be 'kinematic' or 'dynamic', got {cfg.control.mode!r}")
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}")
+        if cfg.sampling.max_obstacles != SCENE.obstacles.count:
+            raise ValueError(f"the scene has {SCENE.obstacles.count} obstacle slots, config asks for {cfg.sampling.max_obstacles}")
+        self.cfg = cfg
+        self.render_mode = render_mode
+        self.robot = robot.load_robot()
+        self.n_uniforms = sampling.uniforms_needed(cfg.sampling)
+        self.position_gains = np.asarray(position_gains or DYNAMIC_POSITION_GAINS, dtype=float)
+        self.velocity_gains = np.asarray(velocity_gains or DYNAMIC_VELOCITY_GAINS, dtype=float)
+        self.gravity_compensation = gravity_compensation
+        self.progress = 0.0
+
+        self.action_space = spaces.Box(-1.0, 1.0, (ACTION_SIZE,), dtype=np.float32)
+        self.observation_space = spaces.Box(-np.inf, np.inf, (OBS_SIZE,), dtype=np.float64)
+
+        if render_mode == "human" and sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):
+            # PyBullet's GUI would kill the whole process when it cannot open a window.
+            raise RuntimeError("render_mode='human' needs a display (DISPLAY is not set); use 'rgb_array' or None")
+        self._client = pb.connect(pb.GUI if render_mode == "human" else pb.DIRECT)
+        if self._client < 0:
+            raise RuntimeError("could not connect to a PyBullet physics server")
+        self._obstacle_bodies: list[int] = []
+        self._spec: sampling.ResetSpec | None = None
+        self._build_world()
+
+    # -- world -----------------------------------------------------------------------------
+    def _pb(self, fn: Any, *args: Any, **kwargs: Any) -> Any:
+        return fn(*args, physicsClientId=self._client, **kwargs)
+
+    def _static_body(self, kind: int, size: Any, pos: Any, rot: np.ndarray, rgba: Any, mass: float = 0.0) -> tuple[int, int]:
+        col = self._pb(pb.createCollisionShape, **_shape_kwargs(kind, size, visual=False))
+        vis = -1
+        if self.render_mode is not None:  # DIRECT runs need no visuals (PyBullet never frees them)
+            vis = self._pb(pb.createVisualShape, rgbaColor=list(rgba), **_shape_kwargs(kind, size, visual=True))
+        body = self._pb(
+            pb.createMultiBody,
+            baseMass=mass,
+            baseCollisionShapeIndex=col,
+            baseVisualShapeIndex=vis,
+            basePosition=[float(v) for v in pos],
+            baseOrientation=rotation_to_quaternion(rot),
+        )
+        return body, col
+
+    def _build_world(self) -> None:
+        """Robot from the project URDF, cell from ``scene.SCENE`` (the one description the MJCF uses too)."""
+        ctl = self.cfg.control
+        self._pb(pb.resetSimulation)
+        # The MJCF compensates the arm's weight exactly (gravcomp="1" on every body, as the AUBO
+        # controller does); PyBullet has no such attribute, and its motor constraint under gravity
+        # sags by ~3.5 mrad at these gains.  The robot is the only dynamic body here (target and
+        # obstacles are static), so exact compensation is the same as no gravity.
+        self._pb(pb.setGravity, 0.0, 0.0, 0.0 if self.gravity_compensation else -GRAVITY)
+        self._pb(pb.setTimeStep, ctl.physics_dt)
+        if self.render_mode == "human":
+            self._pb(pb.configureDebugVisualizer, pb.COV_ENABLE_GUI, 0)
+
+        table = SCENE.table
+        plane = self._pb(pb.createCollisionShape, shapeType=pb.GEOM_PLANE)
+        vis = -1
+        if self.render_mode is not None:
+            vis = self._pb(pb.createVisualShape, shapeType=pb.GEOM_BOX, halfExtents=list(table.half_extents), rgbaColor=list(table.rgba),
+                           visualFramePosition=[table.centre_xy[0], table.centre_xy[1], -table.half_extents[2]])
+        self.table_body = self._pb(pb.createMultiBody, baseMass=0.0, baseCollisionShapeIndex=plane, baseVisualShapeIndex=vis,
+                                   basePosition=[0.0, 0.0, table.top_z])
+        self.static_bodies = {part.name: self._static_body(part.kind, part.size, part.pos, part.rot, part.rgba)[0]
+                              for part in SCENE.static_parts}
+        half = [s / 2 for s in self.cfg.sampling.target_size]
+        self.target_body, _ = self._static_body(BOX, half, (0.0, 0.0, -1.0), np.eye(3), SCENE.target_rgba)
+
+        flags = pb.URDF_USE_INERTIA_FROM_FILE  # else PyBullet recomputes inertias from the collision shapes
+        with _quiet_stdout():  # PyBullet prints a warning for each link without <inertial>, fixed below
+            self.robot_body = self._pb(pb.loadURDF, self.robot.urdf_path, basePosition=[0, 0, 0], useFixedBase=True, flags=flags)
+        joints, links = {}, {}
+        efforts = {}
+        for j in range(self._pb(pb.getNumJoints, self.robot_body)):
+            info = self._pb(pb.getJointInfo, self.robot_body, j)
+            joints[info[1].decode()] = j
+            links[info[12].decode()] = j  # a child link's index is its joint's index
+            efforts[j] = float(info[10])
+        self.arm_joints = [joints[name] for name in robot.ARM_JOINTS]
+        self.finger_joints = [joints[name] for name in robot.FINGER_JOINTS]
+        self.arm_links = [links[name] for name in self.robot.link_names[1:]]
+        self.flange_link = joints["flange_joint"]  # a fixed joint's index is its child link's index
+        self.centre_link = joints["gripper_center_joint"]
+        self._fk_links = self.arm_links + [self.flange_link, self.centre_link]
+        self.arm_forces = [efforts[j] for j in self.arm_joints]
+        self.finger_forces = [efforts[j] or FINGER_FORCE_FALLBACK for j in self.finger_joints]
+        if not np.allclose(self.arm_forces, self.robot.effort_limit):
+            raise RuntimeError("PyBullet read effort limits that differ from robot.load_robot()")
+        # Frame-only links (flange, gripper_center) have no <inertial>; PyBullet would give them 1 kg and
+        # a 1 kg·m² inertia.  They are massless in the URDF's intent and in the MJCF.
+        for link in (self.flange_link, self.centre_link):
+            self._pb(pb.changeDynamics, self.robot_body, link, mass=0.0, localInertiaDiagonal=[0.0, 0.0, 0.0])
+
+        # Base link frame = base COM frame ∘ inverse(local inertial frame): PyBullet reports the COM.
+        com_pos, com_quat = self._pb(pb.getBasePositionAndOrientation, self.robot_body)
+        dyn = self._pb(pb.getDynamicsInfo, self.robot_body, -1)
+        inv_pos, inv_quat = pb.invertTransform(dyn[3], dyn[4])
+        base_pos, base_quat = pb.multiplyTransforms(com_pos, com_quat, inv_pos, inv_quat)
+        self._base_pos = np.asarray(base_pos, dtype=float)
+        self._base_rot = quaternions_to_rotations(np.asarray(base_quat))
+
+        # Robot contacts off (as in the MJX env): collisions are the analytic rules.
+        for link in range(-1, self._pb(pb.getNumJoints, self.robot_body)):
+            self._pb(pb.setCollisionFilterGroupMask, self.robot_body, link, 0, 0)
+            self._pb(pb.changeDynamics, self.robot_body, link, linearDamping=0.0, angularDamping=0.0)
+        # Release PyBullet's default velocity motors (they act as joint friction).
+        all_joints = self.arm_joints + self.finger_joints
+        self._pb(pb.setJointMotorControlArray, self.robot_body, all_joints, pb.VELOCITY_CONTROL, forces=[0.0] * len(all_joints))
+
+    def _place_episode_bodies(self, spec: sampling.ResetSpec) -> None:
+        """Target as a static multibody at its sampled pose; a fresh body per active obstacle slot."""
+        self._pb(pb.resetBasePositionAndOrientation, self.target_body, spec.target_pos.tolist(),
+                 rotation_to_quaternion(collision.yaw_rotation(np, spec.target_yaw)))
+        for body in self._obstacle_bodies:
+            self._pb(pb.removeBody, body)
+        # (PyBullet cannot free a collision shape once a body used it: a few hundred bytes per obstacle.)
+        self._obstacle_bodies = []
+        for slot in np.nonzero(spec.obstacle_active)[0]:
+            body, _ = self._static_body(
+                int(spec.obstacle_kind[slot]), spec.obstacle_size[slot], spec.obstacle_pos[slot],
+                collision.yaw_rotation(np, spec.obstacle_yaw[slot]), SCENE.obstacles.rgba,
+            )
+            self._obstacle_bodies.append(body)
+
+    # -- robot state -----------------------------------------------------------------------
+    def _set_joints(self, q: np.ndarray, qd: np.ndarray | None = None) -> None:
+        qd = np.zeros(6) if qd is None else qd
+        for j, value, vel in zip(self.arm_joints, q, qd):
+            self._pb(pb.resetJointState, self.robot_body, j, float(value), float(vel))
+        for j in self.finger_joints:
+            self._pb(pb.resetJointState, self.robot_body, j, self.robot.finger_open, 0.0)
+
+    def _measure(self) -> tuple[np.ndarray, np.ndarray]:
+        states = self._pb(pb.getJointStates, self.robot_body, self.arm_joints)
+        return np.array([s[0] for s in states], dtype=float), np.array([s[1] for s in states], dtype=float)
+
+    def kinematics(self) -> Kinematics:
+        """``robot.Kinematics`` built from PyBullet's own link frames (what every rule here sees)."""
+        states = self._pb(pb.getLinkStates, self.robot_body, self._fk_links, computeForwardKinematics=True)
+        pos = np.array([s[4] for s in states], dtype=float)
+        rot = quaternions_to_rotations(np.array([s[5] for s in states], dtype=float))
+        link_pos = np.concatenate([self._base_pos[None], pos[:6]])
+        link_rot = np.concatenate([self._base_rot[None], rot[:6]])
+        return Kinematics(
+            link_pos=link_pos,
+            link_rot=link_rot,
+            joint_axes=link_rot[1:, :, 2],  # every arm joint turns about its child link's local z
+            joint_pos=link_pos[1:],
+            flange_pos=pos[6],
+            gripper_centre=pos[7],
+            approach_axis=rot[6][:, 2],  # flange local +z
+        )
+
+    def _apply(self, q_target: np.ndarray) -> None:
+        if self.cfg.control.mode == "kinematic":
+            self._set_joints(q_target)
+            return
+        self._pb(
+            pb.setJointMotorControlArray, self.robot_body, self.arm_joints, pb.POSITION_CONTROL,
+            targetPositions=q_target.tolist(), targetVelocities=[0.0] * 6, forces=self.arm_forces,
+            positionGains=self.position_gains.tolist(), velocityGains=self.velocity_gains.tolist(),
+        )
+        self._pb(
+            pb.setJointMotorControlArray, self.robot_body, self.finger_joints, pb.POSITION_CONTROL,
+            targetPositions=[self.robot.finger_open] * len(self.finger_joints), forces=self.finger_forces,
+        )
+        for _ in range(self.cfg.control.substeps):
+            self._pb(pb.stepSimulation)
+
+    def _observe(self, q: np.ndarray, kin: Kinematics, col: collision.CollisionResult, tilt: Any) -> np.ndarray:
+        task = self.cfg.task
+        std = task.obs_noise_std * (1.0 + task.obs_noise_growth * self.progress)
+        noisy_q = q + std * self.np_random.normal(size=6) if std > 0 else q
+        assert self._spec is not None
+        return np.concatenate([
+            noisy_q, kin.gripper_centre, self._spec.target_pos, np.asarray(col.nearest_obstacle_pos, float),
+            [float(col.nearest_obstacle_dist)], [float(tilt)],
+        ]).astype(np.float64)
+
+    # -- Gymnasium API ---------------------------------------------------------------------
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+        super().reset(seed=seed)
+        options = options or {}
+        if "progress" in options:
+            self.progress = float(options["progress"])
+        spec = options.get("reset_spec")
+        if spec is None:
+            u = self.np_random.random(self.n_uniforms)
+            spec = sampling.sample_reset(np, self.robot, self.cfg.sampling, self.cfg.task, u)
+        spec = _as_numpy_spec(spec)
+        self._spec = spec
+        self._place_episode_bodies(spec)
+        self._set_joints(spec.q0)
+        self._q_target = spec.q0.copy()
+        self._q, self._qd = self._measure()
+        kin = self.kinematics()
+        col = collision.check(np, self.robot, kin, spec, self.cfg)
+        tilt = float(robot.tilt(np, kin.approach_axis))
+        self._d_prev = float(np.linalg.norm(kin.gripper_centre - spec.target_pos))
+        self._clean = True
+        self._steps = 0
+        self._acc = {"return": 0.0, "r_distance": 0.0, "r_success": 0.0, "r_obstacle": 0.0,
+                     "min_obstacle_dist": float(col.nearest_obstacle_dist)}
+        self._done = False
+        obs = self._observe(self._q, kin, col, tilt)
+        info = {"reset_spec": spec, "gripper_centre": kin.gripper_centre.copy(), "distance": self._d_prev, "tilt": tilt}
+        return obs, info
+
+    def step(self, action: Any) -> tuple[np.ndarray, SupportsFloat, bool, bool, dict[str, Any]]:
+        if self._spec is None or self._done:
+            raise RuntimeError("call reset() before step() (the episode has ended)")
+        cfg, spec = self.cfg, self._spec
+        action = np.asarray(action, dtype=np.float64).reshape(ACTION_SIZE)
+        ctl = control.control_step(np, self.robot, cfg.control, self._q_target, self._q, spec.target_pos, action)
+        self._q_target = np.asarray(ctl.q_target, dtype=float)
+        self._apply(self._q_target)
+        self._q, self._qd = self._measure()
+        kin = self.kinematics()
+        col = collision.check(np, self.robot, kin, spec, cfg)
+        tilt = float(robot.tilt(np, kin.approach_axis))
+        d_now = float(np.linalg.norm(kin.gripper_centre - spec.target_pos))
+        self._steps += 1
+        success_raw = reward.success_flag(np, cfg.task, kin.gripper_centre, spec.target_pos, tilt)
+        timeout = self._steps >= cfg.task.max_steps
+        outcome = reward.resolve_outcome(np, col.any_collision, success_raw, timeout)
+        present = bool(np.any(spec.obstacle_active))
+        if present and float(col.nearest_obstacle_dist) < cfg.reward.near_miss_distance:
+            self._clean = False
+        total, terms = reward.step_reward(
+            np, cfg.reward, progress=self.progress, d_prev=self._d_prev, d_now=d_now,
+            collision=outcome.collision, success=outcome.success, timeout=outcome.timeout,
+            obstacle_dist=float(col.nearest_obstacle_dist), obstacle_present=present, clean_so_far=self._clean,
+        )
+        total = float(total)
+        self._d_prev = d_now
+        acc = self._acc
+        acc["return"] += total
+        acc["r_distance"] += float(terms.r_distance)
+        acc["r_success"] += float(terms.r_success)
+        acc["r_obstacle"] += float(terms.r_obstacle)
+        acc["min_obstacle_dist"] = min(acc["min_obstacle_dist"], float(col.nearest_obstacle_dist))
+        terminated = bool(outcome.collision or outcome.success or outcome.timeout)
+        self._done = terminated
+        obs = self._observe(self._q, kin, col, tilt)
+        info: dict[str, Any] = {
+            "gripper_centre": kin.gripper_centre.copy(),
+            "distance": d_now,
+            "tilt": tilt,
+            "r_distance": float(terms.r_distance),
+            "r_success": float(terms.r_success),
+            "r_obstacle": float(terms.r_obstacle),
+            "success": bool(outcome.success),
+            "collision": bool(outcome.collision),
+            "timeout": bool(outcome.timeout),
+            "hits": {name: bool(hit) for name, hit in col.hits.items()},
+            "slowed": bool(ctl.slowed),
+            "finetuned": bool(ctl.finetuned),
+            "q_target": self._q_target.copy(),
+        }
+        if terminated:
+            info["episode"] = self.episode_metrics(outcome, col)
+            info["is_success"] = bool(outcome.success)  # what Stable-Baselines3 logs as success rate
+        if self.render_mode == "human":
+            self.render()
+        return obs, total, terminated, False, info
+
+    def episode_metrics(self, outcome: reward.Outcome, col: collision.CollisionResult) -> dict[str, float]:
+        """The finished episode's metrics, the same keys and meaning as GraspEnv's ``info["episode"]``."""
+        assert self._spec is not None
+        acc = self._acc
+        metrics = {
+            "return": acc["return"],
+            "r_distance": acc["r_distance"],
+            "r_success": acc["r_success"],
+            "r_obstacle": acc["r_obstacle"],
+            "success": float(outcome.success),
+            "collision": float(outcome.collision),
+            "timeout": float(outcome.timeout),
+            "steps": float(self._steps),
+            "obstacle_present": float(np.any(self._spec.obstacle_active)),
+            "redraws": float(self._spec.redraws),
+            "fallback": float(self._spec.fallback),
+            "min_obstacle_dist": acc["min_obstacle_dist"],
+        } | {f"hit_{name}": float(bool(outcome.collision) and bool(hit)) for name, hit in col.hits.items()}
+        return {k: metrics[k] for k in EPISODE_KEYS}
+
+    # -- extras ----------------------------------------------------------------------------
+    def force_state(
+        self,
+        q: Any,
+        q_target: Any,
+        qd: Any | None = None,
+        *,
+        steps: int | None = None,
+        d_prev: float | None = None,
+        clean: bool | None = None,
+    ) -> None:
+        """Put the episode mid-way into a given state: joints ``q`` (velocities ``qd``), accumulated
+        target ``q_target``, step count, previous distance and clean-so-far flag.  For single-step
+        comparisons from a state forced identical to the other simulator's (SPEC §2 parity rules)."""
+        if self._spec is None:
+            raise RuntimeError("call reset() before force_state()")
+        q = np.asarray(q, dtype=float)
+        self._set_joints(q, None if qd is None else np.asarray(qd, dtype=float))
+        self._q, self._qd = self._measure()
+        self._q_target = np.asarray(q_target, dtype=float).copy()
+        if d_prev is None:
+            d_prev = float(np.linalg.norm(self.kinematics().gripper_centre - self._spec.target_pos))
+        self._d_prev = float(d_prev)
+        if steps is not None:
+            self._steps = int(steps)
+        if clean is not None:
+            self._clean = bool(clean)
+        self._done = False
+
+    def pybullet_distance(self, max_distance: float = 0.5) -> dict[str, float]:
+        """PyBullet's own closest distance (``getClosestPoints``, exact primitives) from the robot to
+        the target, each obstacle and the table: an independent check of ``collision.check``, whose
+        sphere cover is conservative by up to its bulge.  The base and shoulder, which stand on the
+        table, are left out of the table distance (as in the collision rules)."""
+        standing = {-1, self.arm_links[0]}
+        bodies = {"target": self.target_body, "table": self.table_body}
+        bodies |= {f"obstacle_{i}": b for i, b in enumerate(self._obstacle_bodies)}
+        out = {}
+        for name, body in bodies.items():
+            points = self._pb(pb.getClosestPoints, self.robot_body, body, max_distance)
+            dists = [p[8] for p in points if not (name == "table" and p[3] in standing)]
+            out[name] = min(dists, default=math.inf)
+        return out
+
+    @property
+    def client(self) -> int:
+        return self._client
+
+    @property
+    def reset_spec(self) -> sampling.ResetSpec | None:
+        return self._spec
+
+    def render(self) -> np.ndarray | None:
+        """``rgb_array``: an image from the calibrated scene camera; ``human``: the GUI shows itself."""
+        if self.render_mode != "rgb_array":
+            return None
+        cam = SCENE.camera
+        width, height = cam.resolution
+        eye = np.asarray(cam.pos)
+        view = self._pb(pb.computeViewMatrix, eye.tolist(), (eye + cam.optical_axis).tolist(), (-cam.rot[:, 1]).tolist())
+        proj = self._pb(pb.computeProjectionMatrixFOV, cam.fovy_deg, width / height, 0.05, 3.0)
+        img = self._pb(pb.getCameraImage, width, height, view, proj, renderer=pb.ER_TINY_RENDERER)
+        return np.asarray(img[2], dtype=np.uint8).reshape(height, width, 4)[..., :3]
+
+    def close(self) -> None:
+        if getattr(self, "_client", -1) >= 0:
+            try:
+                pb.disconnect(physicsClientId=self._client)
+            except pb.error:
+                pass
+            self._client = -1
