@@ -1,0 +1,200 @@
+"""Deploy an exported policy on one detected cube: ``python -m sagrasp_jax.deploy``.
+
+    python -m sagrasp_jax.deploy --policy policy/policy.npz --target-cam X Y Z [--units mm|m]
+        [--target-yaw DEG] [--obstacle KIND X Y Z SIZE... ]... [--calibration FILE]
+        [--backend twin] [--gui] [--json]
+
+Detections are camera-frame points as the depth camera reports them: the **top** of the cube
+(and of each obstacle), in ``--units`` (default mm, the Mech-Eye's and the calibration's
+unit).  They are mapped to the robot base frame with the hand-eye calibration, the top is
+mapped to the centre, and the cube centre must lie in the trained region — all checked
+before the robot moves; bad input exits with status 2 and says what is wrong.
+
+Obstacles: ``--obstacle sphere X Y Z R``, ``--obstacle cylinder X Y Z R H``,
+``--obstacle box X Y Z LX LY LZ [YAW_DEG]`` (full lengths; LX along the camera's x axis
+turned by YAW_DEG about its optical axis), at most two.
+
+Exit status: 0 grasp pose reached (and lifted, unless --no-grasp), 1 timeout or collision,
+2 input refused before anything moved, 3 the safety layer stopped the robot.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from typing import Any, Sequence
+
+import numpy as np
+
+from sagrasp_jax.deploy.calibration import (
+    CalibrationError,
+    CameraCalibration,
+    TargetRejected,
+    detected_top_to_cube_centre,
+    validate_target,
+)
+from sagrasp_jax.deploy.loop import OBSTACLE_KINDS, DeployError, Obstacle, format_report, run_episode, scene_spec
+from sagrasp_jax.deploy.safety import SafetyViolation
+from sagrasp_jax.runtime import PolicyFormatError, load_policy
+
+BACKENDS = ("twin",)
+UNIT_SCALE = {"mm": 1e-3, "m": 1.0}
+DETECTION_RANGE = (0.3, 3.0)  # m from the camera: where a depth camera over the table can see anything
+OBSTACLE_SIZE_RANGE = (0.005, 0.5)  # m, any obstacle dimension
+CELL_BOX = ((-1.0, -1.2, -0.05), (1.0, 0.6, 1.5))  # m, world box an obstacle centre must lie in
+SIZE_COUNTS = {"sphere": (1,), "cylinder": (2,), "box": (3, 4)}
+
+
+class InputRefused(ValueError):
+    """Command-line input that must not reach the robot."""
+
+
+def _camera_point(values: Sequence[float], units: str, what: str) -> np.ndarray:
+    """A detected camera-frame point in metres, refused if NaN or implausibly near/far (units)."""
+    p = np.asarray(values, dtype=float) * UNIT_SCALE[units]
+    if p.shape != (3,) or not np.isfinite(p).all():
+        raise InputRefused(f"{what}: camera point {list(values)} must be 3 finite numbers")
+    dist = float(np.linalg.norm(p))
+    if not DETECTION_RANGE[0] <= dist <= DETECTION_RANGE[1]:
+        other = "m" if units == "mm" else "mm"
+        raise InputRefused(
+            f"{what}: camera point {list(values)} {units} is {dist:.4g} m from the camera, outside the "
+            f"depth camera's range [{DETECTION_RANGE[0]}, {DETECTION_RANGE[1]}] m: wrong units? "
+            f"(given --units {units}; try --units {other})"
+        )
+    return p
+
+
+def camera_yaw_to_world(cal: CameraCalibration, yaw_cam: float, symmetry: float = 2 * math.pi) -> float:
+    """A yaw about the camera's optical axis -> yaw about world z (the camera looks ≈ straight down),
+    wrapped into [−symmetry/2, symmetry/2) for a shape that looks the same turned by ``symmetry``."""
+    direction = cal.matrix[:3, :3] @ np.array([math.cos(yaw_cam), math.sin(yaw_cam), 0.0])
+    yaw = math.atan2(direction[1], direction[0])
+    return (yaw + symmetry / 2) % symmetry - symmetry / 2
+
+
+def parse_obstacle(tokens: Sequence[str], cal: CameraCalibration, units: str, index: int) -> Obstacle:
+    """``KIND X Y Z SIZE...`` (camera frame, top point) -> a world-frame ``Obstacle``."""
+    what = f"--obstacle #{index + 1}"
+    if not tokens or tokens[0] not in OBSTACLE_KINDS:
+        raise InputRefused(f"{what}: first value must be one of {', '.join(OBSTACLE_KINDS)}, got {list(tokens)[:1]}")
+    kind = tokens[0]
+    try:
+        numbers = [float(t) for t in tokens[1:]]
+    except ValueError:
+        raise InputRefused(f"{what}: {' '.join(tokens)}: every value after the kind must be a number") from None
+    if len(numbers) - 3 not in SIZE_COUNTS[kind]:
+        usage = {"sphere": "X Y Z R", "cylinder": "X Y Z R H", "box": "X Y Z LX LY LZ [YAW_DEG]"}[kind]
+        raise InputRefused(f"{what}: {kind} takes {usage}, got {len(numbers)} numbers")
+    top = cal.cam_to_base(_camera_point(numbers[:3], units, what))
+    scale = UNIT_SCALE[units]
+    lengths = [v * scale for v in numbers[3:6]]
+    yaw = 0.0
+    if kind == "sphere":
+        size = (lengths[0], 0.0, 0.0)
+        half_height = lengths[0]
+    elif kind == "cylinder":
+        size = (lengths[0], lengths[1] / 2, 0.0)
+        half_height = lengths[1] / 2
+    else:
+        size = (lengths[0] / 2, lengths[1] / 2, lengths[2] / 2)
+        half_height = lengths[2] / 2
+        yaw = camera_yaw_to_world(cal, math.radians(numbers[6]) if len(numbers) == 7 else 0.0, math.pi)
+    for v in lengths:
+        if not (math.isfinite(v) and OBSTACLE_SIZE_RANGE[0] <= v <= OBSTACLE_SIZE_RANGE[1]):
+            raise InputRefused(
+                f"{what}: {kind} dimension {v:.4g} m is outside [{OBSTACLE_SIZE_RANGE[0]}, {OBSTACLE_SIZE_RANGE[1]}] m "
+                f"(given in {units})"
+            )
+    centre = top - np.array([0.0, 0.0, half_height])
+    lo, hi = CELL_BOX
+    if not all(lo[i] <= centre[i] <= hi[i] for i in range(3)):
+        raise InputRefused(
+            f"{what}: {kind} centre {np.round(centre, 4).tolist()} m (world) is outside the cell {lo}..{hi} m: "
+            "wrong units or calibration?"
+        )
+    return Obstacle(kind, tuple(float(v) for v in centre), size, yaw)
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m sagrasp_jax.deploy", description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter,
+                                epilog=__doc__.split("\n\n", 2)[2])
+    p.add_argument("--policy", required=True, help="exported policy.npz")
+    p.add_argument("--target-cam", nargs=3, type=float, required=True, metavar=("X", "Y", "Z"),
+                   help="detected top of the cube in the camera frame")
+    p.add_argument("--target-yaw", type=float, default=0.0, metavar="DEG", help="cube yaw about the optical axis (default 0)")
+    p.add_argument("--units", choices=tuple(UNIT_SCALE), default="mm", help="units of the detections (default mm)")
+    p.add_argument("--obstacle", nargs="+", action="append", default=[], metavar="KIND_X_Y_Z_SIZE",
+                   help="detected obstacle: sphere X Y Z R | cylinder X Y Z R H | box X Y Z LX LY LZ [YAW_DEG]")
+    p.add_argument("--calibration", default=None, help="4×4 camera->base matrix (.json/.npy/.txt; default SPEC §5)")
+    p.add_argument("--calibration-units", choices=tuple(UNIT_SCALE), default="mm", help="translation units of --calibration")
+    p.add_argument("--base-z-offset", type=float, default=0.0, help="controller base height in the URDF frame, m")
+    p.add_argument("--base-yaw", type=float, default=0.0, help="controller base yaw about z relative to the URDF, rad")
+    p.add_argument("--backend", choices=BACKENDS, default="twin", help="robot backend (default: PyBullet twin)")
+    p.add_argument("--gui", action="store_true", help="open the PyBullet viewer (twin)")
+    p.add_argument("--max-steps", type=int, default=None, help="step cap (default: the policy's env.task.max_steps)")
+    p.add_argument("--no-grasp", action="store_true", help="stop at the grasp pose: do not close the gripper and lift")
+    p.add_argument("--json", action="store_true", help="print the report as JSON")
+    return p
+
+
+def _emit(args: argparse.Namespace, payload: dict[str, Any], text: str, error: bool = False) -> None:
+    """The report on stdout (JSON with --json); a refusal's message also on stderr."""
+    if args.json:
+        print(json.dumps(payload, indent=2, allow_nan=False))
+    if error or not args.json:
+        print(text, file=sys.stderr if error else sys.stdout)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    given: dict[str, Any] = {"target_cam": args.target_cam, "units": args.units, "target_yaw_cam_deg": args.target_yaw,
+                             "obstacles_cam": args.obstacle, "backend": args.backend}
+    try:
+        if args.max_steps is not None and args.max_steps < 1:
+            raise InputRefused(f"--max-steps must be >= 1, got {args.max_steps}")
+        if not math.isfinite(args.target_yaw):
+            raise InputRefused(f"--target-yaw {args.target_yaw} must be finite")
+        policy = load_policy(args.policy)
+        env_cfg = policy.env_config()
+        if args.calibration:
+            cal = CameraCalibration.from_file(args.calibration, args.calibration_units, args.base_z_offset, args.base_yaw)
+        else:
+            cal = CameraCalibration.default(args.base_z_offset, args.base_yaw)
+        top = cal.cam_to_base(_camera_point(args.target_cam, args.units, "--target-cam"))
+        centre = validate_target(detected_top_to_cube_centre(top), env_cfg.sampling)
+        square = env_cfg.sampling.target_size[0] == env_cfg.sampling.target_size[1]
+        # a square cube is the same turned by 90°: report its yaw in the trained range ±45°
+        yaw = camera_yaw_to_world(cal, math.radians(args.target_yaw), math.pi / 2 if square else 2 * math.pi)
+        obstacles = [parse_obstacle(tokens, cal, args.units, i) for i, tokens in enumerate(args.obstacle)]
+        q_home = np.asarray(env_cfg.task.home_q, dtype=float)
+        spec = scene_spec(q_home, centre, yaw, obstacles, env_cfg)
+    except (InputRefused, TargetRejected, CalibrationError, PolicyFormatError, ValueError) as exc:
+        _emit(args, {"outcome": "input_refused", "message": str(exc), "input": given},
+              f"error: refused before moving: {exc}", error=True)
+        return 2
+    given.update(calibration=cal.source, target_world=[float(v) for v in centre], target_yaw_world=yaw,
+                 obstacles_world=[{"kind": o.kind, "centre": list(o.centre), "size": list(o.size), "yaw": o.yaw}
+                                  for o in obstacles])
+
+    from sagrasp_jax.deploy.twin import PyBulletTwin  # the only backend; PyBullet only when it is used
+
+    with PyBulletTwin(spec, env_cfg, q0=q_home, gui=args.gui) as robot:
+        try:
+            report = run_episode(robot, policy, centre, yaw, obstacles, max_steps=args.max_steps, grasp=not args.no_grasp)
+        except (SafetyViolation, DeployError) as exc:
+            _emit(args, {"outcome": "refused", "message": str(exc), "input": given}, f"error: stopped: {exc}", error=True)
+            return 3
+    payload = report.to_dict() | {"input": given}
+    _emit(args, payload, format_report(report))
+    if report.outcome == "refused":
+        return 3
+    held = report.grasp is None or report.grasp.get("lifted", False)
+    return 0 if report.success and held else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,349 @@
+"""The closed deployment loop: observe, act with the exported policy, check, command (SPEC §5).
+
+Why it is built the way it is: a policy only transfers if it sees what it saw in training and
+its actions mean what they meant there.  So every number here comes from the modules the
+training env runs, with NumPy:
+
+* observation: measured joints, gripper centre (``robot.forward_kinematics``), target centre,
+  nearest obstacle and Δpo (``collision.check``), tilt — the 17 entries of
+  ``runtime.OBS_LAYOUT``, no noise (a test compares them with ``env.GraspEnv``'s);
+* action: ``runtime.NumpyPolicy`` with the normaliser it was trained with;
+* joint target: ``control.control_step`` (slow-down, wrist fine-tuning, target accumulation,
+  joint-limit clip) with the policy's own ``env.control`` constants;
+* stop: ``reward.success_flag`` with no collision, a collision, ``env.task.max_steps``, or a
+  refusal by the ``SafetyLayer``, which checks every command before it is sent.  The layer
+  here also refuses a command whose pose would collide with the cell, the detected
+  obstacles or the cube (``collision.check``), so the arm stops instead of touching them.
+
+After a success the gripper closes and the arm lifts the gripper centre by ``lift_height``
+(0.05 m) in small IK steps, each passing the same safety layer.  Nothing here imports jax.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from typing import Any, Callable, NamedTuple, Protocol, Sequence, runtime_checkable
+
+import numpy as np
+
+from sagrasp_jax import collision, control, reward
+from sagrasp_jax.config import EnvConfig
+from sagrasp_jax.deploy.calibration import validate_target
+from sagrasp_jax.deploy.safety import SafetyLayer, SafetyViolation
+from sagrasp_jax.robot import BOX, CYLINDER, SPHERE, RobotModel, forward_kinematics, load_robot, solve_home_pose, tilt
+from sagrasp_jax.runtime import NumpyPolicy
+from sagrasp_jax.sampling import ResetSpec
+
+OBSTACLE_KINDS = {"sphere": SPHERE, "cylinder": CYLINDER, "box": BOX}
+LIFT_HEIGHT = 0.05  # m, SPEC §2/§5: lift after closing the gripper
+LIFT_MIN_STEPS = 10  # control periods the lift takes at least (0.5 s: ≤ 0.1 m/s)
+LIFT_MAX_JOINT_MOVE = 0.5  # rad; a lift pose further than this from the grasp pose means IK left the branch
+
+
+class DeployError(RuntimeError):
+    """The loop cannot start or continue (bad robot reading, IK failure); nothing more is sent."""
+
+
+@runtime_checkable
+class RobotInterface(Protocol):
+    """What the loop needs from a robot: the real AUBO-i5 SDK, the PyBullet twin or MuJoCo.
+
+    ``command_joint_targets`` sends one absolute joint target (rad, 6 arm joints) and returns
+    after one control period (``env.control.control_dt``); the controller tracks it.  The
+    gripper calls block until the fingers have settled.  A backend may also offer
+    ``object_position() -> (3,)`` (simulators: the cube's centre) so the report can say
+    whether the cube came along when lifting.
+    """
+
+    def read_joints(self) -> np.ndarray: ...
+
+    def command_joint_targets(self, q: np.ndarray) -> None: ...
+
+    def open_gripper(self) -> None: ...
+
+    def close_gripper(self) -> None: ...
+
+
+@dataclass(frozen=True)
+class Obstacle:
+    """A detected obstacle in the world (robot base) frame, MuJoCo size convention."""
+
+    kind: str  # sphere | cylinder | box
+    centre: tuple[float, float, float]
+    size: tuple[float, float, float]  # sphere (r, 0, 0); cylinder (r, half-height, 0); box half-extents
+    yaw: float = 0.0  # rad about world z (boxes)
+
+
+def scene_spec(q0: Any, target_pos: Any, target_yaw: float, obstacles: Sequence[Obstacle], env_cfg: EnvConfig) -> ResetSpec:
+    """The episode as the shared maths sees it (``sampling.ResetSpec``), from detections."""
+    slots = env_cfg.sampling.max_obstacles
+    if len(obstacles) > slots:
+        raise ValueError(f"{len(obstacles)} obstacles given; the policy was trained with at most {slots}")
+    active = np.zeros(slots, bool)
+    kind = np.full(slots, SPHERE, np.int32)
+    pos = np.zeros((slots, 3))
+    pos[:, 2] = -5.0  # parked like the MJCF's unused slots
+    yaw = np.zeros(slots)
+    size = np.full((slots, 3), 0.01)
+    for i, ob in enumerate(obstacles):
+        if ob.kind not in OBSTACLE_KINDS:
+            raise ValueError(f"obstacle {i}: kind {ob.kind!r} is not one of {', '.join(OBSTACLE_KINDS)}")
+        values = np.array([*ob.centre, *ob.size, ob.yaw], dtype=float)
+        if not np.isfinite(values).all():
+            raise ValueError(f"obstacle {i} ({ob.kind}) has NaN/inf in its position, size or yaw")
+        active[i], kind[i], pos[i], yaw[i], size[i] = True, OBSTACLE_KINDS[ob.kind], ob.centre, ob.yaw, ob.size
+    return ResetSpec(
+        q0=np.asarray(q0, dtype=float),
+        target_pos=np.asarray(target_pos, dtype=float),
+        target_yaw=np.asarray(float(target_yaw)),
+        obstacle_active=active,
+        obstacle_kind=kind,
+        obstacle_pos=pos,
+        obstacle_yaw=yaw,
+        obstacle_size=size,
+        redraws=np.asarray(0),
+        fallback=np.asarray(False),
+    )
+
+
+def obstacles_from_spec(spec: ResetSpec) -> list[Obstacle]:
+    """The active obstacles of a sampled ``ResetSpec`` (simulated deployments of training scenes)."""
+    names = {v: k for k, v in OBSTACLE_KINDS.items()}
+    return [
+        Obstacle(names[int(spec.obstacle_kind[i])], tuple(float(v) for v in spec.obstacle_pos[i]),
+                 tuple(float(v) for v in spec.obstacle_size[i]), float(spec.obstacle_yaw[i]))
+        for i in np.nonzero(np.asarray(spec.obstacle_active))[0]
+    ]
+
+
+class Observation(NamedTuple):
+    obs: np.ndarray  # (17,) in runtime.OBS_LAYOUT order
+    gripper_centre: np.ndarray
+    tilt: float
+    collision: collision.CollisionResult
+
+
+def build_observation(model: RobotModel, env_cfg: EnvConfig, q: Any, spec: ResetSpec) -> Observation:
+    """The training observation (``env.observation``'s order) at measured joints ``q``, no noise."""
+    q = np.asarray(q, dtype=float)
+    kin = forward_kinematics(np, model, q)
+    col = collision.check(np, model, kin, spec, env_cfg)
+    theta = float(tilt(np, kin.approach_axis))
+    obs = np.concatenate([
+        q, kin.gripper_centre, np.asarray(spec.target_pos, float), np.asarray(col.nearest_obstacle_pos, float),
+        [float(col.nearest_obstacle_dist)], [theta],
+    ])
+    return Observation(obs, kin.gripper_centre, theta, col)
+
+
+def collision_hook(model: RobotModel, env_cfg: EnvConfig, spec: ResetSpec,
+                   ignore: Sequence[str] = ()) -> Callable[[np.ndarray], str | None]:
+    """``SafetyLayer`` hook: a message naming what the pose ``q`` would hit, or None."""
+
+    def check(q: np.ndarray) -> str | None:
+        col = collision.check(np, model, forward_kinematics(np, model, q), spec, env_cfg)
+        hits = [name for name in collision.HIT_KINDS if name not in ignore and bool(col.hits[name])]
+        return f"pose would collide with: {', '.join(hits)}" if hits else None
+
+    return check
+
+
+def lift_pose(model: RobotModel, q: Any, height: float = LIFT_HEIGHT) -> np.ndarray:
+    """Joints that put the gripper centre ``height`` m straight above where it is at ``q``,
+    pointing down, found by IK seeded at ``q`` (so the arm stays on its branch)."""
+    q = np.asarray(q, dtype=float)
+    goal = forward_kinematics(np, model, q).gripper_centre + np.array([0.0, 0.0, height])
+    q_lift = solve_home_pose(q, goal, model)
+    kin = forward_kinematics(np, model, q_lift)
+    error = float(np.linalg.norm(kin.gripper_centre - goal))
+    move = float(np.abs(q_lift - q).max())
+    if error > 1e-3 or move > LIFT_MAX_JOINT_MOVE or not np.isfinite(q_lift).all():
+        raise DeployError(f"no lift pose found near the grasp pose (IK error {error * 1000:.1f} mm, joint move {move:.3f} rad)")
+    return q_lift
+
+
+@dataclass
+class DeployReport:
+    """What one deployment episode did; ``to_dict`` is the ``--json`` output."""
+
+    outcome: str  # success | timeout | collision | refused
+    success: bool
+    steps: int
+    message: str
+    target: list[float]
+    target_yaw: float
+    obstacles: int
+    min_obstacle_clearance: float | None  # m, smallest Δpo seen (None without obstacles)
+    final_distance: float  # m, gripper centre to cube centre
+    final_horizontal_offset: float
+    final_height_above_target: float
+    final_tilt_deg: float
+    final_q: list[float]
+    slowed_steps: int
+    finetuned_steps: int
+    wall_s: float
+    grasp: dict[str, Any] | None = None  # closed / lifted / rises, when a grasp was attempted
+    hits: list[str] = field(default_factory=list)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def send_checked(robot: RobotInterface, safety: SafetyLayer, q_cmd: Any, q_prev: Any) -> np.ndarray:
+    """The one path by which the loop moves the arm: the safety layer first, then the robot.
+
+    Raises ``SafetyViolation`` (and sends nothing) for a refused command.
+    """
+    q = safety.check(q_cmd, q_prev)
+    robot.command_joint_targets(q.copy())
+    return q
+
+
+def _read(robot: RobotInterface) -> np.ndarray:
+    q = np.asarray(robot.read_joints(), dtype=float)
+    if q.shape != (6,) or not np.isfinite(q).all():
+        raise DeployError(f"robot reported joints {q!r}; expected 6 finite values")
+    return q
+
+
+def run_episode(
+    robot: RobotInterface,
+    policy: NumpyPolicy,
+    target_pos: Any,
+    target_yaw: float = 0.0,
+    obstacles: Sequence[Obstacle] = (),
+    *,
+    safety: SafetyLayer | None = None,
+    max_steps: int | None = None,
+    grasp: bool = True,
+    lift_height: float = LIFT_HEIGHT,
+    on_step: Callable[[int, Observation, np.ndarray], None] | None = None,
+) -> DeployReport:
+    """Run the policy from the robot's current pose until success, collision, timeout or refusal.
+
+    ``target_pos`` is the cube centre in the world (URDF base) frame; it is validated against
+    the trained region before anything moves (``TargetRejected``).  ``safety`` defaults to a
+    ``SafetyLayer`` with the policy's env config and a collision hook for this scene.
+    ``on_step(step, observation, q_command)`` is called after every command sent.
+    """
+    t0 = time.perf_counter()
+    env_cfg = policy.env_config()
+    model = load_robot()
+    target = validate_target(target_pos, env_cfg.sampling)
+    q0 = _read(robot)
+    spec = scene_spec(q0, target, target_yaw, obstacles, env_cfg)
+    if safety is None:
+        safety = SafetyLayer(env_cfg, model, collision_check=collision_hook(model, env_cfg, spec))
+    steps_limit = env_cfg.task.max_steps if max_steps is None else int(max_steps)
+    safety.check_pose(q0, "start pose")  # refuses a start that already breaks a rule
+
+    q_target = q0.copy()
+    steps = slowed = finetuned = 0
+    clearance = math.inf
+    outcome, message = "timeout", ""
+    while True:
+        q = _read(robot)
+        ob = build_observation(model, env_cfg, q, spec)
+        clearance = min(clearance, float(ob.collision.nearest_obstacle_dist))
+        if bool(ob.collision.any_collision):
+            hits = [n for n in collision.HIT_KINDS if bool(ob.collision.hits[n])]
+            outcome, message = "collision", f"measured pose collides with: {', '.join(hits)}; stopped"
+            break
+        if bool(reward.success_flag(np, env_cfg.task, ob.gripper_centre, target, ob.tilt)):
+            outcome, message = "success", f"grasp pose reached after {steps} steps"
+            break
+        if steps >= steps_limit:
+            outcome, message = "timeout", f"no grasp pose within {steps_limit} steps; stopped"
+            break
+        action = policy(ob.obs)
+        ctl = control.control_step(np, model, env_cfg.control, q_target, q, target, action)
+        try:
+            q_target = send_checked(robot, safety, ctl.q_target, q_target)
+        except SafetyViolation as exc:
+            outcome, message = "refused", f"safety layer refused step {steps + 1}: {exc}; robot stopped"
+            break
+        steps += 1
+        slowed += bool(ctl.slowed)
+        finetuned += bool(ctl.finetuned)
+        if on_step is not None:
+            on_step(steps, ob, q_target)
+
+    offset = ob.gripper_centre - target
+    report = DeployReport(
+        outcome=outcome,
+        success=outcome == "success",
+        steps=steps,
+        message=message,
+        target=[float(v) for v in target],
+        target_yaw=float(target_yaw),
+        obstacles=len(obstacles),
+        min_obstacle_clearance=float(clearance) if obstacles else None,
+        final_distance=float(np.linalg.norm(offset)),
+        final_horizontal_offset=float(np.linalg.norm(offset[:2])),
+        final_height_above_target=float(offset[2]),
+        final_tilt_deg=math.degrees(ob.tilt),
+        final_q=[float(v) for v in q],
+        slowed_steps=slowed,
+        finetuned_steps=finetuned,
+        wall_s=0.0,
+        hits=[n for n in collision.HIT_KINDS if bool(ob.collision.hits[n])],
+    )
+    if report.success and grasp:
+        report.grasp = _grasp_and_lift(robot, model, env_cfg, spec, q, q_target, lift_height)
+    report.wall_s = time.perf_counter() - t0
+    return report
+
+
+def _grasp_and_lift(robot: RobotInterface, model: RobotModel, env_cfg: EnvConfig, spec: ResetSpec,
+                    q: np.ndarray, q_target: np.ndarray, height: float) -> dict[str, Any]:
+    """Close the gripper, lift ``height`` m in safety-checked steps, measure what rose."""
+    locate = getattr(robot, "object_position", None)
+    cube0 = np.asarray(locate(), float) if locate is not None else None
+    centre0 = forward_kinematics(np, model, q).gripper_centre
+    robot.close_gripper()
+    result: dict[str, Any] = {"closed": True, "lift_commanded": float(height), "lifted": False, "message": ""}
+    # The cube now rides between the pads: contact with it is the point, not a collision.
+    lift_safety = SafetyLayer(env_cfg, model, collision_check=collision_hook(model, env_cfg, spec, ignore=("target",)))
+    try:
+        q_lift = lift_pose(model, q, height)
+        n = max(LIFT_MIN_STEPS, math.ceil(float(np.max(np.abs(q_lift - q_target) / lift_safety.step_limit)) * 2))
+        for k in range(1, n + 1):
+            q_target = send_checked(robot, lift_safety, q_target + (q_lift - q_target) / (n - k + 1), q_target)
+        result["lifted"] = True
+    except (SafetyViolation, DeployError) as exc:
+        result["message"] = f"lift stopped: {exc}"
+    q_end = _read(robot)
+    result["gripper_rise"] = float(forward_kinematics(np, model, q_end).gripper_centre[2] - centre0[2])
+    if cube0 is not None:
+        rise = float(np.asarray(locate(), float)[2] - cube0[2])
+        result["object_rise"] = rise
+        result["object_held"] = bool(rise >= result["gripper_rise"] - 0.01 and rise > 0.5 * height)
+    return result
+
+
+def format_report(report: DeployReport) -> str:
+    """Plain-text report for the terminal."""
+    lines = [
+        f"outcome            {report.outcome}" + (f" ({report.message})" if report.message else ""),
+        f"steps              {report.steps}",
+        f"target (world, m)  ({report.target[0]:.4f}, {report.target[1]:.4f}, {report.target[2]:.4f}), "
+        f"yaw {math.degrees(report.target_yaw):.1f}°",
+        f"final offset       {report.final_distance * 1000:.1f} mm "
+        f"(horizontal {report.final_horizontal_offset * 1000:.1f} mm, height {report.final_height_above_target * 1000:.1f} mm), "
+        f"tilt {report.final_tilt_deg:.2f}°",
+        f"obstacles          {report.obstacles}"
+        + (f", min clearance {report.min_obstacle_clearance * 1000:.1f} mm" if report.min_obstacle_clearance is not None else ""),
+        f"slow-down steps    {report.slowed_steps}, fine-tune steps {report.finetuned_steps}",
+    ]
+    if report.grasp is not None:
+        g = report.grasp
+        text = f"grasp              closed, lift {'done' if g['lifted'] else 'NOT done'}: gripper rose {g['gripper_rise'] * 1000:.1f} mm"
+        if "object_rise" in g:
+            text += f", cube rose {g['object_rise'] * 1000:.1f} mm ({'held' if g['object_held'] else 'NOT held'})"
+        if g["message"]:
+            text += f"; {g['message']}"
+        lines.append(text)
+    lines.append(f"wall time          {report.wall_s:.2f} s")
+    return "\n".join(lines)

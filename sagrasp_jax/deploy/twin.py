@@ -1,0 +1,219 @@
+"""PyBullet digital twin of the cell: a ``deploy.loop.RobotInterface`` to rehearse deployment on.
+
+Built from the same sources as the training scene, never a hand-kept copy: the robot from
+the project URDF (``robot.URDF_PATH``), the table, gantry and camera from ``scene.SCENE``;
+the cube and the obstacles are placed at the detected (calibrated) positions.  DIRECT mode
+by default (headless), ``gui=True`` opens PyBullet's viewer.
+
+Joint targets are applied as the real controller executes them: the AUBO tracks its joint
+targets precisely, so before the gripper closes a command sets the joints exactly
+(``resetJointState``, training's ``kinematic`` mode).  Once the gripper has closed, commands
+are tracked by the joint motors under physics for one control period each, so the cube,
+squeezed between the pads (the only robot parts with contacts), is carried by friction and
+``object_position`` tells whether the grasp held.  Nothing here imports jax.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import sys
+import time
+from typing import Any, Iterator
+
+import numpy as np
+
+
+@contextlib.contextmanager
+def _stdout_to_stderr() -> Iterator[None]:
+    """PyBullet's C code prints banners and URDF warnings on fd 1; keep stdout for reports (--json)."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    try:
+        os.dup2(2, 1)
+        yield
+    finally:
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
+try:
+    with _stdout_to_stderr():
+        import pybullet as pb
+except ImportError as exc:  # pragma: no cover - exercised only without the extra
+    raise ImportError("the PyBullet twin needs pybullet: pip install -e .[reference]") from exc
+
+from sagrasp_jax import robot as robot_mod
+from sagrasp_jax.collision import yaw_rotation
+from sagrasp_jax.config import HOME_Q, EnvConfig
+from sagrasp_jax.reference.pybullet_env import _shape_kwargs, rotation_to_quaternion
+from sagrasp_jax.robot import BOX
+from sagrasp_jax.sampling import ResetSpec
+from sagrasp_jax.scene import SCENE
+
+PHYSICS_HZ = 240  # PyBullet's default step; 12 substeps per 0.05 s control period
+FINGER_FORCE = 20.0  # N per finger (EG2: the MJCF actuator's force range)
+PAD_FRICTION = 1.5  # same as the MJCF pads and target
+TARGET_MASS = 0.05  # kg, same as the MJCF target
+GRIPPER_SETTLE_S = 0.6  # s of physics for a gripper open/close
+ARM_POSITION_GAIN = 0.3  # PyBullet POSITION_CONTROL gains while carrying (stiff, AUBO-like tracking)
+ARM_VELOCITY_GAIN = 1.0
+
+
+def _yaw_xyzw(yaw: float) -> tuple[float, float, float, float]:
+    return rotation_to_quaternion(yaw_rotation(np, float(yaw)))
+
+
+class PyBulletTwin:
+    """The cell in PyBullet with the cube and obstacles of one scene (``deploy.loop.scene_spec``)."""
+
+    def __init__(self, spec: ResetSpec, env_cfg: EnvConfig | None = None, q0: Any = HOME_Q, gui: bool = False,
+                 realtime: bool | None = None) -> None:
+        self.cfg = env_cfg or EnvConfig()
+        self.robot = robot_mod.load_robot()
+        self.gui = gui
+        self.realtime = gui if realtime is None else realtime
+        self.control_dt = float(self.cfg.control.control_dt)
+        self.substeps = max(1, round(self.control_dt * PHYSICS_HZ))
+        self.carrying = False  # True once the gripper has closed: commands go through the motors
+        with _stdout_to_stderr():
+            self._client = pb.connect(pb.GUI if gui else pb.DIRECT)
+            if self._client < 0:
+                raise RuntimeError("could not connect to a PyBullet physics server" + (" (no display for --gui?)" if gui else ""))
+            try:
+                self._build(spec)
+                self._set_arm(np.asarray(q0, dtype=float))
+            except BaseException:
+                self.close()
+                raise
+
+    # -- world -----------------------------------------------------------------------------
+    def _pb(self, fn: Any, *args: Any, **kwargs: Any) -> Any:
+        return fn(*args, physicsClientId=self._client, **kwargs)
+
+    def _body(self, kind: int, size: Any, pos: Any, orn: Any, rgba: Any, mass: float = 0.0) -> int:
+        """A primitive body (MuJoCo size convention, shapes as the reference env builds them)."""
+        return self._pb(
+            pb.createMultiBody,
+            baseMass=mass,
+            baseCollisionShapeIndex=self._pb(pb.createCollisionShape, **_shape_kwargs(kind, size, visual=False)),
+            baseVisualShapeIndex=self._pb(pb.createVisualShape, rgbaColor=list(rgba), **_shape_kwargs(kind, size, visual=True)),
+            basePosition=[float(v) for v in pos],
+            baseOrientation=list(orn),
+        )
+
+    def _build(self, spec: ResetSpec) -> None:
+        """Robot from the URDF, cell from SCENE, cube and obstacles from the scene spec."""
+        self._pb(pb.resetSimulation)
+        self._pb(pb.setGravity, 0.0, 0.0, -9.81)
+        self._pb(pb.setTimeStep, 1.0 / PHYSICS_HZ)
+        table = SCENE.table
+        self.table_body = self._pb(
+            pb.createMultiBody,
+            baseMass=0.0,
+            baseCollisionShapeIndex=self._pb(pb.createCollisionShape, shapeType=pb.GEOM_PLANE),
+            baseVisualShapeIndex=self._pb(
+                pb.createVisualShape, shapeType=pb.GEOM_BOX, halfExtents=list(table.half_extents), rgbaColor=list(table.rgba),
+                visualFramePosition=[table.centre_xy[0], table.centre_xy[1], -table.half_extents[2]],
+            ),
+            basePosition=[0.0, 0.0, table.top_z],
+        )
+        for part in SCENE.static_parts:
+            self._body(part.kind, part.size, part.pos, rotation_to_quaternion(part.rot), part.rgba)
+        half = [s / 2 for s in self.cfg.sampling.target_size]
+        target_pos = np.asarray(spec.target_pos, dtype=float)
+        self.target_body = self._body(BOX, half, target_pos, _yaw_xyzw(float(spec.target_yaw)), SCENE.target_rgba, TARGET_MASS)
+        self._pb(pb.changeDynamics, self.target_body, -1, lateralFriction=PAD_FRICTION)
+        self.obstacle_bodies = [
+            self._body(int(spec.obstacle_kind[i]), spec.obstacle_size[i], spec.obstacle_pos[i],
+                       _yaw_xyzw(float(spec.obstacle_yaw[i])), SCENE.obstacles.rgba)
+            for i in np.nonzero(np.asarray(spec.obstacle_active))[0]
+        ]
+
+        self.robot_body = self._pb(pb.loadURDF, self.robot.urdf_path, useFixedBase=True, flags=pb.URDF_USE_INERTIA_FROM_FILE)
+        joints: dict[str, int] = {}
+        efforts: dict[int, float] = {}
+        for j in range(self._pb(pb.getNumJoints, self.robot_body)):
+            info = self._pb(pb.getJointInfo, self.robot_body, j)
+            joints[info[1].decode()] = j
+            efforts[j] = float(info[10])
+        self.arm_joints = [joints[n] for n in robot_mod.ARM_JOINTS]
+        self.finger_joints = [joints[n] for n in robot_mod.FINGER_JOINTS]
+        self.arm_forces = [efforts[j] for j in self.arm_joints]
+        # Only the finger pads touch anything: the arm's collisions are the analytic rules.
+        for link in range(-1, self._pb(pb.getNumJoints, self.robot_body)):
+            if link not in self.finger_joints:
+                self._pb(pb.setCollisionFilterGroupMask, self.robot_body, link, 0, 0)
+        for j in self.finger_joints:
+            self._pb(pb.changeDynamics, self.robot_body, j, lateralFriction=PAD_FRICTION)
+        self._fingers(self.robot.finger_open)
+        for j in self.finger_joints:
+            self._pb(pb.resetJointState, self.robot_body, j, self.robot.finger_open)
+
+    def _fingers(self, opening: float) -> None:
+        self._pb(pb.setJointMotorControlArray, self.robot_body, self.finger_joints, pb.POSITION_CONTROL,
+                 targetPositions=[opening] * 2, forces=[FINGER_FORCE] * 2)
+
+    def _set_arm(self, q: np.ndarray) -> None:
+        for j, value in zip(self.arm_joints, q):
+            self._pb(pb.resetJointState, self.robot_body, j, float(value), 0.0)
+        self._hold_arm(q)
+
+    def _hold_arm(self, q: np.ndarray) -> None:
+        self._pb(pb.setJointMotorControlArray, self.robot_body, self.arm_joints, pb.POSITION_CONTROL,
+                 targetPositions=[float(v) for v in q], targetVelocities=[0.0] * 6, forces=self.arm_forces,
+                 positionGains=[ARM_POSITION_GAIN] * 6, velocityGains=[ARM_VELOCITY_GAIN] * 6)
+
+    def _simulate(self, seconds: float) -> None:
+        for _ in range(max(1, round(seconds * PHYSICS_HZ))):
+            self._pb(pb.stepSimulation)
+            if self.realtime:
+                time.sleep(1.0 / PHYSICS_HZ)
+
+    # -- RobotInterface ----------------------------------------------------------------------
+    def read_joints(self) -> np.ndarray:
+        return np.array([s[0] for s in self._pb(pb.getJointStates, self.robot_body, self.arm_joints)], dtype=float)
+
+    def command_joint_targets(self, q: np.ndarray) -> None:
+        q = np.asarray(q, dtype=float)
+        if q.shape != (6,) or not np.isfinite(q).all():
+            raise ValueError(f"joint target must be 6 finite values, got {q!r}")
+        if self.carrying:
+            self._hold_arm(q)
+            self._simulate(self.control_dt)
+        else:
+            self._set_arm(q)
+            if self.realtime:
+                time.sleep(self.control_dt)
+
+    def open_gripper(self) -> None:
+        self._fingers(self.robot.finger_open)
+        self._simulate(GRIPPER_SETTLE_S)
+
+    def close_gripper(self) -> None:
+        self.carrying = True
+        self._hold_arm(self.read_joints())
+        self._fingers(0.0)
+        self._simulate(GRIPPER_SETTLE_S)
+
+    # -- extras ----------------------------------------------------------------------------
+    def object_position(self) -> np.ndarray:
+        """The cube's centre now (world frame)."""
+        return np.asarray(self._pb(pb.getBasePositionAndOrientation, self.target_body)[0], dtype=float)
+
+    def finger_positions(self) -> np.ndarray:
+        return np.array([s[0] for s in self._pb(pb.getJointStates, self.robot_body, self.finger_joints)], dtype=float)
+
+    def close(self) -> None:
+        if getattr(self, "_client", -1) >= 0:
+            try:
+                pb.disconnect(physicsClientId=self._client)
+            except pb.error:
+                pass
+            self._client = -1
+
+    def __enter__(self) -> "PyBulletTwin":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()

@@ -1,0 +1,247 @@
+"""Deployment loop on the PyBullet twin: training observation, safety before every command, CLI refusals."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+pytest.importorskip("pybullet")
+
+from sagrasp_jax import sampling  # noqa: E402
+from sagrasp_jax.config import HOME_Q, get_config  # noqa: E402
+from sagrasp_jax.deploy import (  # noqa: E402
+    CameraCalibration,
+    Obstacle,
+    SafetyLayer,
+    SafetyViolation,
+    TargetRejected,
+    WorkspaceBox,
+    build_observation,
+    run_episode,
+    scene_spec,
+    send_checked,
+)
+from sagrasp_jax.deploy.loop import collision_hook  # noqa: E402
+from sagrasp_jax.deploy.twin import PyBulletTwin  # noqa: E402
+from sagrasp_jax.robot import forward_kinematics, load_robot, solve_home_pose  # noqa: E402
+from sagrasp_jax.runtime import load_policy, save_policy_npz  # noqa: E402
+from tiny_run import REPO, tiny_run  # noqa: E402
+
+HOME = np.array(HOME_Q)
+TARGET = np.array([0.10, -0.45, 0.025])
+MODEL = load_robot()
+
+
+@pytest.fixture(scope="session")
+def run_dir(tmp_path_factory: pytest.TempPathFactory) -> str:
+    return tiny_run(str(tmp_path_factory.getbasetemp()))
+
+
+@pytest.fixture(scope="module")
+def policy(run_dir: str):
+    return load_policy(os.path.join(run_dir, "policy.npz"))
+
+
+def constant_policy(tmp_path, action) -> object:
+    """A policy whose deterministic action is ``action`` whatever it sees (zero weights, biased output)."""
+    loc = np.arctanh(np.asarray(action, dtype=np.float64))
+    weights = [(np.zeros((17, 8), np.float32), np.zeros(8, np.float32)),
+               (np.zeros((8, 12), np.float32), np.concatenate([loc, np.zeros(6)]).astype(np.float32))]
+    path = save_policy_npz(tmp_path / "const.npz", weights=weights, activation="tanh", obs_mean=np.zeros(17),
+                           obs_std=np.ones(17), config=get_config("cpu-quick"))
+    return load_policy(path)
+
+
+class Spy:
+    """Records what reaches the robot."""
+
+    def __init__(self, robot: PyBulletTwin) -> None:
+        self.robot, self.sent = robot, []
+
+    def read_joints(self):
+        return self.robot.read_joints()
+
+    def command_joint_targets(self, q):
+        self.sent.append(np.array(q))
+        self.robot.command_joint_targets(q)
+
+    def open_gripper(self):
+        self.robot.open_gripper()
+
+    def close_gripper(self):
+        self.robot.close_gripper()
+
+    def object_position(self):
+        return self.robot.object_position()
+
+
+def _twin(target=TARGET, obstacles=(), q0=HOME, yaw=0.0) -> PyBulletTwin:
+    cfg = get_config("cpu-quick").env
+    return PyBulletTwin(scene_spec(q0, target, yaw, obstacles, cfg), cfg, q0=q0)
+
+
+def test_observation_is_the_training_envs() -> None:
+    """Same 17 numbers as GraspEnv (noise off) for sampled scenes, obstacles included."""
+    import jax
+
+    from sagrasp_jax.env import GraspEnv
+
+    cfg = get_config("cpu-quick").env
+    cfg = dataclasses.replace(cfg, task=dataclasses.replace(cfg.task, obs_noise_std=0.0),
+                              sampling=dataclasses.replace(cfg.sampling, obstacle_prob=1.0))
+    env = GraspEnv(cfg)
+    rng = np.random.default_rng(0)
+    reset_to = jax.jit(env.reset_to)
+    specs = [sampling.sample_reset(np, MODEL, cfg.sampling, cfg.task, rng.random(sampling.uniforms_needed(cfg.sampling)))
+             for _ in range(12)]
+    specs = [s for s in specs if s.obstacle_active.any()][:4]  # skip the rare no-feasible-obstacle fallback
+    assert len(specs) == 4
+    for spec in specs:
+        ours = build_observation(MODEL, cfg, spec.q0, spec).obs
+        theirs = np.asarray(reset_to(spec, jax.random.PRNGKey(0)).obs)
+        np.testing.assert_allclose(ours, theirs, atol=2e-5)
+        assert ours[15] < 1.0  # Δpo of a real obstacle, not the "none" value
+
+
+def test_safety_refuses_over_limit_and_too_fast_commands_twin_stays(policy) -> None:
+    layer = SafetyLayer(policy.env_config())
+    with _twin() as twin:
+        before = twin.read_joints()
+        over = before.copy()
+        over[0] = 3.10
+        with pytest.raises(SafetyViolation, match=r"joint 1 \(shoulder_joint\) .* outside its limit"):
+            send_checked(twin, layer, over, over - [0.04, 0, 0, 0, 0, 0])
+        fast = before + [0, 0.2, 0, 0, 0, 0]
+        with pytest.raises(SafetyViolation, match=r"joint 2 .* moves 0\.2000 rad in one step"):
+            send_checked(twin, layer, fast, before)
+        np.testing.assert_array_equal(twin.read_joints(), before)
+        ok = before + [0.02, -0.01, 0, 0, 0, 0]
+        send_checked(twin, layer, ok, before)  # a valid command does reach the twin
+        np.testing.assert_allclose(twin.read_joints(), ok, atol=1e-12)
+
+
+def test_target_outside_workspace_refused_before_moving(policy) -> None:
+    with _twin() as twin:
+        before = twin.read_joints()
+        with pytest.raises(TargetRejected, match="x = 0.6000 m is outside"):
+            run_episode(twin, policy, [0.60, -0.45, 0.025])
+        with pytest.raises(TargetRejected, match="NaN"):
+            run_episode(twin, policy, [np.nan, -0.45, 0.025])
+        np.testing.assert_array_equal(twin.read_joints(), before)
+
+
+def test_tiny_policy_episode_on_twin_reports_and_obeys_safety(policy) -> None:
+    obstacle = Obstacle("cylinder", (0.25, -0.30, 0.08), (0.03, 0.08, 0.0))
+    with _twin(obstacles=[obstacle]) as twin:
+        spy = Spy(twin)
+        report = run_episode(spy, policy, TARGET, obstacles=[obstacle], max_steps=30)
+        final = twin.read_joints()
+    assert report.outcome in ("success", "timeout", "collision", "refused")
+    assert report.success == (report.outcome == "success")
+    assert 1 <= report.steps <= 30 and len(spy.sent) == report.steps
+    assert report.obstacles == 1 and 0.0 < report.min_obstacle_clearance < 1.0
+    assert report.final_distance > 0 and len(report.final_q) == 6 and report.target == TARGET.tolist()
+    d = report.to_dict()
+    for key in ("outcome", "steps", "success", "min_obstacle_clearance", "final_distance", "final_tilt_deg", "message"):
+        assert key in d
+    json.dumps(d, allow_nan=False)
+    # every command the twin received passes the layer the loop uses, one after the other
+    cfg = policy.env_config()
+    spec = scene_spec(HOME, TARGET, 0.0, [obstacle], cfg)
+    layer = SafetyLayer(cfg, MODEL, collision_check=collision_hook(MODEL, cfg, spec))
+    previous = HOME
+    for q in spy.sent:
+        layer.check(q, previous)
+        previous = q
+    np.testing.assert_allclose(final, spy.sent[-1], atol=1e-12)
+
+
+def test_loop_stops_at_the_first_refused_command(tmp_path) -> None:
+    """A policy that drives the gripper down under a tightened workspace floor is stopped by the
+    layer; the refused command never reaches the twin."""
+    down = constant_policy(tmp_path, [0, 0.9, 0, 0, 0, 0])  # q2 up: the arm tips forward and down
+    cfg = down.env_config()
+    start_z = float(forward_kinematics(np, MODEL, HOME).gripper_centre[2])
+    layer = SafetyLayer(cfg, MODEL, workspace=WorkspaceBox(lower=(-0.5, -0.85, start_z - 0.05)))
+    with _twin() as twin:
+        spy = Spy(twin)
+        report = run_episode(spy, down, TARGET, safety=layer)
+        final = twin.read_joints()
+    assert report.outcome == "refused" and not report.success
+    assert "workspace box" in report.message and f"step {report.steps + 1}" in report.message
+    assert len(spy.sent) == report.steps >= 1
+    np.testing.assert_array_equal(final, spy.sent[-1])
+    assert forward_kinematics(np, MODEL, final).gripper_centre[2] >= start_z - 0.05
+
+
+def test_grasp_pose_closes_and_lifts_the_cube_on_twin(policy) -> None:
+    """Starting at a success pose the loop stops at once, closes the gripper and lifts 5 cm; the cube comes along."""
+    q = HOME
+    start = forward_kinematics(np, MODEL, HOME).gripper_centre
+    goal = TARGET + [0, 0, 0.0125]
+    for s in np.linspace(0.1, 1.0, 10):
+        q = solve_home_pose(q, start + s * (goal - start))
+    with _twin(q0=q, yaw=0.4) as twin:
+        report = run_episode(twin, policy, TARGET, 0.4)
+    assert report.outcome == "success" and report.steps == 0
+    grasp = report.grasp
+    assert grasp["closed"] and grasp["lifted"], grasp
+    assert abs(grasp["gripper_rise"] - 0.05) < 0.005
+    assert grasp["object_held"] and grasp["object_rise"] > 0.04, grasp
+
+
+def _deploy(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "sagrasp_jax.deploy", *args], capture_output=True, text=True,
+                          timeout=300, cwd=REPO)
+
+
+def _cam_mm(world_top) -> list[str]:
+    return [f"{v:.6f}" for v in CameraCalibration.default().base_to_cam(np.asarray(world_top), units="mm")]
+
+
+def test_cli_json_report_on_twin(run_dir: str) -> None:
+    top = _cam_mm(TARGET + [0, 0, 0.025])
+    ob = _cam_mm([0.25, -0.30, 0.16])
+    res = _deploy("--policy", os.path.join(run_dir, "policy.npz"), "--target-cam", *top, "--target-yaw", "30",
+                  "--obstacle", "cylinder", *ob, "30", "160", "--max-steps", "20", "--json")
+    assert res.returncode in (0, 1, 3), res.stderr[-2000:]
+    report = json.loads(res.stdout)  # stdout is the JSON alone (PyBullet's banners go to stderr)
+    assert report["outcome"] in ("success", "timeout", "collision", "refused")
+    np.testing.assert_allclose(report["target"], TARGET, atol=1e-8)
+    np.testing.assert_allclose(report["input"]["obstacles_world"][0]["centre"], [0.25, -0.30, 0.08], atol=1e-8)
+    np.testing.assert_allclose(report["input"]["obstacles_world"][0]["size"], [0.03, 0.08, 0.0], atol=1e-12)
+    assert abs(report["target_yaw"]) <= math.pi / 4 + 1e-9
+    assert report["steps"] <= 20 and report["min_obstacle_clearance"] is not None
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--target-cam", "-147", "-77", "1374", "--units", "m"], "wrong units? (given --units m; try --units mm)"),
+        (["--target-cam", "-0.147", "-0.077", "1.374"], "wrong units? (given --units mm; try --units m)"),
+        (["--target-cam", "500", "-77", "1374"], "x = -0.5445 m is outside"),
+        (["--target-cam", "nan", "-77", "1374"], "must be 3 finite numbers"),
+        (["--target-cam", "-147", "-77", "1374", "--obstacle", "cone", "0", "0", "1300", "30"], "one of sphere, cylinder, box"),
+        (["--target-cam", "-147", "-77", "1374", "--obstacle", "box", "0", "0", "1300", "30"], "box takes X Y Z LX LY LZ"),
+        (["--target-cam", "-147", "-77", "1374", "--obstacle", "sphere", "0", "0", "1300", "900"], "outside [0.005, 0.5] m"),
+    ],
+)
+def test_cli_refuses_bad_input_before_moving(run_dir: str, args: list[str], message: str) -> None:
+    res = _deploy("--policy", os.path.join(run_dir, "policy.npz"), *args)
+    assert res.returncode == 2, res.stdout + res.stderr
+    assert "refused before moving" in res.stderr and message in res.stderr
+    assert "Traceback" not in res.stderr
+    assert "pybullet build time" not in res.stdout + res.stderr  # refused before a twin was even built
+
+
+def test_deploy_modules_do_not_import_jax() -> None:
+    code = ("import sys; import sagrasp_jax.deploy.loop, sagrasp_jax.deploy.twin, sagrasp_jax.deploy.__main__, "
+            "sagrasp_jax.physical; sys.exit(any(m == 'jax' or m.startswith('jax.') for m in sys.modules))")
+    assert subprocess.run([sys.executable, "-c", code], cwd=REPO, timeout=120).returncode == 0
