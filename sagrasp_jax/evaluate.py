@@ -170,14 +170,24 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=None, help="evaluation seed (default sa.eval_seed + 1)")
     p.add_argument("--max-steps", type=int, default=None, help="step cap per episode (default env.task.max_steps)")
     p.add_argument("--out", default=None, help=f"result JSON (default RUN/{RESULT_FILE})")
+    p.add_argument("--physical", action="store_true",
+                   help="also replay each kinematic success through the MuJoCo physical grasp check (close, lift 5 cm)")
     args = p.parse_args(argv)
     try:
         results = evaluate_run(args.run, args.episodes, args.seed, args.max_steps)
+        if args.physical:
+            from sagrasp_jax.physical import evaluate_physical
+
+            results["physical"] = evaluate_physical(args.run, args.episodes, results["seed"], results["max_steps"])
     except (ConfigError, CheckpointError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     path = write_results(args.out or os.path.join(args.run, RESULT_FILE), results)
     print(format_table(results))
+    if "physical" in results:
+        ph = results["physical"]
+        print(f"physical grasp check: {ph['physical_successes']} of {ph['kinematic_successes']} kinematic successes held "
+              f"the cube when lifted {ph['lift'] * 100:.0f} cm ({100 * ph['physical_success_rate']:.1f} % of all episodes)")
     print(f"written to {path}")
     return 0
 

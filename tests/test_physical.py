@@ -6,6 +6,7 @@ import sagrasp_jax  # noqa: F401  (sets XLA_FLAGS before jax is imported)
 
 import dataclasses
 import json
+import os
 
 import numpy as np
 import pytest
@@ -14,6 +15,7 @@ from sagrasp_jax.config import get_config
 from sagrasp_jax.physical import GraspScene, PhysicalCheckError, physical_grasp_check
 from sagrasp_jax.robot import BOX, CYLINDER
 from sagrasp_jax.sampling import ResetSpec
+from tiny_run import tiny_run
 
 
 @pytest.fixture(scope="module")
@@ -96,3 +98,18 @@ def test_bad_input_refused(scripted_grasp) -> None:
         physical_grasp_check(np.full(6, np.nan), spec)
     with pytest.raises(PhysicalCheckError, match="target_pos must be 3 finite numbers"):
         physical_grasp_check(q, spec._replace(target_pos=np.array([0.1, np.nan, 0.025])))
+
+
+def test_evaluate_physical_flag(tmp_path_factory: pytest.TempPathFactory, tmp_path) -> None:
+    """``evaluate --physical`` adds the physical success rate next to the kinematic one."""
+    from sagrasp_jax import evaluate
+
+    run_dir = tiny_run(str(tmp_path_factory.getbasetemp()))
+    out = tmp_path / "eval.json"
+    assert evaluate.main(["--run", run_dir, "--episodes", "8", "--physical", "--out", str(out)]) == 0
+    results = json.loads(out.read_text())
+    phys = results["physical"]
+    assert phys["episodes"] == 8
+    assert phys["kinematic_successes"] == round(results["overall"]["success_rate"] * 8)
+    assert 0 <= phys["physical_successes"] <= phys["kinematic_successes"]
+    assert os.path.exists(out)
