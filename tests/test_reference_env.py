@@ -233,3 +233,20 @@ def test_scripted_controller_succeeds_in_the_reference_env():
         assert math.isfinite(info["episode"]["return"])
     finally:
         env.close()
+
+
+def test_sb3_baseline_explains_a_missing_extra(tmp_path):
+    """Without Stable-Baselines3 the baseline script stops with the install hint, writing nothing."""
+    import importlib.util
+    import os
+    import subprocess
+    import sys
+
+    if importlib.util.find_spec("stable_baselines3") is not None:
+        pytest.skip("stable-baselines3 is installed here")
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    out = tmp_path / "sb3.json"
+    proc = subprocess.run([sys.executable, os.path.join(root, "experiments", "sb3_baseline.py"), "--total-steps", "10",
+                           "--out", str(out)], capture_output=True, text=True, timeout=120)
+    assert proc.returncode != 0 and "pip install -e .[baseline]" in proc.stderr
+    assert not out.exists()

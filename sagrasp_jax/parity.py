@@ -1,0 +1,596 @@
+"""Parity harness: the MJX/JAX env and the PyBullet reference env run the same episodes side by side.
+
+``python -m sagrasp_jax.parity [--episodes 1000] [--quick] [--mode kinematic|dynamic]
+[--policy policy.npz] [--out parity.json] [--seed S]``
+
+Why: users must be able to trust that the fast env is the paper's task.  Following SPEC §2's
+parity rules, JAX runs in float64 (x64), observation noise is off in both envs, and both start
+every episode from the identical explicit ``ResetSpec``, drawn from NumPy uniforms with the
+shared sampler.  Float32 against float64 at the slow-down, fine-tune and success thresholds
+would otherwise flip a flag now and then and make the runs diverge.
+
+Action sources (``--actions``), each over ``--episodes`` episodes:
+
+* ``random``: uniform actions in [-1, 1]^6, the same pre-drawn sequence for both envs;
+* ``scripted``: a damped-least-squares reach-and-descend controller plus pre-drawn uniform
+  noise, computed from each env's own observation (it succeeds often, so the success,
+  slow-down and fine-tune branches are exercised, which random actions almost never reach);
+* ``policy`` (with ``--policy``): the deterministic actions of a trained ``policy.npz``
+  (``runtime.load_policy``, NumPy), computed from each env's own observation; each env's own
+  success rate is reported.
+
+Per step it compares the gripper centre, the full observation, each reward term and the total,
+and the done / success / collision / timeout flags.  Comparison of an episode stops at the first
+done in either env (a differing done step or verdict is a flag disagreement); each env still
+plays its own episode to the end for its success rate.  In dynamic mode it also compares single
+steps from forced identical states (``--single-step``): the PyBullet probe env is put into the
+JAX env's state (joints, velocities, target, step count) and stepped once with the same action.
+
+The JAX side is jitted and vmapped over a batch of episodes stepped in lockstep; the PyBullet
+envs (one per episode of the batch) step in a Python loop.  Prints a table, writes the JSON
+atomically, and exits 1 when a tolerance is exceeded (2 on a usage error).
+"""
+
+from __future__ import annotations
+
+import sagrasp_jax  # noqa: F401  (sets XLA_FLAGS before jax is imported)
+
+import argparse
+import dataclasses
+import json
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+from sagrasp_jax import robot, sampling
+from sagrasp_jax.config import Config, ConfigError, EnvConfig, apply_overrides, get_config
+
+SOURCES = ("random", "scripted", "policy")
+FLAGS = ("done", "success", "collision", "timeout")
+REWARD_KEYS = ("reward", "r_distance", "r_success", "r_obstacle")
+SCRIPTED_NOISE = 0.3  # amplitude of the uniform noise added to the scripted controller's actions
+SCRIPTED_APPROACH = 0.08  # m above the target before descending
+SCRIPTED_GRASP = 0.0125  # m above the target centre: middle of the success band
+MAX_LISTED_DISAGREEMENTS = 20
+
+
+@dataclass(frozen=True)
+class Tolerances:
+    """Pass criteria; ``None`` = reported, not checked.  Errors are maxima over compared steps."""
+
+    gripper_centre: float | None  # m
+    reward: float | None  # per step, total and each term
+    obs: float | None  # max abs over the 17 entries
+    flag_agreement: float  # fraction of episodes whose flags agree at every compared step
+
+
+TOLERANCES = {
+    "kinematic": Tolerances(gripper_centre=1e-4, reward=1e-4, obs=1e-4, flag_agreement=1.0),
+    "dynamic": Tolerances(gripper_centre=5e-3, reward=None, obs=None, flag_agreement=0.99),
+}
+
+
+# --------------------------------------------------------------------------------------------
+# configs and resets
+# --------------------------------------------------------------------------------------------
+def parity_configs(
+    base: Config,
+    mode: str,
+    max_steps: int | None = None,
+    reference_overrides: list[str] | None = None,
+) -> tuple[EnvConfig, EnvConfig]:
+    """(JAX env config, reference env config): ``mode``, observation noise off, optional episode
+    length; ``reference_overrides`` (``env.…=value``) change the reference env only — how a test
+    proves that the harness can fail."""
+    sets = [f"env.control.mode={mode}", "env.task.obs_noise_std=0.0", "env.task.obs_noise_growth=0.0"]
+    if max_steps is not None:
+        sets.append(f"env.task.max_steps={max_steps}")
+    cfg = apply_overrides(base, sets)
+    ref = apply_overrides(cfg, list(reference_overrides or []))
+    return cfg.env, ref.env
+
+
+def draw_resets(cfg: EnvConfig, n: int, rng: np.random.Generator) -> list[sampling.ResetSpec]:
+    """``n`` episode starts from NumPy uniforms through the shared sampler (as the reference env does)."""
+    model = robot.load_robot()
+    u = rng.random((n, sampling.uniforms_needed(cfg.sampling)))
+    return [sampling.sample_reset(np, model, cfg.sampling, cfg.task, u[i]) for i in range(n)]
+
+
+def _stack_specs(specs: list[sampling.ResetSpec]) -> sampling.ResetSpec:
+    return sampling.ResetSpec(*[np.stack([np.asarray(getattr(s, f)) for s in specs]) for f in sampling.ResetSpec._fields])
+
+
+# --------------------------------------------------------------------------------------------
+# action sources
+# --------------------------------------------------------------------------------------------
+def scripted_actions(cfg: EnvConfig, obs: np.ndarray) -> np.ndarray:
+    """Damped-least-squares step toward a point above the target, descending as the horizontal
+    error closes, gripper kept pointing down; from observations (n, 17) to actions (n, 6)."""
+    model = robot.load_robot()
+    obs = np.atleast_2d(np.asarray(obs, dtype=np.float64))
+    q, centre, target = obs[:, :6], obs[:, 6:9], obs[:, 9:12]
+    horizontal = np.linalg.norm(centre[:, :2] - target[:, :2], axis=-1)
+    height = SCRIPTED_GRASP + SCRIPTED_APPROACH * np.clip(horizontal / 0.02, 0.0, 1.0)
+    goal = target + np.array([0.0, 0.0, 1.0]) * height[:, None]
+
+    def residual(qs: np.ndarray, g: np.ndarray) -> np.ndarray:
+        kin = robot.forward_kinematics(np, model, qs)
+        return np.concatenate([kin.gripper_centre - g, 0.3 * kin.approach_axis[..., :2]], axis=-1)
+
+    eps = 1e-6
+    probes = q[:, None, :] + eps * np.concatenate([np.eye(6), -np.eye(6)])[None]  # (n, 12, 6)
+    res = residual(probes, goal[:, None, :])
+    jac = np.swapaxes(res[:, :6] - res[:, 6:], 1, 2) / (2 * eps)  # (n, 5, 6)
+    r = residual(q, goal)
+    lhs = jac @ np.swapaxes(jac, 1, 2) + 1e-4 * np.eye(5)
+    dq = np.einsum("nij,ni->nj", jac, np.linalg.solve(lhs, -r[..., None])[..., 0])
+    return np.clip(dq / cfg.control.q_max, -1.0, 1.0)
+
+
+@dataclass
+class ActionSource:
+    """Maps (observations of the episodes, step, episode ids) to actions.  An ``open_loop`` source
+    ignores the observations: it is evaluated once per step and both envs get the same actions."""
+
+    name: str
+    fn: Callable[[np.ndarray, int, np.ndarray], np.ndarray]
+    open_loop: bool = False
+
+
+def make_source(name: str, cfg: EnvConfig, episodes: int, max_steps: int, rng: np.random.Generator,
+                policy: Any = None) -> ActionSource:
+    if name == "random":
+        table = rng.uniform(-1.0, 1.0, (episodes, max_steps, 6))
+        return ActionSource(name, lambda obs, t, ids: table[ids, t], open_loop=True)
+    if name == "scripted":
+        noise = SCRIPTED_NOISE * rng.uniform(-1.0, 1.0, (episodes, max_steps, 6))
+        return ActionSource(name, lambda obs, t, ids: np.clip(scripted_actions(cfg, obs) + noise[ids, t], -1.0, 1.0))
+    if name == "policy":
+        if policy is None:
+            raise ValueError("the policy source needs --policy")
+        return ActionSource(name, lambda obs, t, ids: np.asarray(policy(np.atleast_2d(obs)), dtype=np.float64))
+    raise ValueError(f"unknown action source {name!r}; choose from {', '.join(SOURCES)}")
+
+
+# --------------------------------------------------------------------------------------------
+# the two sides
+# --------------------------------------------------------------------------------------------
+class JaxSide:
+    """GraspEnv in float64, reset_to and step jitted and vmapped over a fixed batch of episodes."""
+
+    def __init__(self, cfg: EnvConfig, batch: int):
+        import jax
+        import jax.numpy as jnp
+
+        if not jax.config.jax_enable_x64:
+            raise RuntimeError("parity needs jax_enable_x64 (SPEC §2 parity rules); run_parity enables it")
+        from sagrasp_jax.env import GraspEnv
+
+        self.jax, self.jnp = jax, jnp
+        self.env = GraspEnv(cfg)
+        self.batch = batch
+        dynamic = cfg.control.mode == "dynamic"
+
+        def extract(state: Any) -> dict[str, Any]:
+            ep = state.info["episode"]
+            q = state.pipeline_state.qpos[:, :6] if dynamic else state.info["q_target"]
+            qd = state.pipeline_state.qvel[:, :6] if dynamic else jnp.zeros_like(q)
+            return {
+                "obs": state.obs, "reward": state.reward, "done": state.done,
+                "r_distance": state.metrics["r_distance"], "r_success": state.metrics["r_success"],
+                "r_obstacle": state.metrics["r_obstacle"],
+                "success": ep["success"], "collision": ep["collision"], "timeout": ep["timeout"],
+                "episode": ep, "q": q, "qd": qd, "q_target": state.info["q_target"],
+                "d_prev": state.info["d_prev"], "clean": state.info["clean"], "steps": state.info["steps"],
+            }
+
+        def reset(spec: sampling.ResetSpec, keys: Any, progress: Any) -> tuple[Any, dict[str, Any]]:
+            state = jax.vmap(self.env.reset_to)(spec, keys)
+            state.info["progress"] = progress
+            return state, extract(state)
+
+        def advance(state: Any, action: Any) -> tuple[Any, dict[str, Any]]:
+            nxt = jax.vmap(self.env.step)(state, action)
+            return nxt, extract(nxt)
+
+        self._reset = jax.jit(reset)
+        self._advance = jax.jit(advance)
+
+    def reset(self, specs: list[sampling.ResetSpec], progress: np.ndarray, seed: int) -> tuple[Any, dict[str, np.ndarray]]:
+        pad = self.batch - len(specs)
+        specs = list(specs) + [specs[-1]] * pad
+        progress = np.concatenate([progress, np.repeat(progress[-1:], pad)])
+        keys = self.jax.random.split(self.jax.random.PRNGKey(seed), self.batch)
+        state, out = self._reset(_stack_specs(specs), keys, self.jnp.asarray(progress, dtype=self.jnp.float64))
+        return state, self.jax.device_get(out)
+
+    def step(self, state: Any, actions: np.ndarray) -> tuple[Any, dict[str, np.ndarray]]:
+        full = np.zeros((self.batch, 6))
+        full[: len(actions)] = actions
+        state, out = self._advance(state, self.jnp.asarray(full))
+        return state, self.jax.device_get(out)
+
+
+def _pybullet_env(cfg: EnvConfig) -> Any:
+    from sagrasp_jax.reference.pybullet_env import PyBulletGraspEnv
+
+    return PyBulletGraspEnv(cfg)
+
+
+# --------------------------------------------------------------------------------------------
+# bookkeeping
+# --------------------------------------------------------------------------------------------
+@dataclass
+class Errors:
+    """Per-step errors of one comparison kind (trajectory or forced single step)."""
+
+    values: dict[str, list[float]] = field(default_factory=dict)
+    obs_entry_max: np.ndarray = field(default_factory=lambda: np.zeros(17))
+
+    def add(self, key: str, value: float) -> None:
+        self.values.setdefault(key, []).append(float(value))
+
+    def summary(self) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for key, vals in self.values.items():
+            arr = np.asarray(vals)
+            out[key] = {"max": float(arr.max()), "mean": float(arr.mean()), "p99": float(np.percentile(arr, 99)), "n": len(arr)}
+        out["obs_entry_max"] = self.obs_entry_max.tolist()
+        return out
+
+
+def _flags_of(done: float, success: float, collision: float, timeout: float) -> dict[str, bool]:
+    return {"done": bool(done > 0.5), "success": bool(success > 0.5), "collision": bool(collision > 0.5), "timeout": bool(timeout > 0.5)}
+
+
+def _compare_step(errs: Errors, j_obs: np.ndarray, j: dict[str, float], p_obs: np.ndarray, p: dict[str, float],
+                  j_flags: dict[str, bool], p_flags: dict[str, bool]) -> bool:
+    """Record one step's errors; returns whether all flags agree (rewards are compared only then:
+    a flag disagreement is counted once, as a flag disagreement)."""
+    errs.add("gripper_centre", np.linalg.norm(j_obs[6:9] - p_obs[6:9]))
+    diff = np.abs(j_obs - p_obs)
+    errs.add("obs", diff.max())
+    errs.obs_entry_max = np.maximum(errs.obs_entry_max, diff)
+    agree = j_flags == p_flags
+    if agree:
+        for key in REWARD_KEYS:
+            errs.add(key, abs(j[key] - p[key]))
+    return agree
+
+
+# --------------------------------------------------------------------------------------------
+# the run
+# --------------------------------------------------------------------------------------------
+def run_source(
+    source: ActionSource,
+    specs: list[sampling.ResetSpec],
+    progress: np.ndarray,
+    jax_side: JaxSide,
+    pb_envs: list[Any],
+    probes: list[Any] | None,
+    max_steps: int,
+    seed: int,
+    log: Callable[[str], None] = lambda s: None,
+) -> dict[str, Any]:
+    """Run ``len(specs)`` episodes of one action source in batches; returns its report section."""
+    from sagrasp_jax.reference.pybullet_env import EPISODE_KEYS
+
+    n_total, batch = len(specs), jax_side.batch
+    traj, single = Errors(), Errors()
+    reset_obs_err = 0.0
+    agree_count = 0
+    disagreements: list[dict[str, Any]] = []
+    own = {side: {"success": [], "collision": [], "timeout": [], "steps": [], "return": []} for side in ("jax", "pybullet")}
+    episode_err: dict[str, float] = {}
+    single_flag_agree = [0, 0]
+    pb_time, pb_steps, jax_time, jax_calls = 0.0, 0, 0.0, 0
+    for start in range(0, n_total, batch):
+        ids = np.arange(start, min(start + batch, n_total))
+        n = len(ids)
+        state, jout = jax_side.reset([specs[i] for i in ids], progress[ids], seed + start)
+        j_obs = jout["obs"][:n]
+        p_obs = np.zeros((n, 17))
+        for k, i in enumerate(ids):
+            p_obs[k], _ = pb_envs[k].reset(options={"reset_spec": specs[i], "progress": float(progress[i])})
+            if probes is not None:
+                probes[k].reset(options={"reset_spec": specs[i], "progress": float(progress[i])})
+        reset_obs_err = max(reset_obs_err, float(np.abs(j_obs - p_obs).max()))
+        comparing = np.ones(n, bool)
+        j_alive, p_alive = np.ones(n, bool), np.ones(n, bool)
+        agree = np.ones(n, bool)
+        for t in range(max_steps):
+            if not (j_alive.any() or p_alive.any()):
+                break
+            a_j = source.fn(j_obs, t, ids)
+            a_p = a_j if source.open_loop else source.fn(p_obs, t, ids)
+            prev = jout
+            t0 = time.perf_counter()
+            state, jout = jax_side.step(state, a_j)
+            jax_time += time.perf_counter() - t0
+            jax_calls += 1
+            j_obs = jout["obs"][:n]
+            for k in range(n):
+                was_alive = bool(j_alive[k])
+                j_row = {key: float(jout[key][k]) for key in REWARD_KEYS}
+                j_flags = _flags_of(jout["done"][k], jout["success"][k], jout["collision"][k], jout["timeout"][k])
+                if p_alive[k]:
+                    t0 = time.perf_counter()
+                    obs, rew, term, _, info = pb_envs[k].step(a_p[k])
+                    pb_time += time.perf_counter() - t0
+                    pb_steps += 1
+                    p_obs[k] = obs
+                    p_row = {"reward": float(rew), "r_distance": info["r_distance"], "r_success": info["r_success"], "r_obstacle": info["r_obstacle"]}
+                    p_flags = _flags_of(term, info["success"], info["collision"], info["timeout"])
+                    if comparing[k]:
+                        ok = _compare_step(traj, j_obs[k], j_row, obs, p_row, j_flags, p_flags)
+                        if not ok:
+                            agree[k] = False
+                            if len(disagreements) < MAX_LISTED_DISAGREEMENTS:
+                                disagreements.append({"episode": int(ids[k]), "step": t + 1, "jax": j_flags, "pybullet": p_flags,
+                                                      "gripper_gap": float(np.linalg.norm(j_obs[k, 6:9] - obs[6:9]))})
+                        elif j_flags["done"]:
+                            for key in EPISODE_KEYS:
+                                diff = abs(float(jout["episode"][key][k]) - float(info["episode"][key]))
+                                episode_err[key] = max(episode_err.get(key, 0.0), diff)
+                        if j_flags["done"] or p_flags["done"]:
+                            comparing[k] = False
+                    if term:
+                        p_alive[k] = False
+                        for key in own["pybullet"]:
+                            own["pybullet"][key].append(float(info["episode"][key]))
+                if j_alive[k] and j_flags["done"]:
+                    j_alive[k] = False
+                    for key in own["jax"]:
+                        own["jax"][key].append(float(jout["episode"][key][k]))
+                # Forced single step: the PyBullet probe is put into the JAX state before this step.
+                if probes is not None and was_alive:
+                    probe = probes[k]
+                    probe.force_state(prev["q"][k], prev["q_target"][k], prev["qd"][k], steps=int(prev["steps"][k]),
+                                      d_prev=float(prev["d_prev"][k]), clean=bool(prev["clean"][k] > 0.5))
+                    s_obs, s_rew, s_term, _, s_info = probe.step(a_j[k])
+                    s_row = {"reward": float(s_rew), "r_distance": s_info["r_distance"], "r_success": s_info["r_success"],
+                             "r_obstacle": s_info["r_obstacle"]}
+                    s_flags = _flags_of(s_term, s_info["success"], s_info["collision"], s_info["timeout"])
+                    single_flag_agree[0] += int(_compare_step(single, j_obs[k], j_row, s_obs, s_row, j_flags, s_flags))
+                    single_flag_agree[1] += 1
+        agree_count += int(agree.sum())
+        log(f"  {source.name}: {min(start + batch, n_total)}/{n_total} episodes")
+
+    def rates(side: str) -> dict[str, float]:
+        d = own[side]
+        succ = np.asarray(d["success"])
+        steps = np.asarray(d["steps"])
+        return {
+            "episodes": len(succ),
+            "success_rate": float(succ.mean()) if len(succ) else math.nan,
+            "collision_rate": float(np.mean(d["collision"])) if len(succ) else math.nan,
+            "timeout_rate": float(np.mean(d["timeout"])) if len(succ) else math.nan,
+            "mean_steps_to_success": float(steps[succ > 0.5].mean()) if (succ > 0.5).any() else math.nan,
+            "mean_return": float(np.mean(d["return"])) if len(succ) else math.nan,
+        }
+
+    section: dict[str, Any] = {
+        "episodes": n_total,
+        "steps_compared": len(traj.values.get("gripper_centre", [])),
+        "reset_obs_max_error": reset_obs_err,
+        "trajectory": traj.summary(),
+        "episode_metrics_max_error": episode_err,
+        "flag_agreement": agree_count / max(n_total, 1),
+        "flag_disagreements": disagreements,
+        "jax": rates("jax"),
+        "pybullet": rates("pybullet"),
+        "timing": {
+            "pybullet_env_steps": pb_steps,
+            "pybullet_env_steps_per_s": pb_steps / pb_time if pb_time > 0 else math.nan,
+            "jax_batch_step_ms": 1000 * jax_time / max(jax_calls, 1),
+        },
+    }
+    if probes is not None:
+        section["single_step"] = single.summary()
+        section["single_step"]["flag_agreement_steps"] = single_flag_agree[0] / max(single_flag_agree[1], 1)
+    return section
+
+
+def _checks(report: dict[str, Any], tol: Tolerances) -> list[dict[str, Any]]:
+    checks = []
+    for name, sec in report["sources"].items():
+        traj = sec["trajectory"]
+
+        def worst(key: str) -> float:
+            return float(traj[key]["max"]) if key in traj else 0.0
+
+        items: list[tuple[str, float, float | None, str]] = [
+            ("gripper_centre", worst("gripper_centre"), tol.gripper_centre, "≤"),
+            ("obs", max(worst("obs"), sec["reset_obs_max_error"]), tol.obs, "≤"),
+        ]
+        items += [(key, worst(key), tol.reward, "≤") for key in REWARD_KEYS]
+        items.append(("flag_agreement", sec["flag_agreement"], tol.flag_agreement, "≥"))
+        for key, value, limit, op in items:
+            if limit is None:
+                continue
+            ok = value <= limit if op == "≤" else value >= limit
+            checks.append({"source": name, "quantity": key, "value": value, "op": op, "tolerance": limit, "ok": bool(ok)})
+    return checks
+
+
+def run_parity(
+    mode: str = "kinematic",
+    episodes: int = 1000,
+    seed: int = 0,
+    sources: tuple[str, ...] = ("random", "scripted"),
+    policy_path: str | None = None,
+    max_steps: int | None = None,
+    batch: int = 50,
+    single_step: bool | None = None,
+    reference_overrides: list[str] | None = None,
+    tolerances: Tolerances | None = None,
+    log: Callable[[str], None] = lambda s: None,
+) -> dict[str, Any]:
+    """Run the comparison and return the report (``report["passed"]`` says whether it met the tolerances)."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)  # before anything builds a JAX array
+    if mode not in TOLERANCES:
+        raise ValueError(f"mode must be one of {', '.join(TOLERANCES)}, got {mode!r}")
+    policy = None
+    base = get_config("paper")
+    if policy_path is not None:
+        from sagrasp_jax.runtime import load_policy
+
+        policy = load_policy(policy_path)
+        if policy.obs_size != 17 or policy.action_size != 6:
+            raise ValueError(f"{policy_path}: policy has obs {policy.obs_size} / action {policy.action_size}, the task needs 17 / 6")
+        base = policy.config()  # the env constants the policy was trained with
+        sources = tuple(dict.fromkeys(tuple(sources) + ("policy",)))
+    elif "policy" in sources:
+        raise ValueError("the policy action source needs --policy")
+    tol = tolerances or TOLERANCES[mode]
+    single_step = (mode == "dynamic") if single_step is None else single_step
+    jax_cfg, ref_cfg = parity_configs(base, mode, max_steps, reference_overrides)
+    steps = jax_cfg.task.max_steps
+    batch = max(1, min(batch, episodes))
+
+    rng = np.random.default_rng(seed)
+    specs = draw_resets(jax_cfg, episodes, rng)
+    progress = rng.uniform(0.0, 1.0, episodes)
+    t0 = time.perf_counter()
+    jax_side = JaxSide(jax_cfg, batch)
+    pb_envs = [_pybullet_env(ref_cfg) for _ in range(batch)]
+    probes = [_pybullet_env(ref_cfg) for _ in range(batch)] if single_step else None
+    report: dict[str, Any] = {
+        "mode": mode,
+        "episodes_per_source": episodes,
+        "seed": seed,
+        "max_steps": steps,
+        "batch": batch,
+        "jax_x64": True,
+        "obs_noise": 0.0,
+        "reference_overrides": list(reference_overrides or []),
+        "policy": policy_path,
+        "obstacle_episodes": int(sum(bool(np.any(s.obstacle_active)) for s in specs)),
+        "tolerances": dataclasses.asdict(tol),
+        "sources": {},
+    }
+    try:
+        for name in sources:
+            src_rng = np.random.default_rng([seed, SOURCES.index(name)])
+            source = make_source(name, jax_cfg, episodes, steps, src_rng, policy)
+            report["sources"][name] = run_source(source, specs, progress, jax_side, pb_envs, probes, steps, seed, log)
+    finally:
+        for env in pb_envs + (probes or []):
+            env.close()
+    report["wall_s"] = time.perf_counter() - t0
+    report["checks"] = _checks(report, tol)
+    report["passed"] = all(c["ok"] for c in report["checks"])
+    return report
+
+
+# --------------------------------------------------------------------------------------------
+# CLI
+# --------------------------------------------------------------------------------------------
+def _fmt(value: Any) -> str:
+    if isinstance(value, float):
+        if math.isnan(value):
+            return "nan"
+        return f"{value:.3g}" if value != 0 else "0"
+    return str(value)
+
+
+def format_report(report: dict[str, Any]) -> str:
+    lines = [f"parity {report['mode']}: {report['episodes_per_source']} episodes per source, seed {report['seed']}, "
+             f"max {report['max_steps']} steps, {report['obstacle_episodes']} episodes with obstacles"]
+    tol = report["tolerances"]
+    limits = {"gripper_centre": tol["gripper_centre"], "obs": tol["obs"], **{k: tol["reward"] for k in REWARD_KEYS}}
+    for name, sec in report["sources"].items():
+        lines.append(f"\n[{name}] {sec['steps_compared']} steps compared; reset obs max error {_fmt(sec['reset_obs_max_error'])}")
+        lines.append(f"  {'quantity':<16}{'max':>11}{'mean':>11}{'p99':>11}{'tolerance':>11}")
+        for key in ("gripper_centre", "obs") + REWARD_KEYS:
+            s = sec["trajectory"].get(key)
+            if s is None:
+                continue
+            lim = limits[key]
+            lines.append(f"  {key:<16}{_fmt(s['max']):>11}{_fmt(s['mean']):>11}{_fmt(s['p99']):>11}{_fmt(lim) if lim else '-':>11}")
+        lines.append(f"  flags agree on {100 * sec['flag_agreement']:.2f} % of episodes (tolerance ≥ {100 * tol['flag_agreement']:.0f} %)")
+        if "single_step" in sec:
+            ss = sec["single_step"]
+            lines.append(f"  forced single steps: gripper centre max {_fmt(ss['gripper_centre']['max'])} "
+                         f"mean {_fmt(ss['gripper_centre']['mean'])}, flags agree on "
+                         f"{100 * ss['flag_agreement_steps']:.2f} % of steps")
+        for side in ("jax", "pybullet"):
+            r = sec[side]
+            lines.append(f"  {side:<9} success {100 * r['success_rate']:.1f} %  collision {100 * r['collision_rate']:.1f} %  "
+                         f"timeout {100 * r['timeout_rate']:.1f} %  steps/success {_fmt(r['mean_steps_to_success'])}")
+        lines.append(f"  PyBullet env {_fmt(sec['timing']['pybullet_env_steps_per_s'])} steps/s; "
+                     f"JAX batch step {_fmt(sec['timing']['jax_batch_step_ms'])} ms")
+    failed = [c for c in report["checks"] if not c["ok"]]
+    lines.append("")
+    for c in failed:
+        lines.append(f"FAIL {c['source']} {c['quantity']} = {_fmt(c['value'])} (needs {c['op']} {_fmt(c['tolerance'])})")
+    lines.append("PASSED" if report["passed"] else "FAILED")
+    return "\n".join(lines)
+
+
+def write_json(path: str, report: dict[str, Any]) -> None:
+    """Atomic write (temp file + rename): a reader never sees half a report."""
+    from sagrasp_jax.checkpoint import atomic_write_bytes
+
+    folder = os.path.dirname(os.path.abspath(path))
+    os.makedirs(folder, exist_ok=True)
+    atomic_write_bytes(path, (json.dumps(report, indent=2, default=float) + "\n").encode())
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m sagrasp_jax.parity", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--episodes", type=int, default=None, help="episodes per action source (default 1000; --quick 50)")
+    parser.add_argument("--quick", action="store_true", help="50 episodes of at most 100 steps: a CI-sized check")
+    parser.add_argument("--mode", choices=tuple(TOLERANCES), default="kinematic")
+    parser.add_argument("--policy", default=None, help="policy.npz: also compare its closed-loop episodes")
+    parser.add_argument("--actions", default="random,scripted", help="comma list of action sources: random, scripted")
+    parser.add_argument("--out", default="parity.json", help="JSON report path ('' = do not write)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--max-steps", type=int, default=None, help="episode length for both envs (default: config, 200)")
+    parser.add_argument("--batch", type=int, default=50, help="episodes stepped in lockstep (one PyBullet env each)")
+    parser.add_argument("--single-step", dest="single_step", action="store_true", default=None,
+                        help="also compare single steps from forced identical states (default: dynamic mode only)")
+    parser.add_argument("--no-single-step", dest="single_step", action="store_false")
+    parser.add_argument("--reference-set", action="append", default=[], metavar="KEY=VALUE",
+                        help="config override for the reference env only (e.g. env.reward.ratio=10.5): a deliberate mismatch")
+    parser.add_argument("--quiet", action="store_true", help="no progress lines")
+    args = parser.parse_args(argv)
+
+    episodes = args.episodes if args.episodes is not None else (50 if args.quick else 1000)
+    max_steps = args.max_steps if args.max_steps is not None else (100 if args.quick else None)
+    sources = tuple(s.strip() for s in args.actions.split(",") if s.strip())
+    if episodes < 1 or args.batch < 1:
+        print("error: --episodes and --batch must be ≥ 1", file=sys.stderr)
+        return 2
+    bad = [s for s in sources if s not in ("random", "scripted")]
+    if bad:
+        print(f"error: unknown action source(s) {', '.join(bad)}; --actions takes random, scripted "
+              "(the policy source comes with --policy)", file=sys.stderr)
+        return 2
+    log = (lambda s: None) if args.quiet else (lambda s: print(s, file=sys.stderr, flush=True))
+    try:
+        report = run_parity(
+            mode=args.mode, episodes=episodes, seed=args.seed, sources=sources, policy_path=args.policy,
+            max_steps=max_steps, batch=args.batch, single_step=args.single_step,
+            reference_overrides=args.reference_set, log=log,
+        )
+    except (ConfigError, ValueError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(format_report(report))
+    if args.out:
+        write_json(args.out, report)
+        print(f"report written to {args.out}")
+    return 0 if report["passed"] else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
