@@ -183,8 +183,11 @@ class GraspScene:
             if on_frame is not None and (k + 1) % per_frame == 0:
                 on_frame(self)
 
-    def set_finger_target(self, opening: float) -> None:
-        self.data.ctrl[ARM_DOF:] = opening
+    def close_fingers(self, on_frame: FrameCallback | None = None, frame_dt: float = 0.05) -> None:
+        """Let the cube settle under the open fingers, then close them on it (servo target 0)."""
+        self.simulate(SETTLE_S, on_frame=on_frame, frame_dt=frame_dt)
+        self.data.ctrl[ARM_DOF:] = 0.0
+        self.simulate(CLOSE_S, on_frame=on_frame, frame_dt=frame_dt)
 
     def drive_arm(self, q_goal: Any, seconds: float, on_frame: FrameCallback | None = None) -> None:
         """Ramp the arm servo targets linearly from their current values to ``q_goal``."""
@@ -203,10 +206,8 @@ def physical_grasp_check(q_final: Any, reset_spec: ResetSpec, *, lift: float = L
     """
     q_final = np.asarray(q_final, dtype=float)
     scene = GraspScene(reset_spec, q_final, physics_dt)
-    scene.simulate(SETTLE_S, on_frame=on_frame)
     cube0, centre0 = scene.cube_pos, scene.gripper_centre
-    scene.set_finger_target(0.0)
-    scene.simulate(CLOSE_S, on_frame=on_frame)
+    scene.close_fingers(on_frame)
     closed = scene.fingers
     q_lift = lift_pose(scene.robot, q_final, lift)
     scene.drive_arm(q_lift, LIFT_S, on_frame)
@@ -275,9 +276,7 @@ class MujocoRobot:
 
     def close_gripper(self) -> None:
         self.physics = True
-        self.scene.simulate(SETTLE_S, on_frame=self.on_frame, frame_dt=self.control_dt)
-        self.scene.set_finger_target(0.0)
-        self.scene.simulate(CLOSE_S, on_frame=self.on_frame, frame_dt=self.control_dt)
+        self.scene.close_fingers(self.on_frame, self.control_dt)
 
     def object_position(self) -> np.ndarray:
         return self.scene.cube_pos

@@ -32,6 +32,7 @@ from sagrasp_jax.deploy.calibration import (
     CalibrationError,
     CameraCalibration,
     TargetRejected,
+    _unit_scale,
     detected_top_to_cube_centre,
     validate_target,
 )
@@ -40,7 +41,7 @@ from sagrasp_jax.deploy.safety import SafetyViolation
 from sagrasp_jax.runtime import PolicyFormatError, load_policy
 
 BACKENDS = ("twin",)
-UNIT_SCALE = {"mm": 1e-3, "m": 1.0}
+UNITS = ("mm", "m")
 DETECTION_RANGE = (0.3, 3.0)  # m from the camera: where a depth camera over the table can see anything
 OBSTACLE_SIZE_RANGE = (0.005, 0.5)  # m, any obstacle dimension
 CELL_BOX = ((-1.0, -1.2, -0.05), (1.0, 0.6, 1.5))  # m, world box an obstacle centre must lie in
@@ -53,7 +54,7 @@ class InputRefused(ValueError):
 
 def _camera_point(values: Sequence[float], units: str, what: str) -> np.ndarray:
     """A detected camera-frame point in metres, refused if NaN or implausibly near/far (units)."""
-    p = np.asarray(values, dtype=float) * UNIT_SCALE[units]
+    p = np.asarray(values, dtype=float) * _unit_scale(units)
     if p.shape != (3,) or not np.isfinite(p).all():
         raise InputRefused(f"{what}: camera point {list(values)} must be 3 finite numbers")
     dist = float(np.linalg.norm(p))
@@ -89,7 +90,7 @@ def parse_obstacle(tokens: Sequence[str], cal: CameraCalibration, units: str, in
         usage = {"sphere": "X Y Z R", "cylinder": "X Y Z R H", "box": "X Y Z LX LY LZ [YAW_DEG]"}[kind]
         raise InputRefused(f"{what}: {kind} takes {usage}, got {len(numbers)} numbers")
     top = cal.cam_to_base(_camera_point(numbers[:3], units, what))
-    scale = UNIT_SCALE[units]
+    scale = _unit_scale(units)
     lengths = [v * scale for v in numbers[3:6]]
     yaw = 0.0
     if kind == "sphere":
@@ -126,11 +127,11 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--target-cam", nargs=3, type=float, required=True, metavar=("X", "Y", "Z"),
                    help="detected top of the cube in the camera frame")
     p.add_argument("--target-yaw", type=float, default=0.0, metavar="DEG", help="cube yaw about the optical axis (default 0)")
-    p.add_argument("--units", choices=tuple(UNIT_SCALE), default="mm", help="units of the detections (default mm)")
+    p.add_argument("--units", choices=UNITS, default="mm", help="units of the detections (default mm)")
     p.add_argument("--obstacle", nargs="+", action="append", default=[], metavar="KIND_X_Y_Z_SIZE",
                    help="detected obstacle: sphere X Y Z R | cylinder X Y Z R H | box X Y Z LX LY LZ [YAW_DEG]")
     p.add_argument("--calibration", default=None, help="4×4 camera->base matrix (.json/.npy/.txt; default SPEC §5)")
-    p.add_argument("--calibration-units", choices=tuple(UNIT_SCALE), default="mm", help="translation units of --calibration")
+    p.add_argument("--calibration-units", choices=UNITS, default="mm", help="translation units of --calibration")
     p.add_argument("--base-z-offset", type=float, default=0.0, help="controller base height in the URDF frame, m")
     p.add_argument("--base-yaw", type=float, default=0.0, help="controller base yaw about z relative to the URDF, rad")
     p.add_argument("--backend", choices=BACKENDS, default="twin", help="robot backend (default: PyBullet twin)")
