@@ -219,14 +219,12 @@ def run_episode(
     max_steps: int | None = None,
     grasp: bool = True,
     lift_height: float = LIFT_HEIGHT,
-    on_step: Callable[[int, Observation, np.ndarray], None] | None = None,
 ) -> DeployReport:
     """Run the policy from the robot's current pose until success, collision, timeout or refusal.
 
     ``target_pos`` is the cube centre in the world (URDF base) frame; it is validated against
     the trained region before anything moves (``TargetRejected``).  ``safety`` defaults to a
     ``SafetyLayer`` with the policy's env config and a collision hook for this scene.
-    ``on_step(step, observation, q_command)`` is called after every command sent.
     """
     t0 = time.perf_counter()
     env_cfg = policy.env_config()
@@ -248,8 +246,7 @@ def run_episode(
         ob = build_observation(model, env_cfg, q, spec)
         clearance = min(clearance, float(ob.collision.nearest_obstacle_dist))
         if bool(ob.collision.any_collision):
-            hits = [n for n in collision.HIT_KINDS if bool(ob.collision.hits[n])]
-            outcome, message = "collision", f"measured pose collides with: {', '.join(hits)}; stopped"
+            outcome = "collision"
             break
         if bool(reward.success_flag(np, env_cfg.task, ob.gripper_centre, target, ob.tilt)):
             outcome, message = "success", f"grasp pose reached after {steps} steps"
@@ -267,9 +264,10 @@ def run_episode(
         steps += 1
         slowed += bool(ctl.slowed)
         finetuned += bool(ctl.finetuned)
-        if on_step is not None:
-            on_step(steps, ob, q_target)
 
+    hits = [n for n in collision.HIT_KINDS if bool(ob.collision.hits[n])]
+    if outcome == "collision":
+        message = f"measured pose collides with: {', '.join(hits)}; stopped"
     offset = ob.gripper_centre - target
     report = DeployReport(
         outcome=outcome,
@@ -288,7 +286,7 @@ def run_episode(
         slowed_steps=slowed,
         finetuned_steps=finetuned,
         wall_s=0.0,
-        hits=[n for n in collision.HIT_KINDS if bool(ob.collision.hits[n])],
+        hits=hits,
     )
     if report.success and grasp:
         report.grasp = _grasp_and_lift(robot, model, env_cfg, spec, q, q_target, lift_height)
