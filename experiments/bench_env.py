@@ -13,11 +13,9 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import os
 import platform
 import sys
-import tempfile
 import time
 
 import sagrasp_jax  # noqa: F401  (XLA flags)
@@ -26,6 +24,7 @@ import jax.numpy as jnp
 
 from sagrasp_jax import config
 from sagrasp_jax.env import GraspEnv
+from sagrasp_jax.fileio import atomic_write_json
 from sagrasp_jax.wrappers import AutoReset
 
 
@@ -133,11 +132,7 @@ def main(argv: list[str] | None = None) -> int:
         "versions": {"jax": jax.__version__, "sagrasp_jax": sagrasp_jax.__version__},
         "rows": rows,
     }
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=os.path.dirname(os.path.abspath(args.out)), suffix=".tmp")
-    with os.fdopen(fd, "w") as fh:
-        json.dump(result, fh, indent=2)
-    os.replace(tmp, args.out)
+    atomic_write_json(args.out, result)
     print(f"wrote {args.out}")
     return 0
 

@@ -20,7 +20,6 @@ import hashlib
 import json
 import os
 import struct
-import tempfile
 from dataclasses import dataclass
 from typing import Any
 
@@ -28,7 +27,7 @@ import jax
 import numpy as np
 from flax import serialization
 
-from sagrasp_jax import __version__
+from sagrasp_jax import __version__, fileio
 from sagrasp_jax.config import Config, config_to_dict
 
 MAGIC = b"SAGRASP-CKPT\n"
@@ -96,20 +95,7 @@ def restore_tree(template: Any, flat: dict[str, np.ndarray], name: str, path: st
     return jax.tree_util.tree_unflatten(treedef, values)
 
 
-def atomic_write_bytes(path: str, data: bytes) -> None:
-    """Write to a temp file in the same folder, fsync, then ``os.replace``: never a half file."""
-    folder = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=os.path.basename(path), dir=folder)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+atomic_write_bytes = fileio.atomic_write_bytes
 
 
 def save(path: str, *, trees: dict[str, Any], host: dict[str, Any], config: Config) -> None:

@@ -22,11 +22,11 @@ os.environ.setdefault("MUJOCO_GL", "egl")  # before anything imports mujoco: it 
 
 import argparse
 import sys
-import tempfile
 from typing import Any, Sequence
 
 import numpy as np
 
+from sagrasp_jax import fileio
 from sagrasp_jax.runtime import PolicyFormatError, load_policy
 
 CAMERAS = ("overview", "depth_camera")
@@ -129,21 +129,6 @@ def render_episodes(policy_path: str, episodes: int = 3, camera: str = "overview
     return frames, reports, still
 
 
-def _atomic(path: str, write: Any) -> None:
-    """``write(tmp_path)`` then rename; the temp name keeps the extension (the writer picks the format by it)."""
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=os.path.splitext(path)[1], dir=folder)
-    os.close(fd)
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 def write_video(path: str, frames: Sequence[np.ndarray], fps: int) -> None:
     imageio = _imageio()
 
@@ -153,12 +138,12 @@ def write_video(path: str, frames: Sequence[np.ndarray], fps: int) -> None:
             for frame in frames:
                 writer.append_data(frame)
 
-    _atomic(path, write)
+    fileio.atomic_write(path, write)
 
 
 def write_png(path: str, frame: np.ndarray) -> None:
     imageio = _imageio()
-    _atomic(path, lambda tmp: imageio.imwrite(tmp, frame, format="PNG"))
+    fileio.atomic_write(path, lambda tmp: imageio.imwrite(tmp, frame, format="PNG"))
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -40,14 +40,13 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 import zipfile
 from dataclasses import dataclass
 from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
-from sagrasp_jax import __version__
+from sagrasp_jax import __version__, fileio
 from sagrasp_jax.config import Config, ConfigError, EnvConfig, config_from_dict, config_hash, config_to_dict
 
 FORMAT_VERSION = 1
@@ -214,19 +213,11 @@ def save_policy_npz(
         arrays[f"layer_{i}_w"], arrays[f"layer_{i}_b"] = w, b
     _policy_from_arrays(arrays, path)  # refuse to write a file that would not load
 
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(path)}.", suffix=".tmp", dir=folder)
-    try:
-        with os.fdopen(fd, "wb") as f:
+    def write(tmp: str) -> None:
+        with open(tmp, "wb") as f:
             np.savez(f, **arrays)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+
+    fileio.atomic_write(path, write)
     return path
 
 

@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-import tempfile
 import xml.etree.ElementTree as ET
 
 import mujoco
@@ -25,6 +24,7 @@ import numpy as np
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
+from sagrasp_jax.fileio import atomic_write_text  # noqa: E402
 from sagrasp_jax.robot import ARM_JOINTS, FINGER_JOINTS, URDF_PATH, URDFError, parse_urdf  # noqa: E402
 from sagrasp_jax.scene import SCENE  # noqa: E402
 
@@ -184,21 +184,9 @@ def generate(urdf_path: str) -> dict[str, str]:
 
 
 def write_atomically(files: dict[str, str], out_dir: str) -> None:
-    os.makedirs(out_dir, exist_ok=True)
-    temps = []
-    try:
-        for name, text in files.items():
-            fd, tmp = tempfile.mkstemp(dir=out_dir, prefix=f".{name}.", suffix=".tmp")
-            with os.fdopen(fd, "w") as fh:
-                fh.write(text)
-            os.chmod(tmp, 0o644)
-            temps.append((tmp, os.path.join(out_dir, name)))
-        for tmp, final in temps:
-            os.replace(tmp, final)
-    finally:
-        for tmp, _ in temps:
-            if os.path.exists(tmp):
-                os.remove(tmp)
+    """Write every file or none: all are rendered in memory first, each lands by rename."""
+    for name, text in files.items():
+        atomic_write_text(os.path.join(out_dir, name), text)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,0 +1,58 @@
+"""Atomic file writes: a temp file in the target folder, fsync, then ``os.replace``.
+
+Every file the project writes (checkpoints, policies, MJCF, JSON results, videos) goes
+through here, so a crash or a refused input never leaves a half-written file, and the
+result gets the usual ``0666 & ~umask`` mode rather than ``mkstemp``'s private 0600.
+No jax import (the deployment runtime uses it).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from collections.abc import Callable
+from typing import Any
+
+
+def _umask_mode() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
+def atomic_write(path: str, write: Callable[[str], None]) -> str:
+    """Call ``write(tmp_path)`` (the temp name keeps the extension, for writers that pick the
+    format by it), then rename over ``path``; the temp file is removed on any error."""
+    folder = os.path.dirname(os.path.abspath(path))
+    os.makedirs(folder, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(path)}.", suffix=f".tmp{os.path.splitext(path)[1]}", dir=folder)
+    os.close(fd)
+    try:
+        write(tmp)
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+        os.chmod(tmp, _umask_mode())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def atomic_write_bytes(path: str, data: bytes) -> str:
+    def write(tmp: str) -> None:
+        with open(tmp, "wb") as fh:
+            fh.write(data)
+
+    return atomic_write(path, write)
+
+
+def atomic_write_text(path: str, text: str) -> str:
+    return atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def atomic_write_json(path: str, data: Any, indent: int = 2) -> str:
+    """Strict JSON (NaN refused: write ``None`` for missing numbers)."""
+    return atomic_write_text(path, json.dumps(data, indent=indent, allow_nan=False) + "\n")
