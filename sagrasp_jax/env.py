@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 from brax.envs.base import State
 
-from sagrasp_jax import collision, control, reward, robot, sampling
+from sagrasp_jax import collision, control, observation, reward, robot, sampling
 from sagrasp_jax.config import EnvConfig
 
 MJCF_SCENE = os.path.join(os.path.dirname(robot.URDF_PATH), "..", "mjcf", "scene.xml")
@@ -42,24 +42,8 @@ EPISODE_KEYS = (
     "min_obstacle_dist",
 ) + tuple(f"hit_{name}" for name in collision.HIT_KINDS)
 
-OBS_SIZE = 17
+OBS_SIZE = observation.OBS_SIZE
 ACTION_SIZE = 6
-
-
-def observation(
-    q_measured: jax.Array,
-    gripper_centre: jax.Array,
-    target_pos: jax.Array,
-    col: collision.CollisionResult,
-    tilt: jax.Array,
-    cfg: EnvConfig,
-    xp: Any = jnp,
-) -> jax.Array:
-    """The 17 numbers of SPEC §2 (noise is added to the joint entries by the caller)."""
-    nearest_pos = col.nearest_obstacle_pos
-    return xp.concatenate(
-        [q_measured, gripper_centre, target_pos, nearest_pos, xp.reshape(col.nearest_obstacle_dist, (1,)), xp.reshape(tilt, (1,))]
-    )
 
 
 class GraspEnv:
@@ -161,7 +145,7 @@ class GraspEnv:
         task = self.cfg.task
         std = task.obs_noise_std * (1.0 + task.obs_noise_growth * progress)
         noisy_q = q + std * jax.random.normal(key, q.shape, q.dtype)
-        return observation(noisy_q, centre, spec.target_pos, col, tilt, self.cfg)
+        return observation.assemble(jnp, noisy_q, centre, spec.target_pos, col, tilt)
 
     def step(self, state: State, action: jax.Array) -> State:
         cfg, info = self.cfg, state.info

@@ -46,19 +46,12 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
-from sagrasp_jax import __version__, fileio
+from sagrasp_jax import __version__, fileio, observation
 from sagrasp_jax.config import Config, ConfigError, EnvConfig, config_from_dict, config_hash, config_to_dict
 
 FORMAT_VERSION = 1
 
-# Observation entries in env order (SPEC §2); the env and the exporter use the same names.
-OBS_LAYOUT: tuple[str, ...] = (
-    "q1", "q2", "q3", "q4", "q5", "q6",
-    "gripper_x", "gripper_y", "gripper_z",
-    "target_x", "target_y", "target_z",
-    "obstacle_x", "obstacle_y", "obstacle_z",
-    "d_po", "theta_gz",
-)  # fmt: skip
+OBS_LAYOUT = observation.OBS_LAYOUT  # re-exported: the names stored with every policy
 
 
 def _silu(x: np.ndarray) -> np.ndarray:

@@ -5,7 +5,7 @@ its actions mean what they meant there.  So every number here comes from the mod
 training env runs, with NumPy:
 
 * observation: measured joints, gripper centre (``robot.forward_kinematics``), target centre,
-  nearest obstacle and Δpo (``collision.check``), tilt — the 17 entries of
+  nearest obstacle and Δpo (``collision.check``) — the 17 entries of
   ``runtime.OBS_LAYOUT``, no noise (a test compares them with ``env.GraspEnv``'s);
 * action: ``runtime.NumpyPolicy`` with the normaliser it was trained with;
 * joint target: ``control.control_step`` (slow-down, wrist fine-tuning, target accumulation,
@@ -28,7 +28,7 @@ from typing import Any, Callable, NamedTuple, Protocol, Sequence, runtime_checka
 
 import numpy as np
 
-from sagrasp_jax import collision, control, reward
+from sagrasp_jax import collision, control, observation, reward
 from sagrasp_jax.config import EnvConfig
 from sagrasp_jax.deploy.calibration import validate_target
 from sagrasp_jax.deploy.safety import SafetyLayer, SafetyViolation
@@ -126,16 +126,9 @@ class Observation(NamedTuple):
 
 
 def build_observation(model: RobotModel, env_cfg: EnvConfig, q: Any, spec: ResetSpec) -> Observation:
-    """The training observation (``env.observation``'s order) at measured joints ``q``, no noise."""
-    q = np.asarray(q, dtype=float)
-    kin = forward_kinematics(np, model, q)
-    col = collision.check(np, model, kin, spec, env_cfg)
-    theta = float(tilt(np, kin.approach_axis))
-    obs = np.concatenate([
-        q, kin.gripper_centre, np.asarray(spec.target_pos, float), np.asarray(col.nearest_obstacle_pos, float),
-        [float(col.nearest_obstacle_dist)], [theta],
-    ])
-    return Observation(obs, kin.gripper_centre, theta, col)
+    """The training observation (``observation.observe``, shared with both envs) at measured joints ``q``, no noise."""
+    seen = observation.observe(np, model, env_cfg, np.asarray(q, dtype=float), spec)
+    return Observation(seen.obs, seen.kin.gripper_centre, float(seen.tilt), seen.col)
 
 
 def collision_hook(model: RobotModel, env_cfg: EnvConfig, spec: ResetSpec,
