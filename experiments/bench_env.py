@@ -20,7 +20,6 @@ import time
 
 import sagrasp_jax  # noqa: F401  (XLA flags)
 import jax
-import jax.numpy as jnp
 
 from sagrasp_jax import config
 from sagrasp_jax.env import GraspEnv

@@ -18,7 +18,6 @@ import sagrasp_jax  # noqa: F401  (sets XLA_FLAGS before jax is imported)
 
 import hashlib
 import json
-import os
 import struct
 from dataclasses import dataclass
 from typing import Any

@@ -32,7 +32,7 @@ from sagrasp_jax import collision, control, observation, reward
 from sagrasp_jax.config import EnvConfig
 from sagrasp_jax.deploy.calibration import validate_target
 from sagrasp_jax.deploy.safety import SafetyLayer, SafetyViolation
-from sagrasp_jax.robot import BOX, CYLINDER, SPHERE, RobotModel, forward_kinematics, load_robot, solve_home_pose, tilt
+from sagrasp_jax.robot import BOX, CYLINDER, SPHERE, RobotModel, forward_kinematics, load_robot, solve_home_pose
 from sagrasp_jax.runtime import NumpyPolicy
 from sagrasp_jax.sampling import ResetSpec
 
