@@ -340,3 +340,34 @@ def test_dynamic_mode_tracks_kinematic_mode():
         gaps.append(np.linalg.norm(np.asarray(sk.obs[6:9]) - np.asarray(sd.obs[6:9])))
     assert max(gaps) < 0.03
     assert max(gaps) > 1e-5  # the servo really lags
+
+
+@pytest.mark.parametrize("rc_mode, hovering_wins", [("entry", False), ("per_step", True)])
+def test_hovering_inside_the_grab_zone_does_not_pay_by_default(rc_mode, hovering_wins):
+    """End to end through ``step`` (SPEC §2): from one state with the cube 4 cm below the gripper,
+    hovering until timeout earns less than grasping under rc_mode='entry', more under 'per_step'."""
+    cfg = env_config(obstacle_prob=0.0)
+    cfg = dataclasses.replace(cfg, reward=dataclasses.replace(cfg.reward, rc_mode=rc_mode),
+                              task=dataclasses.replace(cfg.task, obs_noise_std=0.0))
+    env = GraspEnv(cfg)
+    target = np.array([0.05, -0.45, 0.025])
+    low = robot.solve_home_pose(config.HOME_Q, target + np.array([0.0, 0.0, 0.04]))  # pointing down, 4 cm above
+    spec = jax.tree_util.tree_map(jnp.asarray, _spec(low, target=target))
+    start = env.reset_to(spec, jax.random.PRNGKey(0))
+    assert float(start.info["d_prev"]) == pytest.approx(0.04, abs=1e-4)
+    step = jax.jit(env.step)
+    action = jax.jit(lambda q, t: scripted_action(cfg, q, t))
+
+    def episode(policy):
+        state, total = start, 0.0
+        for _ in range(cfg.task.max_steps):
+            state = step(state, policy(state))
+            total += float(state.reward)
+            if float(state.done):
+                return total, state.info["episode"]
+        raise AssertionError("episode did not end")
+
+    grasp_return, grasp_ep = episode(lambda s: action(s.info["q_target"], s.info["reset"].target_pos))
+    hover_return, hover_ep = episode(lambda s: jnp.zeros(6))
+    assert float(grasp_ep["success"]) == 1.0 and float(hover_ep["timeout"]) == 1.0
+    assert (hover_return > grasp_return) == hovering_wins, (grasp_return, hover_return)
