@@ -1,0 +1,144 @@
+"""Smoke tests of the paper-reproduction and stack-benchmark scripts (tiny budgets, real env).
+
+The tiny trainer shapes equal ``tests/tiny_run.py``'s, so jax's persistent compilation cache
+built by one serves the other.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.join(REPO, "experiments"))
+
+import bench_vs_paper_stack as bench  # noqa: E402
+import reproduce_paper as repro  # noqa: E402
+
+TINY_SETS = ["ppo.num_envs=64", "ppo.num_epochs=1", "ppo.num_minibatches=1", "env.task.max_steps=50",
+             "sa.eval_episodes=8", "sa.num_cycles=4"]
+
+
+def _sets(items: list[str]) -> list[str]:
+    return [arg for item in items for arg in ("--set", item)]
+
+
+def _run(args: list[str], timeout: float = 300) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, *args], cwd=REPO, capture_output=True, text=True, timeout=timeout)
+
+
+# ---------------------------------------------------------------------- pure helpers
+
+def test_mean_ci_matches_t_interval() -> None:
+    ci = repro.mean_ci([1.0, 2.0, 3.0])
+    half = 4.303 * 1.0 / np.sqrt(3)
+    assert ci["mean"] == pytest.approx(2.0) and ci["n"] == 3
+    assert ci["ci95"] == pytest.approx([2.0 - half, 2.0 + half])
+    assert repro.mean_ci([5.0])["ci95"] == [None, None]
+    assert repro.mean_ci([None, float("nan")])["mean"] is None
+
+
+def test_band_and_curve_matrix_align_seeds_on_env_steps() -> None:
+    runs = [[{"env_steps": 10, "x": 1.0}, {"env_steps": 20, "x": 3.0}],
+            [{"env_steps": 10, "x": 3.0}, {"env_steps": 20, "x": None}]]
+    x, y = repro.curve_matrix(runs, "x")
+    assert x.tolist() == [10, 20] and np.isnan(y[1, 1])
+    mean, lo, hi = repro.band(y)
+    assert mean.tolist() == [2.0, 3.0]
+    assert lo[0] < 2.0 < hi[0] and lo[1] == hi[1] == 3.0  # one seed at step 20: no band
+    assert [v.tolist() for v in repro.band(y, "minmax")] == [[2.0, 3.0], [1.0, 3.0], [3.0, 3.0]]
+    assert repro.band_kind("auto", 2) == "minmax" and repro.band_kind("auto", 3) == "t95"
+
+
+def test_summarise_algo_pools_episodes() -> None:
+    def ev(rate: float, steps: float) -> dict:
+        group = {"episodes": 100, "success_rate": rate, "mean_steps_per_success": steps,
+                 "collision_rate": 0.1, "timeout_rate": 1 - rate - 0.1}
+        return {"overall": group, "obstacle_present": dict(group, episodes=20),
+                "obstacle_absent": dict(group, episodes=80)}
+
+    s = repro.summarise_algo([ev(0.8, 30.0), ev(0.4, 60.0)], [0, 1])
+    assert s["pooled"]["episodes"] == 200 and s["pooled"]["success_pct"] == pytest.approx(60.0)
+    assert s["pooled"]["steps_per_success"] == pytest.approx((80 * 30 + 40 * 60) / 120)
+    lo, hi = s["pooled"]["success_ci95_wilson_pct"]
+    assert lo < 60.0 < hi
+    assert s["across_seeds"]["success_pct"]["mean"] == pytest.approx(60.0)
+    assert s["pooled"]["obstacle_present"]["episodes"] == 40
+    assert s["pooled"]["obstacle_present"]["success_pct"] == pytest.approx(60.0)
+
+
+def test_first_reach() -> None:
+    pts = [(1.0, 100, 0.1), (2.0, 200, 0.6), (3.0, 300, 0.9)]
+    out = bench.first_reach(pts, [0.5, 0.95])
+    assert out["0.5"] == {"time_s": 2.0, "env_steps": 200}
+    assert out["0.95"] == "not reached in budget"
+
+
+# ---------------------------------------------------------------------- CLI smoke tests
+
+def test_reproduce_paper_smoke(tmp_path: pytest.TempPathFactory) -> None:
+    pytest.importorskip("matplotlib")
+    out, runs = str(tmp_path / "out"), str(tmp_path / "runs")
+    args = ["experiments/reproduce_paper.py", "--preset", "cpu-quick", "--total-steps", "8192", "--seeds", "2",
+            "--eval-episodes", "16", "--out-dir", out, "--runs-dir", runs, "--no-progress", *_sets(TINY_SETS)]
+    res = _run(args)
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    for name in ["results.json", "results.md", "sa_schedule.png", "fig15_summary.png"] + [c[0] for c in repro.CURVES]:
+        assert os.path.getsize(os.path.join(out, name)) > 0, name
+    for algo in repro.ALGOS:
+        for seed in (0, 1):
+            run = os.path.join(runs, f"{algo}-s{seed}")
+            for name in ("config.json", "metrics.jsonl", "checkpoint.ckpt", "policy.npz", "evaluation.json"):
+                assert os.path.isfile(os.path.join(run, name)), (run, name)
+    with open(os.path.join(out, "results.json"), encoding="utf-8") as f:
+        results = json.load(f)
+    assert results["meta"]["seeds"] == [0, 1] and results["meta"]["total_steps"] == 8192
+    for algo in repro.ALGOS:
+        pooled = results["algos"][algo]["pooled"]
+        assert pooled["episodes"] == 32 and 0.0 <= pooled["success_pct"] <= 100.0
+        lo, hi = pooled["success_ci95_wilson_pct"]
+        assert 0.0 <= lo <= pooled["success_pct"] <= hi <= 100.0
+        assert results["paper"][algo]["success_pct"] in (92.0, 98.0)
+    with open(os.path.join(out, "results.md"), encoding="utf-8") as f:
+        md = f.read()
+    rows = [line for line in md.splitlines() if line.startswith("| PPO |") or line.startswith("| SA-PPO |")]
+    assert len(rows) == 2 + 2 + 6  # main table, obstacle split, per-seed table (2 seeds + mean per algo)
+    assert all(len(r.strip("|").split("|")) in (5, 6, 7) for r in rows)
+
+    # Re-running skips the finished runs; another config for the same folders is refused.
+    again = _run(args)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert again.stdout.count("done already, skipped") == 4
+    clash = _run(args[:-2] + ["--set", "sa.num_cycles=2"])
+    assert clash.returncode == 2 and "another config" in clash.stderr
+
+
+def test_bench_vs_paper_stack_smoke_without_sb3(tmp_path: pytest.TempPathFactory) -> None:
+    out = str(tmp_path / "bench.json")
+    args = ["experiments/bench_vs_paper_stack.py", "--seconds", "2", "--window", "16", "--success", "0.5",
+            "--out", out, *_sets(TINY_SETS + ["train.total_steps=200000"])]
+    res = _run(args)
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    with open(out, encoding="utf-8") as f:
+        result = json.load(f)
+    assert result["sb3"]["status"] == "skipped" and "--sb3-python" in result["sb3"]["reason"]
+    ours = result["ours"]
+    assert ours["status"] == "ok" and ours["env_steps"] > 0 and ours["env_steps_per_s"] > 0
+    assert ours["train_s"] >= 2.0 and ours["stopped_by_budget"]
+    assert set(ours["time_to_success"]) == {"0.5"}
+    assert result["ratio_ours_over_sb3_env_steps_per_s"] is None
+    assert "skipped" in res.stdout
+
+
+def test_bench_sb3_missing_interpreter_is_skipped(tmp_path: pytest.TempPathFactory) -> None:
+    res = bench.bench_sb3(str(tmp_path / "no-python"), 1.0, 16, [0.5], 16, str(tmp_path), 10.0)
+    assert res["status"] == "skipped" and "does not exist" in res["reason"]
+    if importlib.util.find_spec("stable_baselines3") is None:  # the test venv has no SB3: reported, not crashed
+        res = bench.bench_sb3(sys.executable, 1.0, 16, [0.5], 16, str(tmp_path), 10.0)
+        assert res["status"] == "skipped" and "cannot import" in res["reason"]
