@@ -47,15 +47,13 @@ from typing import Any, Callable
 
 import numpy as np
 
-from sagrasp_jax import robot, sampling
+from sagrasp_jax import robot, sampling, scripted
 from sagrasp_jax.config import Config, ConfigError, EnvConfig, apply_overrides, get_config
 
 SOURCES = ("random", "scripted", "policy")
 FLAGS = ("done", "success", "collision", "timeout")
 REWARD_KEYS = ("reward", "r_distance", "r_success", "r_obstacle")
 SCRIPTED_NOISE = 0.3  # amplitude of the uniform noise added to the scripted controller's actions
-SCRIPTED_APPROACH = 0.08  # m above the target before descending
-SCRIPTED_GRASP = 0.0125  # m above the target centre: middle of the success band
 MAX_LISTED_DISAGREEMENTS = 20
 
 
@@ -110,27 +108,9 @@ def _stack_specs(specs: list[sampling.ResetSpec]) -> sampling.ResetSpec:
 # action sources
 # --------------------------------------------------------------------------------------------
 def scripted_actions(cfg: EnvConfig, obs: np.ndarray) -> np.ndarray:
-    """Damped-least-squares step toward a point above the target, descending as the horizontal
-    error closes, gripper kept pointing down; from observations (n, 17) to actions (n, 6)."""
-    model = robot.load_robot()
+    """The package's scripted controller (``sagrasp_jax.scripted``) from observations (n, 17)."""
     obs = np.atleast_2d(np.asarray(obs, dtype=np.float64))
-    q, centre, target = obs[:, :6], obs[:, 6:9], obs[:, 9:12]
-    horizontal = np.linalg.norm(centre[:, :2] - target[:, :2], axis=-1)
-    height = SCRIPTED_GRASP + SCRIPTED_APPROACH * np.clip(horizontal / 0.02, 0.0, 1.0)
-    goal = target + np.array([0.0, 0.0, 1.0]) * height[:, None]
-
-    def residual(qs: np.ndarray, g: np.ndarray) -> np.ndarray:
-        kin = robot.forward_kinematics(np, model, qs)
-        return np.concatenate([kin.gripper_centre - g, 0.3 * kin.approach_axis[..., :2]], axis=-1)
-
-    eps = 1e-6
-    probes = q[:, None, :] + eps * np.concatenate([np.eye(6), -np.eye(6)])[None]  # (n, 12, 6)
-    res = residual(probes, goal[:, None, :])
-    jac = np.swapaxes(res[:, :6] - res[:, 6:], 1, 2) / (2 * eps)  # (n, 5, 6)
-    r = residual(q, goal)
-    lhs = jac @ np.swapaxes(jac, 1, 2) + 1e-4 * np.eye(5)
-    dq = np.einsum("nij,ni->nj", jac, np.linalg.solve(lhs, -r[..., None])[..., 0])
-    return np.clip(dq / cfg.control.q_max, -1.0, 1.0)
+    return scripted.scripted_action(np, cfg, obs[:, :6], obs[:, 9:12])
 
 
 @dataclass

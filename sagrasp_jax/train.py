@@ -397,9 +397,10 @@ class Trainer:
     def summary(self, row: dict[str, Any], steps: int) -> str:
         """One line for the end of a run: speed, compile time, SA counts, last evaluation."""
         sa = self.sa_state
+        schedule = (f"SA accept {sa.n_accept}, accept-worse {sa.n_accept_worse}, reject {sa.n_reject}, "
+                    f"decays {sa.decays}, lr {sa.lr:.3g}" if self.cfg.sa.enabled else f"constant lr {self.lr:.3g} (PPO)")
         return (f"{steps:,} env steps this session, {row['time_s']:.1f} s training ({steps / max(row['time_s'], 1e-9):,.0f} "
-                f"steps/s incl. evaluation) + {row['compile_s']:.1f} s compile; SA accept {sa.n_accept}, "
-                f"accept-worse {sa.n_accept_worse}, reject {sa.n_reject}, decays {sa.decays}, lr {sa.lr:.3g}; "
+                f"steps/s incl. evaluation) + {row['compile_s']:.1f} s compile; {schedule}; "
                 f"non-finite {self.host.nonfinite}; last eval success {_fmt(row.get('eval_success'))}, "
                 f"return {_fmt(row.get('eval_return'))}")
 
