@@ -126,7 +126,9 @@ def sample_reset(xp: Any, robot: RobotModel, cfg: SamplingConfig, task: TaskConf
     # clearance needs one shape's SDF per candidate), visited in the interleaved order
     # kind (off), kind (off+1), kind (off+2), ... with a uniform random offset per slot, so the
     # first candidate's kind is uniform.
-    per_kind = n_o // len(OBSTACLE_KINDS)
+    per_kind = n_o // len(OBSTACLE_KINDS)  # a remainder (configs before this scheme) goes unused
+    n_o = per_kind * len(OBSTACLE_KINDS)
+    u_obs = u_obs[..., :n_o, :]
     kind_pattern = np.repeat(np.asarray(OBSTACLE_KINDS), per_kind)  # (n_o,)
     kind = xp.broadcast_to(xp.asarray(kind_pattern), u_obs.shape[:-1])
     offset = xp.minimum((u_obs[..., 0, 0] * 3).astype(xp.int32), 2)  # (attempts, slots)
