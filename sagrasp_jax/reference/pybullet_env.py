@@ -27,11 +27,11 @@ Modes (``cfg.control.mode``):
 
 The arm's weight is compensated exactly, as the MJCF's ``gravcomp`` does (the AUBO controller
 compensates gravity): the robot is the only dynamic body, so the world runs without gravity
-unless ``gravity_compensation=False``.  Contacts of the robot are switched off (collision filter
-mask 0) in both modes, as in the MJX env: collisions are the analytic rules of ``collision.check``; the scene bodies
-keep their collision shapes so PyBullet's own distance queries (``pybullet_distance``)
-can cross-check those rules.  A timeout is ``terminated`` (SPEC §2: the −1 is the task's
-verdict), so ``truncated`` is always False.
+unless ``gravity_compensation=False``.  Contacts of the robot are switched off (collision
+filter mask 0) in both modes, as in the MJX env: collisions are the analytic rules of
+``collision.check``.  The scene bodies keep their collision shapes, so PyBullet's own distance
+queries (``pybullet_distance``) can cross-check those rules.  A timeout is ``terminated``
+(SPEC §2: the −1 is the task's verdict), so ``truncated`` is always False.
 """
 
 from __future__ import annotations
@@ -222,14 +222,15 @@ class PyBulletGraspEnv(gym.Env):
     def _pb(self, fn: Any, *args: Any, **kwargs: Any) -> Any:
         return fn(*args, physicsClientId=self._client, **kwargs)
 
-    def _static_body(self, kind: int, size: Any, pos: Any, rot: np.ndarray, rgba: Any, mass: float = 0.0) -> tuple[int, int]:
+    def _static_body(self, kind: int, size: Any, pos: Any, rot: np.ndarray, rgba: Any) -> tuple[int, int]:
+        """A fixed (mass 0) primitive body; returns (body, collision shape)."""
         col = self._pb(pb.createCollisionShape, **_shape_kwargs(kind, size, visual=False))
         vis = -1
         if self.render_mode is not None:  # DIRECT runs need no visuals (PyBullet never frees them)
             vis = self._pb(pb.createVisualShape, rgbaColor=list(rgba), **_shape_kwargs(kind, size, visual=True))
         body = self._pb(
             pb.createMultiBody,
-            baseMass=mass,
+            baseMass=0.0,
             baseCollisionShapeIndex=col,
             baseVisualShapeIndex=vis,
             basePosition=[float(v) for v in pos],
