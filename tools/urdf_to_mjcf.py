@@ -33,7 +33,7 @@ from sagrasp_jax.scene import SCENE  # noqa: E402
 # control period (see tests/test_mjcf.py).
 ARM_KP = (3000.0, 3000.0, 3000.0, 300.0, 300.0, 300.0)
 ARM_KV = (150.0, 150.0, 150.0, 10.0, 10.0, 10.0)
-ARM_ARMATURE = (0.2, 0.2, 0.2, 0.02, 0.02, 0.02)
+ARM_ARMATURE = (0.2, 0.2, 0.2, 0.1, 0.1, 0.1)  # wrist armature 0.02 let a full 0.05 rad step limit-cycle
 ARM_DAMPING = 1.0
 FINGER_KP, FINGER_KV, FINGER_FORCE = 400.0, 10.0, 20.0
 PARK_Z = -5.0  # unused obstacle slots wait below the floor
