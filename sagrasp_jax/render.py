@@ -164,14 +164,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise RenderError(f"--out {args.out!r} must end in .mp4")
         if args.width % 16 or args.height % 16 or args.width < 16 or args.height < 16:
             raise RenderError(f"--width/--height must be positive multiples of 16 (H.264 blocks), got {args.width}×{args.height}")
-        _mujoco()  # the GL backend, then the writer: fail before rendering anything
+        load_policy(args.policy)  # the user input first, then the GL backend and the writer
+        _mujoco()
         _imageio()
         frames, reports, still = render_episodes(args.policy, args.episodes, args.camera, args.seed, args.width,
                                                  args.height, args.max_steps)
         write_video(args.out, frames, args.fps)
         if args.png:
             write_png(args.png, frames[still])
-    except (RenderError, PolicyFormatError) as exc:
+    except (RenderError, PolicyFormatError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     for i, r in enumerate(reports):
