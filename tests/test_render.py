@@ -52,8 +52,9 @@ def test_render_writes_mp4_and_png(tmp_path_factory: pytest.TempPathFactory, tmp
     assert sorted(os.listdir(video.parent)) == ["rollout.mp4"]  # no temp files left
 
 
-def test_missing_gl_backend_is_a_clear_error(tmp_path) -> None:
-    res = _render("--policy", "unused.npz", "--out", str(tmp_path / "x.mp4"), gl="no-such-backend")
+def test_missing_gl_backend_is_a_clear_error(tmp_path_factory: pytest.TempPathFactory, tmp_path) -> None:
+    policy = os.path.join(tiny_run(str(tmp_path_factory.getbasetemp())), "policy.npz")  # valid input: the GL fails
+    res = _render("--policy", policy, "--out", str(tmp_path / "x.mp4"), gl="no-such-backend")
     assert res.returncode == 2
     assert "MUJOCO_GL='no-such-backend'" in res.stderr and "libegl1" in res.stderr
     assert "Traceback" not in res.stderr
