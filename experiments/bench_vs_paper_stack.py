@@ -39,6 +39,8 @@ import tempfile
 import time
 from typing import Any
 
+from sagrasp_jax import fileio
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 HERE = os.path.dirname(os.path.abspath(__file__))
 PAPER_STEPS_PER_S = 375.8  # paper, SB3 + PyBullet on an RTX 4070 machine (SPEC §4)
@@ -46,20 +48,8 @@ PAPER_TOTAL_STEPS = 20_000_000
 
 
 def atomic_write_json(path: str, data: Any) -> str:
-    """Write JSON through a temp file in the same folder and rename it into place."""
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=folder, prefix=".bench.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            json.dump(data, f, indent=2, sort_keys=True, allow_nan=False)
-            f.write("\n")
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
+    """Sorted strict JSON through fileio's temp-file-and-rename."""
+    return fileio.atomic_write_json(path, data, sort_keys=True)
 
 
 def first_reach(points: list[tuple[float, int, float]], levels: list[float]) -> dict[str, Any]:

@@ -38,7 +38,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from sagrasp_jax import checkpoint, evaluate, train
+from sagrasp_jax import evaluate, fileio, train
 from sagrasp_jax.checkpoint import CheckpointError
 from sagrasp_jax.config import ConfigError, config_to_dict
 
@@ -89,9 +89,7 @@ def mean_ci(values: Sequence[float]) -> dict[str, Any]:
 
 def write_json(path: str, data: Any) -> str:
     """Atomic JSON write (no NaN)."""
-    text = json.dumps(data, indent=2, sort_keys=True, allow_nan=False) + "\n"
-    checkpoint.atomic_write_bytes(path, text.encode())
-    return path
+    return fileio.atomic_write_json(path, data, sort_keys=True)
 
 
 def run_name(algo: str, seed: int) -> str:
@@ -626,7 +624,7 @@ def main(argv: list[str] | None = None) -> int:
         results["files"] = plot_all(args.out_dir, curves, results, args.smooth)
         md = markdown_table(results)
         write_json(os.path.join(args.out_dir, RESULTS_JSON), results)
-        checkpoint.atomic_write_bytes(os.path.join(args.out_dir, RESULTS_MD), md.encode())
+        fileio.atomic_write_text(os.path.join(args.out_dir, RESULTS_MD), md)
     except (ConfigError, CheckpointError, ReproduceError, FileExistsError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

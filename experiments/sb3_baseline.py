@@ -27,15 +27,15 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import importlib.metadata
-import json
 import os
 import platform
 import sys
-import tempfile
 import time
 from typing import Any
 
 import numpy as np
+
+from sagrasp_jax import fileio
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 if ROOT not in sys.path:
@@ -72,18 +72,7 @@ def _import_sb3() -> tuple[Any, Any]:
 
 
 def _atomic_write_json(path: str, data: dict[str, Any]) -> None:
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=folder, prefix=".sb3_baseline.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            json.dump(data, f, indent=2, default=float)
-            f.write("\n")
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    fileio.atomic_write_json(path, data, default=float)
 
 
 def with_mode(env_cfg: Any, mode: str) -> Any:

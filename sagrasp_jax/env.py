@@ -27,20 +27,7 @@ from sagrasp_jax.config import EnvConfig
 
 MJCF_SCENE = os.path.join(os.path.dirname(robot.URDF_PATH), "..", "mjcf", "scene.xml")
 
-EPISODE_KEYS = (
-    "return",
-    "r_distance",
-    "r_success",
-    "r_obstacle",
-    "success",
-    "collision",
-    "timeout",
-    "steps",
-    "obstacle_present",
-    "redraws",
-    "fallback",
-    "min_obstacle_dist",
-) + tuple(f"hit_{name}" for name in collision.HIT_KINDS)
+EPISODE_KEYS = reward.EPISODE_KEYS
 
 OBS_SIZE = observation.OBS_SIZE
 ACTION_SIZE = 6

@@ -53,6 +53,8 @@ def atomic_write_text(path: str, text: str) -> str:
     return atomic_write_bytes(path, text.encode("utf-8"))
 
 
-def atomic_write_json(path: str, data: Any, indent: int = 2) -> str:
-    """Strict JSON (NaN refused: write ``None`` for missing numbers)."""
-    return atomic_write_text(path, json.dumps(data, indent=indent, allow_nan=False) + "\n")
+def atomic_write_json(path: str, data: Any, indent: int = 2, sort_keys: bool = False,
+                      default: Callable[[Any], Any] | None = None, allow_nan: bool = False) -> str:
+    """JSON, strict by default (NaN refused: write ``None`` for missing numbers)."""
+    text = json.dumps(data, indent=indent, sort_keys=sort_keys, allow_nan=allow_nan, default=default)
+    return atomic_write_text(path, text + "\n")

@@ -37,9 +37,7 @@ import sagrasp_jax  # noqa: F401  (sets XLA_FLAGS before jax is imported)
 
 import argparse
 import dataclasses
-import json
 import math
-import os
 import sys
 import time
 from dataclasses import dataclass, field
@@ -47,7 +45,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from sagrasp_jax import robot, sampling, scripted
+from sagrasp_jax import fileio, robot, sampling, scripted
 from sagrasp_jax.config import Config, ConfigError, EnvConfig, apply_overrides, get_config
 
 SOURCES = ("random", "scripted", "policy")
@@ -518,11 +516,7 @@ def format_report(report: dict[str, Any]) -> str:
 
 def write_json(path: str, report: dict[str, Any]) -> None:
     """Atomic write (temp file + rename): a reader never sees half a report."""
-    from sagrasp_jax.checkpoint import atomic_write_bytes
-
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    atomic_write_bytes(path, (json.dumps(report, indent=2, default=float) + "\n").encode())
+    fileio.atomic_write_json(path, report, default=float, allow_nan=True)  # NaN: a rate with no episodes
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -54,29 +54,15 @@ except ImportError as exc:  # pragma: no cover - exercised only without the extr
         "the PyBullet reference env needs pybullet and gymnasium: pip install -e .[reference]"
     ) from exc
 
-from sagrasp_jax import collision, config, control, reward, robot, sampling
+from sagrasp_jax import collision, config, control, observation, reward, robot, sampling
 from sagrasp_jax.config import EnvConfig
 from sagrasp_jax.robot import BOX, CAPSULE, CYLINDER, SPHERE, Kinematics
 from sagrasp_jax.scene import SCENE
 
 ENV_ID = "SAGrasp-PyBullet-v0"
-OBS_SIZE = 17
+OBS_SIZE = observation.OBS_SIZE
 ACTION_SIZE = 6
-# Same keys as sagrasp_jax.env.EPISODE_KEYS (that module imports jax; a test checks equality).
-EPISODE_KEYS = (
-    "return",
-    "r_distance",
-    "r_success",
-    "r_obstacle",
-    "success",
-    "collision",
-    "timeout",
-    "steps",
-    "obstacle_present",
-    "redraws",
-    "fallback",
-    "min_obstacle_dist",
-) + tuple(f"hit_{name}" for name in collision.HIT_KINDS)
+EPISODE_KEYS = reward.EPISODE_KEYS
 
 # POSITION_CONTROL gains of the dynamic mode, per arm joint: positionGain kp and velocityGain kd of
 # PyBullet's motor constraint (after a substep h: v = kp·(q* − q)/h + (1 − kd)·v).  MuJoCo's
@@ -370,10 +356,7 @@ class PyBulletGraspEnv(gym.Env):
         std = task.obs_noise_std * (1.0 + task.obs_noise_growth * self.progress)
         noisy_q = q + std * self.np_random.normal(size=6) if std > 0 else q
         assert self._spec is not None
-        return np.concatenate([
-            noisy_q, kin.gripper_centre, self._spec.target_pos, np.asarray(col.nearest_obstacle_pos, float),
-            [float(col.nearest_obstacle_dist)], [float(tilt)],
-        ]).astype(np.float64)
+        return observation.assemble(np, noisy_q, kin.gripper_centre, self._spec.target_pos, col, tilt).astype(np.float64)
 
     # -- Gymnasium API ---------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
