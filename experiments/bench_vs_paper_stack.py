@@ -143,7 +143,6 @@ def sb3_worker(seconds: float, n_envs: int, seed: int, levels: list[float], wind
     import sb3_baseline as base  # experiments/sb3_baseline.py: the settings' single source
 
     sb3, torch = base._import_sb3()
-    import gymnasium as gym
     import numpy as np
     from stable_baselines3 import PPO
     from stable_baselines3.common.callbacks import BaseCallback
@@ -155,15 +154,6 @@ def sb3_worker(seconds: float, n_envs: int, seed: int, levels: list[float], wind
     if base.UPDATE_STEPS % n_envs:
         raise SystemExit(f"error: --sb3-envs must divide {base.UPDATE_STEPS}")
 
-    class TaskMetrics(gym.Wrapper):
-        """The env's episode metrics move to ``info["task_episode"]`` (VecMonitor owns ``info["episode"]``)."""
-
-        def step(self, action: Any) -> Any:
-            obs, reward, terminated, truncated, info = self.env.step(action)
-            if "episode" in info:
-                info["task_episode"] = info.pop("episode")
-            return obs, reward, terminated, truncated, info
-
     cfg = base.with_mode(get_config("paper").env, "kinematic")
     raw: list[Any] = []
 
@@ -172,7 +162,7 @@ def sb3_worker(seconds: float, n_envs: int, seed: int, levels: list[float], wind
             env = PyBulletGraspEnv(cfg)
             env.reset(seed=seed * 1000 + rank)
             raw.append(env)
-            return TaskMetrics(env)
+            return base.with_task_metrics(env)
         return thunk
 
     venv = VecNormalize(VecMonitor(DummyVecEnv([make(i) for i in range(n_envs)])), norm_obs=True,

@@ -90,6 +90,21 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def with_task_metrics(env: Any) -> Any:
+    """Wrap a reference env so its episode metrics move to ``info["task_episode"]``
+    (SB3's VecMonitor owns ``info["episode"]``)."""
+    import gymnasium as gym
+
+    class TaskMetrics(gym.Wrapper):
+        def step(self, action: Any) -> Any:
+            obs, reward, terminated, truncated, info = self.env.step(action)
+            if "episode" in info:
+                info["task_episode"] = info.pop("episode")
+            return obs, reward, terminated, truncated, info
+
+    return TaskMetrics(env)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.total_steps < 1 or args.n_envs < 1 or UPDATE_STEPS % args.n_envs:
@@ -105,15 +120,6 @@ def main(argv: list[str] | None = None) -> int:
     from sagrasp_jax.config import get_config
     from sagrasp_jax.reference.pybullet_env import PyBulletGraspEnv
 
-    class TaskMetrics(gym.Wrapper):
-        """Moves the env's episode metrics to ``info["task_episode"]``: VecMonitor owns ``info["episode"]``."""
-
-        def step(self, action: Any) -> Any:
-            obs, reward, terminated, truncated, info = self.env.step(action)
-            if "episode" in info:
-                info["task_episode"] = info.pop("episode")
-            return obs, reward, terminated, truncated, info
-
     cfg = with_mode(get_config("paper").env, args.mode)
     raw_envs: list[PyBulletGraspEnv] = []
 
@@ -122,7 +128,7 @@ def main(argv: list[str] | None = None) -> int:
             env = PyBulletGraspEnv(cfg)
             env.reset(seed=args.seed * 1000 + rank)
             raw_envs.append(env)
-            return TaskMetrics(env)
+            return with_task_metrics(env)
 
         return thunk
 

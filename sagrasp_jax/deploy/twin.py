@@ -46,7 +46,7 @@ except ImportError as exc:  # pragma: no cover - exercised only without the extr
 from sagrasp_jax import robot as robot_mod
 from sagrasp_jax.collision import yaw_rotation
 from sagrasp_jax.config import HOME_Q, EnvConfig
-from sagrasp_jax.reference.pybullet_env import _shape_kwargs, rotation_to_quaternion
+from sagrasp_jax.reference.pybullet_env import _shape_kwargs, disconnect, rotation_to_quaternion
 from sagrasp_jax.robot import BOX
 from sagrasp_jax.sampling import ResetSpec
 from sagrasp_jax.scene import SCENE
@@ -205,12 +205,7 @@ class PyBulletTwin:
         return np.array([s[0] for s in self._pb(pb.getJointStates, self.robot_body, self.finger_joints)], dtype=float)
 
     def close(self) -> None:
-        if getattr(self, "_client", -1) >= 0:
-            try:
-                pb.disconnect(physicsClientId=self._client)
-            except pb.error:
-                pass
-            self._client = -1
+        self._client = disconnect(getattr(self, "_client", -1))
 
     def __enter__(self) -> "PyBulletTwin":
         return self

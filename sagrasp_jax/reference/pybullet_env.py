@@ -153,6 +153,16 @@ def _as_numpy_spec(spec: sampling.ResetSpec) -> sampling.ResetSpec:
     )
 
 
+
+def disconnect(client: int) -> int:
+    """Disconnect a PyBullet client if it is connected (idempotent); returns -1, the "closed" id."""
+    if client >= 0:
+        try:
+            pb.disconnect(physicsClientId=client)
+        except pb.error:
+            pass
+    return -1
+
 class PyBulletGraspEnv(gym.Env):
     """AUBO-i5 + EG2 gripper reaching a cuboid among random obstacles, simulated in PyBullet.
 
@@ -530,9 +540,4 @@ class PyBulletGraspEnv(gym.Env):
         return np.asarray(img[2], dtype=np.uint8).reshape(height, width, 4)[..., :3]
 
     def close(self) -> None:
-        if getattr(self, "_client", -1) >= 0:
-            try:
-                pb.disconnect(physicsClientId=self._client)
-            except pb.error:
-                pass
-            self._client = -1
+        self._client = disconnect(getattr(self, "_client", -1))
