@@ -25,6 +25,17 @@ from sagrasp_jax.config import Config  # noqa: E402
 TOY_ITER_STEPS = 32 * 16  # num_envs × unroll_length
 
 
+@pytest.fixture
+def x64():
+    """jax with float64 enabled for one test (parity-style exact comparisons), restored after."""
+    import jax
+
+    previous = jax.config.jax_enable_x64
+    jax.config.update("jax_enable_x64", True)
+    yield jax
+    jax.config.update("jax_enable_x64", previous)
+
+
 def toy_config(cycles: int = 6, algo: str = "sa-ppo", extra: list[str] | None = None,
                iterations_per_cycle: int = 2) -> Config:
     """Small PPO batch on the toy env; ``cycles`` SA cycles of ``iterations_per_cycle`` iterations."""

@@ -162,16 +162,6 @@ def test_numpy_batch_matches_single_calls() -> None:
             np.testing.assert_allclose(b[i], s, atol=1e-15)
 
 
-@pytest.fixture
-def x64():
-    import jax
-
-    previous = jax.config.jax_enable_x64
-    jax.config.update("jax_enable_x64", True)
-    yield jax
-    jax.config.update("jax_enable_x64", previous)
-
-
 CASES = [
     (HOME, 0.5, ACTION),
     (HOME, 0.05, ACTION),

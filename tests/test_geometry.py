@@ -653,16 +653,6 @@ def _all_pairs(xp, prims):
     return [geo.pair_distance(xp, ka, *prims[ka], kb, *prims[kb]) for ka, kb in ALL_PAIRS]
 
 
-@pytest.fixture
-def x64():
-    import jax
-
-    previous = jax.config.jax_enable_x64
-    jax.config.update("jax_enable_x64", True)
-    yield jax
-    jax.config.update("jax_enable_x64", previous)
-
-
 def test_jax_jit_x64_matches_numpy(x64) -> None:
     jax = x64
     import jax.numpy as jnp
