@@ -57,7 +57,6 @@ class GraspEnv:
         model = mujoco.MjModel.from_xml_path(os.path.normpath(MJCF_SCENE))
         model.opt.timestep = self.cfg.control.physics_dt
         model.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_CONTACT
-        self._finger_open = self.robot.finger_open
         return mjx.put_model(model)
 
     def _initial_pipeline(self, q0: jax.Array) -> Any:
@@ -112,7 +111,6 @@ class GraspEnv:
             "q_target": q0,
             "reset": spec,
             "d_prev": d0,
-            "in_grab": (d0 <= self.cfg.reward.d_grab).astype(dtype),
             "clean": jnp.ones((), dtype),
             "acc": {k: zero for k in ("return", "r_distance", "r_success", "r_obstacle")}
             | {"min_obstacle_dist": col.nearest_obstacle_dist},
@@ -196,7 +194,6 @@ class GraspEnv:
             steps=steps,
             q_target=ctl.q_target,
             d_prev=d_now,
-            in_grab=(d_now <= cfg.reward.d_grab).astype(dtype),
             clean=clean,
             acc=acc,
             episode=episode,
