@@ -11,7 +11,7 @@ CPU core.  So the robot is checked through a **sphere cover**: every URDF primit
 of a moving link is replaced by spheres (``sphere_cover``) —
 
 * capsules by spheres of the capsule radius along the axis, spaced so the surface
-  between them dips ≤ ``CAPSULE_DIP`` (under-approximation of ≤ 3 mm);
+  between them dips ≤ ``CAPSULE_DIP`` (an under-approximation by up to 5 mm);
 * boxes by a grid of cells of half-size ≤ ``BOX_CELL`` and spheres circumscribing the
   cells (a conservative cover; bulge ≤ ``sphere_cover(...).bulge`` per primitive,
   about 1-1.6 cm at face centres, 0 at corners);
@@ -39,7 +39,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from sagrasp_jax import geometry
+from sagrasp_jax import geometry, shapes
 from sagrasp_jax.config import EnvConfig
 from sagrasp_jax.robot import BOX, CAPSULE, CYLINDER, SPHERE, Kinematics, RobotModel, primitive_poses
 from sagrasp_jax.scene import SCENE
@@ -67,6 +67,8 @@ class CollisionResult(NamedTuple):
     nearest_obstacle_pos: Any  # (3,) centre of the nearest active obstacle or TaskConfig.no_obstacle_pos
     hits: dict[str, Any]  # name -> () bool, names in HIT_KINDS
     any_collision: Any  # () bool
+    robot_to_obstacle: Any  # (slots, 3) closest robot point -> nearest obstacle surface point (0 for empty slots)
+    gripper_to_obstacle: Any  # (slots, 3) gripper centre -> nearest obstacle surface point (0 for empty slots)
 
 
 def _axis_points(half: float, spacing: float) -> np.ndarray:
@@ -132,14 +134,124 @@ def _build_cover(robot: RobotModel) -> SphereCover:
 
 
 def sphere_cover(robot: RobotModel) -> SphereCover:
-    """The robot's sphere cover in link frames (computed once per robot model)."""
+    """The robot's conservative sphere cover in link frames (computed once per robot model)."""
     return _cover(robot)
 
 
-def cover_centres(xp: Any, robot: RobotModel, kin: Kinematics) -> Any:
-    """World centres (S, 3) of the cover spheres (the cover is sorted by link, so each link's
-    spheres are one static slice: a small matmul per link instead of a gather)."""
-    cover = _cover(robot)
+FINE_ERROR = 0.004  # m: the fine sphere set's two-sided error bound (Hausdorff distance to the URDF primitives)
+_FINE: dict[int, tuple[RobotModel, SphereCover]] = {}
+
+
+def fine_cover(robot: RobotModel) -> SphereCover:
+    """Spheres within ``FINE_ERROR`` of the robot's moving primitives, both ways (link frames).
+
+    Every sphere lies inside its primitive grown by FINE_ERROR, and every point of the
+    primitive's surface lies within FINE_ERROR of a sphere, so a distance from any shape to the
+    union differs from the exact distance to the primitives by at most FINE_ERROR (for gaps;
+    overlaps shallower than that may be missed).  Capsules: spheres of the capsule radius
+    along the axis.  Boxes and cylinders: spheres of radius δ + E centred on the primitive
+    shrunk by δ (δ ≤ 2.73·E, so the corners are reached too), on a grid whose spacing is
+    refined until a dense sample of the surface verifies the bound (``_fine_primitive``).
+    """
+    cached = _FINE.get(id(robot))
+    if cached is not None and cached[0] is robot:
+        return cached[1]
+    links, centres, radii, prims = [], [], [], []
+    for g, prim in enumerate(robot.primitives):
+        if prim.link == 0:  # the base never moves: obstacles keep clear of it at sampling time
+            continue
+        local, rad = _fine_primitive(prim.kind, np.asarray(prim.size, float), FINE_ERROR)
+        links.append(np.full(len(local), prim.link))
+        centres.append((prim.local[:3, :3] @ local.T).T + prim.local[:3, 3])
+        radii.append(rad)
+        prims.append(np.full(len(local), g))
+    link = np.concatenate(links).astype(np.int32)
+    order = np.argsort(link, kind="stable")
+    cover = SphereCover(
+        link=link[order],
+        local=np.concatenate(centres)[order],
+        radius=np.concatenate(radii)[order],
+        prim=np.concatenate(prims).astype(np.int32)[order],
+        bulge=np.full(len(robot.primitives), FINE_ERROR),
+    )
+    _FINE[id(robot)] = (robot, cover)
+    return cover
+
+
+def _grid(half: float, spacing: float) -> np.ndarray:
+    if half <= 1e-12:
+        return np.zeros(1)
+    return np.linspace(-half, half, int(math.ceil(2 * half / spacing)) + 1)
+
+
+def _surface_samples(kind: int, size: np.ndarray, n: int = 24) -> np.ndarray:
+    """Points spread over the surface of a box or cylinder (primitive frame), edges and corners included."""
+    t = np.linspace(-1.0, 1.0, n)
+    a, b = np.meshgrid(t, t, indexing="ij")
+    a, b = a.ravel(), b.ravel()
+    if kind == BOX:
+        faces = []
+        for axis in range(3):
+            u, v = [i for i in range(3) if i != axis]
+            for sign in (-1.0, 1.0):
+                pts = np.zeros((a.size, 3))
+                pts[:, axis] = sign * size[axis]
+                pts[:, u], pts[:, v] = a * size[u], b * size[v]
+                faces.append(pts)
+        return np.concatenate(faces)
+    r, h = size[0], size[1]
+    ang = np.linspace(0.0, 2 * np.pi, 4 * n, endpoint=False)
+    th, z = np.meshgrid(ang, t * h, indexing="ij")
+    side = np.stack([r * np.cos(th.ravel()), r * np.sin(th.ravel()), z.ravel()], -1)
+    rho, th2 = np.meshgrid(np.linspace(0.0, r, n), ang, indexing="ij")
+    caps = [np.stack([rho.ravel() * np.cos(th2.ravel()), rho.ravel() * np.sin(th2.ravel()), np.full(rho.size, sign * h)], -1)
+            for sign in (-1.0, 1.0)]
+    return np.concatenate([side, *caps])
+
+
+def _fine_primitive(kind: int, size: np.ndarray, error: float) -> tuple[np.ndarray, np.ndarray]:
+    """(centres (n, 3), radii (n,)) in the primitive frame: a sphere set within ``error`` of it."""
+    if kind == SPHERE:
+        return np.zeros((1, 3)), np.array([size[0]])
+    if kind == CAPSULE:
+        r, h = size[0], size[1]
+        zs = _axis_points(h, 2 * math.sqrt(2 * r * error + error**2))
+        return np.stack([np.zeros_like(zs), np.zeros_like(zs), zs], -1), np.full(len(zs), r)
+    delta = min(2.7 * error, float(size[0]), float(size[1]) if kind == CYLINDER else float(size.min()))
+    radius = delta + error
+    samples = _surface_samples(kind, size)
+    spacing = math.sqrt(2.0) * math.sqrt(4 * delta * error + 4 * error**2)
+    for _ in range(40):
+        if kind == BOX:
+            inner = size - delta
+            axes = [_grid(float(h), spacing) for h in inner]
+            pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+            flat = (inner <= 1e-12).any()
+            on_surface = flat | (np.abs(np.abs(pts) - inner) < 1e-12).any(-1)
+            pts = pts[on_surface]
+        else:
+            r_in, h_in = size[0] - delta, size[1] - delta
+            zs = _grid(h_in, spacing)
+            ring = max(1, int(math.ceil(2 * math.pi * r_in / spacing))) if r_in > 1e-12 else 1
+            ang = np.linspace(0.0, 2 * np.pi, ring, endpoint=False)
+            side = [(r_in * math.cos(t), r_in * math.sin(t), z) for z in zs for t in ang]
+            cap = []
+            for rho in _grid(r_in, spacing)[_grid(r_in, spacing) >= -1e-12][:-1] if r_in > 1e-12 else []:
+                n_ring = max(1, int(math.ceil(2 * math.pi * rho / spacing))) if rho > 1e-12 else 1
+                cap += [(rho * math.cos(t), rho * math.sin(t), z) for z in (-h_in, h_in)
+                        for t in np.linspace(0.0, 2 * np.pi, n_ring, endpoint=False)]
+            pts = np.unique(np.round(np.array(side + cap), 12), axis=0)
+        gap = np.min(np.linalg.norm(samples[:, None, :] - pts[None], axis=-1) - radius, axis=1)
+        if gap.max() <= error:
+            return pts, np.full(len(pts), radius)
+        spacing *= 0.9
+    raise RuntimeError(f"no fine sphere set within {error} m for primitive kind {kind} size {size}")  # pragma: no cover
+
+
+def cover_centres(xp: Any, robot: RobotModel, kin: Kinematics, cover: SphereCover | None = None) -> Any:
+    """World centres (S, 3) of a sphere set (default: the conservative cover); sets are sorted by
+    link, so each link's spheres are one static slice: a small matmul per link instead of a gather."""
+    cover = _cover(robot) if cover is None else cover
     dtype = kin.link_pos.dtype
     parts = []
     for link in np.unique(cover.link):
@@ -153,32 +265,6 @@ def yaw_rotation(xp: Any, yaw: Any) -> Any:
     c, s = xp.cos(yaw), xp.sin(yaw)
     zero, one = xp.zeros_like(yaw), xp.ones_like(yaw)
     return xp.stack([xp.stack([c, -s, zero], -1), xp.stack([s, c, zero], -1), xp.stack([zero, zero, one], -1)], -2)
-
-
-def upright_sdf(xp: Any, kind: Any, pos: Any, yaw: Any, size: Any, points: Any) -> Any:
-    """Signed distance from points (..., 3) to upright obstacles (sphere, z-axis cylinder,
-    z-yawed box); ``kind``/``pos``/``yaw``/``size`` broadcast against the points' batch dims.
-    A Python-int ``kind`` computes only that shape; an array computes all three and selects."""
-    d = points - pos
-
-    def sphere() -> Any:
-        return xp.sqrt(xp.sum(d**2, axis=-1)) - size[..., 0]
-
-    def cylinder() -> Any:
-        radial = xp.sqrt(d[..., 0] ** 2 + d[..., 1] ** 2) - size[..., 0]
-        axial = xp.abs(d[..., 2]) - size[..., 1]
-        return xp.sqrt(xp.maximum(radial, 0.0) ** 2 + xp.maximum(axial, 0.0) ** 2) + xp.minimum(xp.maximum(radial, axial), 0.0)
-
-    def box() -> Any:
-        c, s = xp.cos(yaw), xp.sin(yaw)
-        local = xp.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1], d[..., 2]], axis=-1)
-        q = xp.abs(local) - size
-        return xp.sqrt(xp.sum(xp.maximum(q, 0.0) ** 2, axis=-1)) + xp.minimum(xp.max(q, axis=-1), 0.0)
-
-    shapes = {SPHERE: sphere, CYLINDER: cylinder, BOX: box}
-    if isinstance(kind, (int, np.integer)):
-        return shapes[int(kind)]()
-    return xp.where(kind == SPHERE, sphere(), xp.where(kind == CYLINDER, cylinder(), box()))
 
 
 def lowest_z(part: Any) -> float:
@@ -261,17 +347,24 @@ def check(xp: Any, robot: RobotModel, kin: Kinematics, reset: Any, cfg: EnvConfi
     radius = xp.asarray(cover.radius, dtype=dtype)
     clip = cfg.task.obstacle_dist_clip
 
-    # dynamic obstacles: cover spheres (all links but the base) vs exact upright shapes
-    moving = _link_slice(cover, 1, last)
+    # dynamic obstacles: spheres of the moving links (fine set or conservative cover) vs exact shapes
+    if cfg.task.obstacle_geometry == "fine":
+        o_cover = fine_cover(robot)
+        o_centres = cover_centres(xp, robot, kin, o_cover)
+        o_radius = xp.asarray(o_cover.radius, dtype=dtype)
+    else:
+        moving = _link_slice(cover, 1, last)
+        o_centres, o_radius = centres[moving], radius[moving]
     active = xp.asarray(reset.obstacle_active)
     kind = xp.asarray(reset.obstacle_kind)
     o_pos = xp.asarray(reset.obstacle_pos, dtype=dtype)
     o_yaw = xp.asarray(reset.obstacle_yaw, dtype=dtype)
     o_size = xp.asarray(reset.obstacle_size, dtype=dtype)
-    sdf = upright_sdf(
-        xp, kind[:, None], o_pos[:, None, :], o_yaw[:, None], o_size[:, None, :], centres[moving][None, :, :]
-    ) - radius[moving][None, :]  # (slots, S')
-    per_slot = xp.where(active, xp.min(sdf, axis=-1), xp.inf)
+    sdf = shapes.sdf(
+        xp, kind[:, None], o_pos[:, None, :], o_yaw[:, None], o_size[:, None, :], o_centres[None, :, :]
+    ) - o_radius[None, :]  # (slots, S)
+    slot_min = xp.min(sdf, axis=-1)
+    per_slot = xp.where(active, slot_min, xp.inf)
     hit_obstacle = xp.any(per_slot < 0.0)
     any_active = xp.any(active)
     nearest = xp.argmin(per_slot)
@@ -279,6 +372,17 @@ def check(xp: Any, robot: RobotModel, kin: Kinematics, reset: Any, cfg: EnvConfi
     nearest_pos = xp.where(any_active, xp.sum(xp.where(onehot, o_pos, 0.0), axis=0), xp.asarray(cfg.task.no_obstacle_pos, dtype=dtype))
     nearest_dist = xp.minimum(xp.min(per_slot), clip)
     obstacle_dist = xp.minimum(per_slot, clip)
+    # nearest-point vectors: from the slot's closest sphere, and from the gripper centre
+    closest = (xp.arange(sdf.shape[-1])[None, :] == xp.argmin(sdf, axis=-1)[:, None])[..., None]  # (slots, S, 1)
+    star = xp.sum(xp.where(closest, o_centres[None, :, :], 0.0), axis=1)  # (slots, 3)
+    to_surface = shapes.surface_point(xp, kind, o_pos, o_yaw, o_size, star) - star
+    length = xp.sqrt(xp.sum(to_surface**2, axis=-1, keepdims=True))
+    outside = shapes.sdf(xp, kind, o_pos, o_yaw, o_size, star)[:, None] >= 0.0
+    toward = xp.where(outside, 1.0, -1.0) * to_surface / xp.maximum(length, 1e-9)
+    robot_to_obstacle = xp.where(active[:, None], slot_min[:, None] * toward, 0.0)
+    centre = xp.broadcast_to(kin.gripper_centre.astype(dtype), o_pos.shape)
+    gripper_vec = shapes.surface_point(xp, kind, o_pos, o_yaw, o_size, centre) - centre
+    gripper_to_obstacle = xp.where(active[:, None], gripper_vec, 0.0)
 
     # gantry posts (camera, bracket and beam are out of reach)
     reach = _link_slice(cover, REACH_LINK, last)
@@ -330,4 +434,5 @@ def check(xp: Any, robot: RobotModel, kin: Kinematics, reset: Any, cfg: EnvConfi
 
     hits = {"obstacle": hit_obstacle, "gantry": hit_gantry, "camera": hit_camera, "table": hit_table, "target": hit_target, "self": hit_self}
     any_collision = hit_obstacle | hit_gantry | hit_camera | hit_table | hit_target | hit_self
-    return CollisionResult(obstacle_dist, nearest_dist, nearest_pos, hits, any_collision)
+    return CollisionResult(obstacle_dist, nearest_dist, nearest_pos, hits, any_collision, robot_to_obstacle,
+                           gripper_to_obstacle)
