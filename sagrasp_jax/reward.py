@@ -15,6 +15,7 @@ from sagrasp_jax import collision
 from sagrasp_jax.config import RewardConfig, TaskConfig
 
 RC_MODES = ("entry", "per_step")
+NEAR_MISS_MODES = ("change", "per_step")
 
 # Per-episode metrics that every simulator reports when an episode ends (info["episode"]).
 EPISODE_KEYS = (
@@ -30,6 +31,7 @@ EPISODE_KEYS = (
     "redraws",
     "fallback",
     "min_obstacle_dist",
+    "blocking",
 ) + tuple(f"hit_{name}" for name in collision.HIT_KINDS)
 
 
@@ -79,6 +81,11 @@ def success_flag(xp: Any, cfg: TaskConfig, gripper_centre: Any, target_pos: Any,
     )
 
 
+def near_miss_closeness(xp: Any, cfg: RewardConfig, obstacle_dist: Any) -> Any:
+    """c = clip(1 − Δpo/near_miss_distance, 0, 1): 0 outside the near-miss band, 1 at contact."""
+    return xp.clip(1.0 - xp.asarray(obstacle_dist) / cfg.near_miss_distance, 0.0, 1.0)
+
+
 def _as_bool(xp: Any, flag: Any) -> Any:
     return xp.asarray(flag) != 0
 
@@ -109,6 +116,7 @@ def step_reward(
     obstacle_dist: Any,
     obstacle_present: Any,
     clean_so_far: Any,
+    prev_obstacle_dist: Any = None,
 ) -> tuple[Any, RewardTerms]:
     """Reward of one step; returns (total, RewardTerms).
 
@@ -121,14 +129,22 @@ def step_reward(
       leaving, so hovering earns nothing.  ``"per_step"``: RC·g_t on every step (the
       paper's literal form; PPO learns to hover inside d_grab — kept for the ablation).
     * R_success = success_reward on success, failure_reward on collision or timeout.
-    * R_obstacle = collision_penalty on collision; on non-terminal steps a near-miss
-      penalty −near_miss_scale·(1 − Δpo/near_miss_distance) while an obstacle is present
-      and Δpo < near_miss_distance; clean_success_bonus on success when an obstacle was
-      present and never came nearer than near_miss_distance (``clean_so_far`` must
-      already include this step).
+    * R_obstacle = collision_penalty on collision; otherwise, while an obstacle is present, a
+      near-miss term of the closeness c = clip(1 − Δpo/near_miss_distance, 0, 1), and
+      clean_success_bonus on success when an obstacle was present and never came nearer than
+      near_miss_distance (``clean_so_far`` must already include this step).  Near-miss term,
+      ``near_miss_mode="change"`` (default): −near_miss_scale·(c_t − c_{t−1}) on every step
+      without a collision (``prev_obstacle_dist`` gives c_{t−1}) — a potential: an episode's
+      total is −near_miss_scale·(c_end − c_0), so lingering near an obstacle never costs more
+      than a crash.  ``"per_step"`` (the paper's literal form, ablation): −near_miss_scale·c_t
+      on every non-terminal step, which accumulates and makes crashing early pay.
     """
     if cfg.rc_mode not in RC_MODES:
         raise ValueError(f"rc_mode must be one of {RC_MODES}, got {cfg.rc_mode!r}")
+    if cfg.near_miss_mode not in NEAR_MISS_MODES:
+        raise ValueError(f"near_miss_mode must be one of {NEAR_MISS_MODES}, got {cfg.near_miss_mode!r}")
+    if cfg.near_miss_mode == "change" and prev_obstacle_dist is None:
+        raise ValueError("near_miss_mode='change' needs prev_obstacle_dist (Δpo of the previous step)")
     d_prev = xp.asarray(d_prev)
     d_now = xp.asarray(d_now)
     dtype = xp.result_type(d_prev, d_now)
@@ -148,9 +164,12 @@ def step_reward(
         xp.where(outcome.collision | outcome.timeout, cfg.failure_reward, 0.0),
     ).astype(dtype)
 
-    # clip(1 − Δpo/dist, 0, 1) is 0 outside the near-miss band and bounded at contact.
-    closeness = xp.clip(1.0 - xp.asarray(obstacle_dist) / cfg.near_miss_distance, 0.0, 1.0)
-    near_miss = xp.where(present & ~terminal, -cfg.near_miss_scale * closeness, 0.0)
+    closeness = near_miss_closeness(xp, cfg, obstacle_dist)
+    if cfg.near_miss_mode == "change":
+        change = closeness - near_miss_closeness(xp, cfg, prev_obstacle_dist)
+        near_miss = xp.where(present & ~outcome.collision, -cfg.near_miss_scale * change, 0.0)
+    else:
+        near_miss = xp.where(present & ~terminal, -cfg.near_miss_scale * closeness, 0.0)
     clean_bonus = xp.where(outcome.success & present & clean, cfg.clean_success_bonus, 0.0)
     r_obstacle = xp.where(outcome.collision, cfg.collision_penalty, near_miss + clean_bonus).astype(dtype)
 

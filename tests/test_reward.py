@@ -1,6 +1,7 @@
 """Reward terms, weights, precedence and success test on hand-computed cases.
 
-Defaults: ratio 10/m, RC 0.05, d_grab 0.05 m, near miss 0.5·(1 − Δpo/0.05).
+Defaults: ratio 10/m, RC 0.05, d_grab 0.05 m, near-miss closeness c = clip(1 − Δpo/0.05, 0, 1),
+paid as −0.5·(c_t − c_{t−1}) ("change", default) or −0.5·c_t ("per_step", the paper's form).
 Weights (F_d, F_s, F_o) = (2, 0.5, 0.5) at p = 0 and (1, 1.5, 0.5) at p = 1.
 """
 
@@ -20,6 +21,7 @@ from sagrasp_jax.robot import load_robot
 
 CFG = RewardConfig()
 PER_STEP = dataclasses.replace(CFG, rc_mode="per_step")
+NEAR_PER_STEP = dataclasses.replace(CFG, near_miss_mode="per_step")
 TASK = TaskConfig()
 
 
@@ -36,6 +38,7 @@ def reward(cfg: RewardConfig = CFG, xp=np, **kw):
         clean_so_far=True,
     )
     args.update(kw)
+    args.setdefault("prev_obstacle_dist", args["obstacle_dist"])  # Δpo unchanged unless a case says otherwise
     return step_reward(xp, cfg, **args)
 
 
@@ -56,20 +59,60 @@ CASES = [
     ("leave grab zone", CFG, dict(d_prev=0.045, d_now=0.055), (-0.15, 0, 0), -0.3, -0.15),
     ("leave grab zone per_step", PER_STEP, dict(d_prev=0.045, d_now=0.055), (-0.1, 0, 0), -0.2, -0.1),
     (
-        "near miss at 3 cm",
-        CFG,
+        "near miss at 3 cm per_step",
+        NEAR_PER_STEP,
         dict(d_prev=0.2, d_now=0.2, obstacle_dist=0.03, obstacle_present=True, clean_so_far=False),
         (0, 0, -0.2),
         -0.1,
         -0.1,
     ),
     (
-        "near miss at 1 cm while approaching",
-        CFG,
+        "near miss at 1 cm while approaching per_step",
+        NEAR_PER_STEP,
         dict(d_prev=0.21, d_now=0.2, obstacle_dist=0.01, obstacle_present=True, clean_so_far=False),
         (0.1, 0, -0.4),
         0.0,
         -0.1,
+    ),
+    (
+        "lingering at 3 cm: no change, no penalty",
+        CFG,
+        dict(d_prev=0.2, d_now=0.2, obstacle_dist=0.03, obstacle_present=True, clean_so_far=False),
+        (0, 0, 0),
+        0.0,
+        0.0,
+    ),
+    (
+        "closing in from 6 cm to 3 cm",
+        CFG,
+        dict(obstacle_dist=0.03, prev_obstacle_dist=0.06, obstacle_present=True, clean_so_far=False),
+        (0, 0, -0.2),
+        -0.1,
+        -0.1,
+    ),
+    (
+        "backing off from 1 cm to 3 cm repays",
+        CFG,
+        dict(obstacle_dist=0.03, prev_obstacle_dist=0.01, obstacle_present=True, clean_so_far=False),
+        (0, 0, 0.2),
+        0.1,
+        0.1,
+    ),
+    (
+        "change term without an obstacle: none",
+        CFG,
+        dict(obstacle_dist=1.0, prev_obstacle_dist=0.01, obstacle_present=False),
+        (0, 0, 0),
+        0.0,
+        0.0,
+    ),
+    (
+        "collision pays the penalty, not the change",
+        CFG,
+        dict(collision=True, obstacle_dist=-0.01, prev_obstacle_dist=0.04, obstacle_present=True, clean_so_far=False),
+        (0, -1, -1),
+        -0.5 - 0.5,
+        -1.5 - 0.5,
     ),
     ("obstacle at 6 cm", CFG, dict(obstacle_dist=0.06, obstacle_present=True), (0, 0, 0), 0.0, 0.0),
     ("no obstacle, dist placeholder", CFG, dict(obstacle_dist=0.0, obstacle_present=False), (0, 0, 0), 0.0, 0.0),
@@ -107,8 +150,8 @@ CASES = [
         1.55,
     ),
     (
-        "success while near an obstacle: no bonus, no near-miss penalty",
-        CFG,
+        "success while near an obstacle per_step: no bonus, no near-miss penalty",
+        NEAR_PER_STEP,
         dict(d_prev=0.02, d_now=0.015, success=True, obstacle_dist=0.03, obstacle_present=True, clean_so_far=False),
         (0.05, 1, 0),
         0.6,
@@ -118,8 +161,8 @@ CASES = [
     ("success beats timeout", CFG, dict(d_prev=0.02, d_now=0.015, success=True, timeout=True), (0.05, 1, 0), 0.6, 1.55),
     ("timeout", CFG, dict(timeout=True), (0, -1, 0), -0.5, -1.5),
     (
-        "timeout near an obstacle: terminal, no near-miss penalty",
-        CFG,
+        "timeout near an obstacle per_step: terminal, no near-miss penalty",
+        NEAR_PER_STEP,
         dict(timeout=True, obstacle_dist=0.03, obstacle_present=True, clean_so_far=False),
         (0, -1, 0),
         -0.5,
@@ -166,6 +209,49 @@ def test_resolve_outcome_precedence() -> None:
 def test_rc_mode_is_validated() -> None:
     with pytest.raises(ValueError, match="rc_mode"):
         reward(dataclasses.replace(CFG, rc_mode="always"))
+    with pytest.raises(ValueError, match="near_miss_mode"):
+        reward(dataclasses.replace(CFG, near_miss_mode="sometimes"))
+    with pytest.raises(ValueError, match="prev_obstacle_dist"):
+        step_reward(np, CFG, progress=0.0, d_prev=0.3, d_now=0.3, collision=False, success=False, timeout=False,
+                    obstacle_dist=0.03, obstacle_present=True, clean_so_far=False)
+
+
+def _obstacle_episode(cfg: RewardConfig, path: list[tuple[float, float]], end: dict, progress: float,
+                      gamma: float) -> float:
+    """Discounted return along (distance to target, Δpo) pairs in an obstacle episode; ``end``
+    holds the last step's raw flags."""
+    ret = 0.0
+    for k in range(len(path) - 1):
+        (d0, o0), (d1, o1) = path[k], path[k + 1]
+        flags = end if k == len(path) - 2 else {}
+        total, _ = reward(cfg, progress=progress, d_prev=d0, d_now=d1, obstacle_dist=o1, prev_obstacle_dist=o0,
+                          obstacle_present=True, clean_so_far=False, **flags)
+        ret += gamma**k * float(total)
+    return ret
+
+
+@pytest.mark.parametrize("gamma", [1.0, PPOConfig().gamma])
+@pytest.mark.parametrize("progress", [0.0, 0.5, 1.0])
+def test_lingering_near_an_obstacle_beats_crashing_only_under_change(gamma: float, progress: float) -> None:
+    """SPEC §2: from the same state 2 cm from an obstacle and 10 cm from the cube, working past it
+    for 40 steps and then grasping earns more than crashing into it now under the default
+    near_miss_mode="change", and less under the paper's per_step term (the trap stays documented)."""
+    start = (0.10, 0.02)
+    linger = [start] + [(0.10 - 0.0021 * k, 0.02) for k in range(1, 41)] + [(0.012, 0.06)]
+    crash = [start, (0.095, -0.005)]
+    for cfg, trapped in ((CFG, False), (NEAR_PER_STEP, True)):
+        careful = _obstacle_episode(cfg, linger, dict(success=True), progress, gamma)
+        crashed = _obstacle_episode(cfg, crash, dict(collision=True), progress, gamma)
+        assert (crashed > careful) == trapped, (cfg.near_miss_mode, careful, crashed)
+
+
+def test_near_miss_change_telescopes() -> None:
+    """Under "change" the near-miss terms of an episode sum to −0.5·(c_end − c_0)."""
+    dists = [0.2, 0.04, 0.01, 0.03, 0.02, 0.045]
+    total = sum(float(reward(CFG, obstacle_dist=b, prev_obstacle_dist=a, obstacle_present=True, clean_so_far=False)[1].r_obstacle)
+                for a, b in zip(dists[:-1], dists[1:]))
+    c_end = 1 - 0.045 / 0.05
+    assert total == pytest.approx(-0.5 * (c_end - 0.0), abs=1e-12)
 
 
 def _episode_return(cfg: RewardConfig, distances: list[float], last: dict, progress: float, gamma: float) -> float:
@@ -234,12 +320,16 @@ def test_numpy_and_jax_agree_batched() -> None:
     import jax.numpy as jnp
 
     rows = [case for case in CASES if case[1] is CFG]
-    keys = ["d_prev", "d_now", "collision", "success", "timeout", "obstacle_dist", "obstacle_present", "clean_so_far"]
+    keys = ["d_prev", "d_now", "collision", "success", "timeout", "obstacle_dist", "obstacle_present", "clean_so_far",
+            "prev_obstacle_dist"]
     defaults = dict(
         d_prev=0.3, d_now=0.3, collision=False, success=False, timeout=False,
         obstacle_dist=1.0, obstacle_present=False, clean_so_far=True,
     )
-    batch = {k: np.array([{**defaults, **c[2]}[k] for c in rows]) for k in keys}
+    rows_kw = [{**defaults, **c[2]} for c in rows]
+    for kw in rows_kw:
+        kw.setdefault("prev_obstacle_dist", kw["obstacle_dist"])
+    batch = {k: np.array([kw[k] for kw in rows_kw]) for k in keys}
     progress = np.linspace(0.0, 1.0, len(rows))
     ref_total, ref_terms = step_reward(np, CFG, progress=progress, **batch)
     fn = jax.jit(jax.vmap(lambda p, kw: step_reward(jnp, CFG, progress=p, **kw)))
