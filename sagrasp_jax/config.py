@@ -67,6 +67,12 @@ class RewardConfig:
     collision_penalty: float = -1.0
     near_miss_distance: float = 0.05  # m
     near_miss_scale: float = 0.5
+    # "change" (default): on every step without a collision pay −scale·(c_t − c_{t−1}), c = clip(1 −
+    # Δpo/near_miss_distance, 0, 1), c_0 from the start state — a potential, so lingering near an
+    # obstacle costs nothing extra and moving away repays it.  "per_step": the paper's literal
+    # −scale·c_t on every step, which accumulates without bound against a bounded collision penalty
+    # and teaches crashing early (SPEC §2; kept for the ablation).
+    near_miss_mode: str = "change"
     clean_success_bonus: float = 1.0  # success with an obstacle never nearer than near_miss_distance
     f_d0: float = 2.0  # F_d = f_d0 + f_d1·p
     f_d1: float = -1.0
@@ -89,7 +95,19 @@ class TaskConfig:
     success_dz_max: float = 0.020
     success_tilt_deg: float = 10.0
     obstacle_dist_clip: float = 1.0  # m, Δpo clip
-    no_obstacle_pos: tuple[float, float, float] = (0.0, 0.0, -1.0)
+    no_obstacle_pos: tuple[float, float, float] = (0.0, 0.0, -1.0)  # layout "paper": obstacle xyz when absent
+    # Observation layout (observation.LAYOUTS): "paper" = the paper's 17 numbers (absolute obstacle
+    # centre, sentinel when absent); "relative" = per obstacle slot, nearest first, a presence flag,
+    # the vectors gripper centre → obstacle surface and closest robot point → obstacle surface, and a
+    # closeness that is 0 when absent, all hand-scaled (docs/design.md, "Observation layouts").
+    obs_layout: str = "paper"
+    obs_vector_scale: float = 0.25  # m: "relative" obstacle vectors are divided by this (clipped to ±obs_vector_clip)
+    obs_vector_clip: float = 3.0
+    obs_closeness_range: float = 0.15  # m: "relative" closeness = max(0, 1 − distance / this)
+    # Robot-obstacle distance (Δpo, obstacle collisions): "fine" = a sphere set within ±4 mm of the
+    # robot's URDF primitives (collision.py); "cover" = the first landing's conservative cover, which
+    # over-reports contact by up to 2.5 cm near the flange (kept for the ablation and old runs).
+    obstacle_geometry: str = "fine"
 
 
 @dataclass(frozen=True)
@@ -115,6 +133,10 @@ class SamplingConfig:
     robot_clearance: float = 0.10  # m, obstacle to every robot geometry at the start pose
     obstacle_candidates: int = 9  # per slot, a third of each kind (a remainder is unused); first feasible wins
     scene_redraws: int = 2  # whole-scene re-draws before falling back to "no obstacle"
+    # Fraction of obstacle scenes whose obstacles are placed on the straight approach path (sampling.py,
+    # "blocking" placement) instead of the SPEC's disc around the path's midpoint.  0 = the SPEC mix.
+    blocking_prob: float = 0.0
+    blocking_margin: float = 0.03  # m: an obstacle scene is "blocking" if the straight path passes this close
 
 
 @dataclass(frozen=True)
@@ -176,6 +198,10 @@ class SAConfig:
 class TrainConfig:
     total_steps: int = 20_000_000
     seed: int = 0
+    # Training scene mix (the evaluation mix is env.sampling's, SPEC §1: 0.2 and no blocking placement).
+    # −1 = the same as env.sampling.obstacle_prob / blocking_prob.
+    obstacle_prob: float = -1.0
+    blocking_prob: float = -1.0
     log_every: int = 1  # iterations between JSONL rows
     checkpoint_every_cycles: int = 10
     metrics_window: int = 256  # finished episodes in the training-episode window
@@ -287,6 +313,9 @@ def _parse_value(text: str, annotation: Any, key: str) -> Any:
 _CHOICES = {
     "env.control.mode": ("kinematic", "dynamic"),
     "env.reward.rc_mode": ("entry", "per_step"),
+    "env.reward.near_miss_mode": ("change", "per_step"),
+    "env.task.obs_layout": ("paper", "relative"),
+    "env.task.obstacle_geometry": ("fine", "cover"),
     "sa.metric": ("return", "success"),
     "ppo.network.activation": ("tanh", "relu", "silu", "elu"),
 }
@@ -372,6 +401,13 @@ def validate(cfg: Config) -> None:
         ("env.sampling.max_obstacles", cfg.env.sampling.max_obstacles == 2),  # the MJCF has two slots
         ("env.sampling.obstacle_candidates", cfg.env.sampling.obstacle_candidates >= 3),  # ≥ one of each kind
         ("env.sampling.obstacle_prob", 0 <= cfg.env.sampling.obstacle_prob <= 1),
+        ("env.sampling.blocking_prob", 0 <= cfg.env.sampling.blocking_prob <= 1),
+        ("env.sampling.blocking_margin", cfg.env.sampling.blocking_margin > 0),
+        ("env.task.obs_vector_scale", cfg.env.task.obs_vector_scale > 0),
+        ("env.task.obs_vector_clip", cfg.env.task.obs_vector_clip > 0),
+        ("env.task.obs_closeness_range", cfg.env.task.obs_closeness_range > 0),
+        ("train.obstacle_prob", cfg.train.obstacle_prob == -1 or 0 <= cfg.train.obstacle_prob <= 1),
+        ("train.blocking_prob", cfg.train.blocking_prob == -1 or 0 <= cfg.train.blocking_prob <= 1),
     ]
     for key, ok in checks:
         if not ok:
@@ -412,13 +448,59 @@ def _from_dict(cls: type, data: dict[str, Any], prefix: str) -> Any:
     return cls(**kwargs)
 
 
+# Keys added after the first release, with the value that reproduces what a saved config without
+# them meant (run folders, checkpoints and policy files of version 0.1 keep their behaviour).
+LEGACY_VALUES: dict[str, Any] = {
+    "env.reward.near_miss_mode": "per_step",
+    "env.task.obs_layout": "paper",
+    "env.task.obstacle_geometry": "cover",
+}
+
+
+def upgrade_config_dict(data: dict[str, Any]) -> dict[str, Any]:
+    """A saved config dict with every key added since it was written set to its legacy value."""
+    out = json.loads(json.dumps(data))
+    for key, value in LEGACY_VALUES.items():
+        *sections, name = key.split(".")
+        node = out
+        for section in sections:
+            node = node.get(section) if isinstance(node, dict) else None
+        if isinstance(node, dict) and name not in node:
+            node[name] = value
+    return out
+
+
 def config_from_dict(data: dict[str, Any]) -> Config:
-    cfg = _from_dict(Config, data, "")
+    """Build and validate a Config from its dict; keys a saved config lacks get their legacy value."""
+    cfg = _from_dict(Config, upgrade_config_dict(data), "")
     validate(cfg)
     return cfg
 
 
+BLOCKING_SCENE_REDRAWS = 11  # whole-scene re-draws when blocking scenes are wanted (their fallbacks stay < 2 %)
+
+
+def blocking_sampling(s: SamplingConfig, obstacle_prob: float, blocking_prob: float) -> SamplingConfig:
+    """``s`` with another obstacle / blocking mix; blocking placements are rejected more often, so
+    they get more whole-scene re-draws (a fallback would turn an obstacle scene into a free one)."""
+    redraws = max(s.scene_redraws, BLOCKING_SCENE_REDRAWS) if blocking_prob > 0 else s.scene_redraws
+    return dataclasses.replace(s, obstacle_prob=obstacle_prob, blocking_prob=blocking_prob, scene_redraws=redraws)
+
+
+def training_env_config(cfg: Config) -> EnvConfig:
+    """The env the trainer samples episodes from: env.sampling with the training mix of ``train``."""
+    s = cfg.env.sampling
+    obstacle_prob = s.obstacle_prob if cfg.train.obstacle_prob < 0 else cfg.train.obstacle_prob
+    blocking_prob = s.blocking_prob if cfg.train.blocking_prob < 0 else cfg.train.blocking_prob
+    return dataclasses.replace(cfg.env, sampling=blocking_sampling(s, obstacle_prob, blocking_prob))
+
+
 def config_hash(cfg: Config) -> str:
     """Short stable hash of the env part: what a policy was trained on."""
-    blob = json.dumps(config_to_dict(cfg.env), sort_keys=True).encode()
+    return env_dict_hash(config_to_dict(cfg.env))
+
+
+def env_dict_hash(env: dict[str, Any]) -> str:
+    """``config_hash`` of a saved config's env dict as written (a policy file's integrity check)."""
+    blob = json.dumps(env, sort_keys=True).encode()
     return hashlib.sha256(blob).hexdigest()[:12]

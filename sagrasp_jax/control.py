@@ -20,6 +20,7 @@ from sagrasp_jax.robot import RobotModel, forward_kinematics, tilt
 # Zero-based indices of the two wrist joints that the fine-tuning corrects (SPEC §2
 # step 3: "joints 4 and 5"); fixed by the task definition, not a tunable.
 FINE_JOINTS = (3, 4)
+ACTION_SIZE = 6  # one joint-target increment per arm joint (SPEC §2 step 1)
 
 
 class ControlResult(NamedTuple):

@@ -22,27 +22,30 @@ import jax
 import jax.numpy as jnp
 from brax.envs.base import State
 
-from sagrasp_jax import collision, control, observation, reward, robot, sampling
+from sagrasp_jax import collision, control, episode, observation, robot, sampling
 from sagrasp_jax.config import EnvConfig
 
 MJCF_SCENE = os.path.join(os.path.dirname(robot.URDF_PATH), "..", "mjcf", "scene.xml")
 
-EPISODE_KEYS = reward.EPISODE_KEYS
+EPISODE_KEYS = episode.EPISODE_KEYS
 
-OBS_SIZE = observation.OBS_SIZE
-ACTION_SIZE = 6
+OBS_SIZE = observation.OBS_SIZE  # the paper layout's 17; an env's own size is ``GraspEnv.observation_size``
+ACTION_SIZE = control.ACTION_SIZE
 
 
 class GraspEnv:
     """AUBO-i5 + EG2 gripper reaching a cuboid among random obstacles (SPEC §1-§2)."""
 
-    observation_size = OBS_SIZE
     action_size = ACTION_SIZE
 
     def __init__(self, cfg: EnvConfig):
         if cfg.control.mode not in ("kinematic", "dynamic"):
             raise ValueError(f"env.control.mode must be 'kinematic' or 'dynamic', got {cfg.control.mode!r}")
         self.cfg = cfg
+        self.obs_layout = observation.layout_of(cfg)
+        self.observation_size = len(self.obs_layout)
+        # entries the trainer's running normaliser leaves at mean 0, std 1 (hand-scaled)
+        self.hand_scaled_mask = observation.hand_scaled_mask(self.obs_layout)
         self.robot = robot.load_robot()
         self.n_uniforms = sampling.uniforms_needed(cfg.sampling)
         self._mjx_model = None
@@ -101,19 +104,17 @@ class GraspEnv:
         col = collision.check(jnp, self.robot, kin, spec, self.cfg)
         tilt = robot.tilt(jnp, kin.approach_axis)
         d0 = jnp.linalg.norm(kin.gripper_centre - spec.target_pos)
+        blocking = sampling.is_blocking(jnp, self.robot, self.cfg.sampling, self.cfg.task, spec)
         rng, key_noise = jax.random.split(rng)
-        obs = self._observe(q0, kin.gripper_centre, spec, col, tilt, key_noise, jnp.zeros((), dtype))
         zero = jnp.zeros((), dtype)
+        obs = self._observe(q0, kin, spec, col, tilt, key_noise, zero)
         info = {
             "rng": rng,
             "progress": zero,
             "steps": jnp.zeros((), jnp.int32),
             "q_target": q0,
             "reset": spec,
-            "d_prev": d0,
-            "clean": jnp.ones((), dtype),
-            "acc": {k: zero for k in ("return", "r_distance", "r_success", "r_obstacle")}
-            | {"min_obstacle_dist": col.nearest_obstacle_dist},
+            "tracker": episode.start(jnp, d0, col, blocking),
             "episode": {k: zero for k in EPISODE_KEYS},
         }
         metrics = {k: zero for k in ("r_distance", "r_success", "r_obstacle", "distance", "tilt", "slowed", "finetuned")}
@@ -126,16 +127,14 @@ class GraspEnv:
             info=info,
         )
 
-    def _observe(self, q: Any, centre: Any, spec: Any, col: Any, tilt: Any, key: Any, progress: Any) -> jax.Array:
-        task = self.cfg.task
-        std = task.obs_noise_std * (1.0 + task.obs_noise_growth * progress)
-        noisy_q = q + std * jax.random.normal(key, q.shape, q.dtype)
-        return observation.assemble(jnp, noisy_q, centre, spec.target_pos, col, tilt)
+    def _observe(self, q: Any, kin: Any, spec: Any, col: Any, tilt: Any, key: Any, progress: Any) -> jax.Array:
+        noisy_q = observation.noisy_joints(self.cfg.task, q, progress, jax.random.normal(key, q.shape, q.dtype))
+        return observation.assemble(jnp, self.cfg, noisy_q, kin.gripper_centre, spec, col, tilt)
 
     def step(self, state: State, action: jax.Array) -> State:
         cfg, info = self.cfg, state.info
         spec = info["reset"]
-        dtype = info["d_prev"].dtype
+        dtype = info["q_target"].dtype
         action = action.astype(dtype)
         q_now = info["q_target"] if self._mjx_model is None else state.pipeline_state.qpos[:6].astype(dtype)
         ctl = control.control_step(jnp, self.robot, cfg.control, info["q_target"], q_now, spec.target_pos, action)
@@ -144,67 +143,21 @@ class GraspEnv:
         col = collision.check(jnp, self.robot, kin, spec, cfg)
         tilt = robot.tilt(jnp, kin.approach_axis)
         d_now = jnp.linalg.norm(kin.gripper_centre - spec.target_pos)
-        steps = info["steps"] + 1
-        success_raw = reward.success_flag(jnp, cfg.task, kin.gripper_centre, spec.target_pos, tilt)
-        timeout = steps >= cfg.task.max_steps
-        outcome = reward.resolve_outcome(jnp, col.any_collision, success_raw, timeout)
-        near = cfg.reward.near_miss_distance
-        obstacle_present = jnp.any(spec.obstacle_active)
-        clean = info["clean"] * jnp.where(obstacle_present & (col.nearest_obstacle_dist < near), 0.0, 1.0)
-        total, terms = reward.step_reward(
-            jnp,
-            cfg.reward,
-            progress=info["progress"],
-            d_prev=info["d_prev"],
-            d_now=d_now,
-            collision=outcome.collision,
-            success=outcome.success,
-            timeout=outcome.timeout,
-            obstacle_dist=col.nearest_obstacle_dist,
-            obstacle_present=obstacle_present,
-            clean_so_far=clean > 0.5,
-        )
-        done = (outcome.collision | outcome.success | outcome.timeout).astype(dtype)
+        step = episode.advance(jnp, cfg, info["tracker"], spec, progress=info["progress"], d_now=d_now, col=col,
+                               gripper_centre=kin.gripper_centre, tilt=tilt)
         rng, key_noise = jax.random.split(info["rng"])
-        obs = self._observe(q_meas, kin.gripper_centre, spec, col, tilt, key_noise, info["progress"])
-        acc = {
-            "return": info["acc"]["return"] + total,
-            "r_distance": info["acc"]["r_distance"] + terms.r_distance,
-            "r_success": info["acc"]["r_success"] + terms.r_success,
-            "r_obstacle": info["acc"]["r_obstacle"] + terms.r_obstacle,
-            "min_obstacle_dist": jnp.minimum(info["acc"]["min_obstacle_dist"], col.nearest_obstacle_dist),
-        }
-        episode = {
-            "return": acc["return"],
-            "r_distance": acc["r_distance"],
-            "r_success": acc["r_success"],
-            "r_obstacle": acc["r_obstacle"],
-            "success": outcome.success.astype(dtype),
-            "collision": outcome.collision.astype(dtype),
-            "timeout": outcome.timeout.astype(dtype),
-            "steps": steps.astype(dtype),
-            "obstacle_present": obstacle_present.astype(dtype),
-            "redraws": jnp.asarray(spec.redraws, dtype),
-            "fallback": jnp.asarray(spec.fallback, dtype),
-            "min_obstacle_dist": acc["min_obstacle_dist"],
-        } | {f"hit_{name}": (outcome.collision & hit).astype(dtype) for name, hit in col.hits.items()}
+        obs = self._observe(q_meas, kin, spec, col, tilt, key_noise, info["progress"])
         new_info = dict(info)
-        new_info.update(
-            rng=rng,
-            steps=steps,
-            q_target=ctl.q_target,
-            d_prev=d_now,
-            clean=clean,
-            acc=acc,
-            episode=episode,
-        )
+        new_info.update(rng=rng, steps=step.tracker.steps, q_target=ctl.q_target, tracker=step.tracker,
+                        episode=step.episode)
         metrics = {
-            "r_distance": terms.r_distance,
-            "r_success": terms.r_success,
-            "r_obstacle": terms.r_obstacle,
+            "r_distance": step.terms.r_distance,
+            "r_success": step.terms.r_success,
+            "r_obstacle": step.terms.r_obstacle,
             "distance": d_now,
             "tilt": tilt,
             "slowed": ctl.slowed.astype(dtype),
             "finetuned": ctl.finetuned.astype(dtype),
         }
-        return state.replace(pipeline_state=pipeline, obs=obs, reward=total, done=done, metrics=metrics, info=new_info)
+        return state.replace(pipeline_state=pipeline, obs=obs, reward=step.reward, done=step.done.astype(dtype),
+                             metrics=metrics, info=new_info)

@@ -13,6 +13,7 @@ from __future__ import annotations
 import sagrasp_jax  # noqa: F401  (sets XLA_FLAGS before jax is imported)
 
 import argparse
+import dataclasses
 import json
 import math
 import os
@@ -23,18 +24,32 @@ from typing import Any, Callable
 import jax
 import numpy as np
 
-from sagrasp_jax import checkpoint, ppo
+from sagrasp_jax import checkpoint, observation, ppo
+from sagrasp_jax.control import ACTION_SIZE
 from sagrasp_jax.checkpoint import CheckpointError
-from sagrasp_jax.config import Config, ConfigError, config_from_dict
+from sagrasp_jax.config import Config, ConfigError, blocking_sampling, config_from_dict
 
 RESULT_FILE = "evaluation.json"
 EvalEnvFactory = Callable[[Config], ppo.Env]
+SCENE_SETS = ("mix", "blocking")
 
 
 def default_eval_env(cfg: Config) -> ppo.Env:
     from sagrasp_jax.env import GraspEnv
 
     return GraspEnv(cfg.env)
+
+
+def scene_config(cfg: Config, scenes: str) -> Config:
+    """The evaluation's config: ``mix`` = the run's own env (SPEC mix, obstacle_prob 0.2);
+    ``blocking`` = every episode has an obstacle on the straight approach path (sampling.py's
+    blocking placement, SPEC §1 feasibility rules kept)."""
+    if scenes not in SCENE_SETS:
+        raise ConfigError(f"--scenes must be one of {', '.join(SCENE_SETS)}, got {scenes!r}")
+    if scenes == "mix":
+        return cfg
+    env = dataclasses.replace(cfg.env, sampling=blocking_sampling(cfg.env.sampling, 1.0, 1.0))
+    return dataclasses.replace(cfg, env=env)
 
 
 def wilson_interval(successes: float, n: int, z: float = 1.959964) -> tuple[float, float]:
@@ -48,9 +63,10 @@ def wilson_interval(successes: float, n: int, z: float = 1.959964) -> tuple[floa
     return (max(0.0, centre - half), min(1.0, centre + half))
 
 
-def load_policy_state(run_dir: str, obs_size: int, action_size: int) -> tuple[Config, ppo.Params, ppo.Normaliser,
-                                                                                dict[str, Any]]:
-    """Config, params and normaliser of the run's latest checkpoint (and its counters)."""
+def load_policy_state(run_dir: str, obs_size: int | None = None, action_size: int = ACTION_SIZE
+                      ) -> tuple[Config, ppo.Params, ppo.Normaliser, dict[str, Any]]:
+    """Config, params and normaliser of the run's latest checkpoint (and its counters); the
+    observation size defaults to that of the run's observation layout."""
     from sagrasp_jax.train import CHECKPOINT_FILE, CONFIG_FILE
 
     cfg_path = os.path.join(run_dir, CONFIG_FILE)
@@ -63,6 +79,7 @@ def load_policy_state(run_dir: str, obs_size: int, action_size: int) -> tuple[Co
         raise CheckpointError(f"{cfg_path}: unreadable config ({exc})") from None
     ckpt = checkpoint.load(os.path.join(run_dir, CHECKPOINT_FILE))
     checkpoint.check_config(ckpt, cfg)
+    obs_size = len(observation.layout_of(cfg.env)) if obs_size is None else obs_size
     networks = ppo.make_networks(cfg.ppo.network, obs_size, action_size, cfg.ppo.obs_clip)
     optimizer = ppo.make_optimizer(cfg.ppo, cfg.sa.lr0)
     template = ppo.init_training_state(jax.random.PRNGKey(0), networks, optimizer, obs_size)
@@ -93,14 +110,14 @@ def summarise(episodes: dict[str, np.ndarray], mask: np.ndarray) -> dict[str, An
 
 
 def evaluate_run(run_dir: str, episodes: int = 1000, seed: int | None = None, max_steps: int | None = None,
-                 env_factory: EvalEnvFactory | None = None) -> dict[str, Any]:
+                 env_factory: EvalEnvFactory | None = None, scenes: str = "mix") -> dict[str, Any]:
     """Play ``episodes`` fixed-seed episodes with the run's policy and summarise them."""
     if episodes < 1:
         raise ConfigError(f"--episodes must be >= 1, got {episodes}")
     from sagrasp_jax.train import CONFIG_FILE
 
     with open(os.path.join(run_dir, CONFIG_FILE), encoding="utf-8") as f:
-        env = (env_factory or default_eval_env)(config_from_dict(json.load(f)))
+        env = (env_factory or default_eval_env)(scene_config(config_from_dict(json.load(f)), scenes))
     cfg, params, normaliser, counters = load_policy_state(run_dir, env.observation_size, env.action_size)
     networks = ppo.make_networks(cfg.ppo.network, env.observation_size, env.action_size, cfg.ppo.obs_clip)
     seed = cfg.sa.eval_seed + 1 if seed is None else seed
@@ -110,10 +127,12 @@ def evaluate_run(run_dir: str, episodes: int = 1000, seed: int | None = None, ma
     wall = time.perf_counter() - t
     eps = {k: np.asarray(v) for k, v in result.episodes.items()}
     present = eps["obstacle_present"] > 0 if "obstacle_present" in eps else np.zeros(episodes, bool)
+    blocking = present & (eps["blocking"] > 0) if "blocking" in eps else np.zeros(episodes, bool)
     everyone = np.ones(episodes, bool)
     return {
         "run": os.path.abspath(run_dir),
         "episodes": episodes,
+        "scenes": scenes,
         "seed": seed,
         "max_steps": steps,
         "progress_weights": 1.0,
@@ -123,7 +142,9 @@ def evaluate_run(run_dir: str, episodes: int = 1000, seed: int | None = None, ma
         "wall_s": wall,
         "overall": summarise(eps, everyone),
         "obstacle_present": summarise(eps, present),
+        "blocking": summarise(eps, blocking),
         "obstacle_absent": summarise(eps, ~present),
+        "fallback_episodes": int(np.sum(eps["fallback"] > 0)) if "fallback" in eps else 0,
     }
 
 
@@ -135,8 +156,9 @@ def write_results(path: str, results: dict[str, Any]) -> str:
 
 def format_table(results: dict[str, Any]) -> str:
     """A plain-text table: one column per episode group."""
-    groups = [("all", results["overall"]), ("obstacle", results["obstacle_present"]),
-              ("no obstacle", results["obstacle_absent"])]
+    groups = [("all", results["overall"]), ("obstacle", results["obstacle_present"])]
+    groups += [("blocking", results["blocking"])] if "blocking" in results else []
+    groups += [("no obstacle", results["obstacle_absent"])]
     hit_keys = sorted({k for _, g in groups for k in g.get("collision_by", {})})
 
     def pct(v: Any) -> str:
@@ -157,7 +179,9 @@ def format_table(results: dict[str, Any]) -> str:
              ("mean return (p=1)", [("-" if g.get("mean_return") is None else f"{g['mean_return']:.3f}")
                                     for _, g in groups])]
     width = max(len(r[0]) for r in rows) + 2
-    lines = [f"{results['episodes']} episodes, seed {results['seed']}, deterministic policy, reward weights at p = 1",
+    scenes = results.get("scenes", "mix")
+    kind = "blocking-only scenes" if scenes == "blocking" else "the evaluation mix"
+    lines = [f"{results['episodes']} episodes of {kind}, seed {results['seed']}, deterministic policy, reward weights at p = 1",
              "".ljust(width) + "".join(name.rjust(14) for name, _ in groups)]
     lines += [label.ljust(width) + "".join(c.rjust(14) for c in cells) for label, cells in rows]
     return "\n".join(lines)
@@ -169,12 +193,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--episodes", type=int, default=1000)
     p.add_argument("--seed", type=int, default=None, help="evaluation seed (default sa.eval_seed + 1)")
     p.add_argument("--max-steps", type=int, default=None, help="step cap per episode (default env.task.max_steps)")
+    p.add_argument("--scenes", default="mix", choices=SCENE_SETS,
+                   help="mix: the SPEC's scene mix (20 %% obstacle episodes); blocking: every episode has an obstacle "
+                        "on the straight approach path")
     p.add_argument("--out", default=None, help=f"result JSON (default RUN/{RESULT_FILE})")
     p.add_argument("--physical", action="store_true",
                    help="also replay each kinematic success through the MuJoCo physical grasp check (close, lift 5 cm)")
     args = p.parse_args(argv)
     try:
-        results = evaluate_run(args.run, args.episodes, args.seed, args.max_steps)
+        results = evaluate_run(args.run, args.episodes, args.seed, args.max_steps, scenes=args.scenes)
         if args.physical:
             from sagrasp_jax.physical import evaluate_physical
 

@@ -9,7 +9,7 @@ Writes, each atomically (temp file + rename), into ``--out``:
 * ``policy.onnx`` — the same deterministic policy as an ONNX graph (opset ≥ 17), built with
   ``onnx.helper`` from the npz weights: ``clip((obs − mean)/std, ±clip)``, the dense layers
   with their activation, the ``action_size`` loc outputs, ``tanh``.  Input ``obs`` float32
-  (batch, 17), output ``action`` float32 (batch, 6).  No torch involved;
+  (batch, obs_size) (17 for layout ``paper``, 29 for ``relative``), output ``action`` float32 (batch, 6).  No torch involved;
 * ``export.json`` — what was exported from where (run, checkpoint counters, config hash,
   file checksums) and the measured largest action difference between the two files.
 
@@ -115,7 +115,7 @@ def onnx_model(policy: NumpyPolicy, opset: int = DEFAULT_OPSET) -> Any:
         initializer=inits,
     )
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", opset)], producer_name="sagrasp_jax",
-                              producer_version=__version__, doc_string="deterministic SA-PPO grasp policy: obs (17) -> action in [-1, 1]^6")
+                              producer_version=__version__, doc_string=f"deterministic SA-PPO grasp policy: obs ({policy.obs_size}) -> action in [-1, 1]^{policy.action_size}")
     model.ir_version = ONNX_IR_VERSION
     meta = {
         "format": "sagrasp_jax policy",
@@ -159,7 +159,6 @@ def onnx_actions(path: str, obs: np.ndarray) -> np.ndarray:
 def load_run(run_dir: str) -> tuple[Any, Any, Any, dict[str, Any]]:
     """Config, final params, normaliser and counters of a run folder, with clear errors."""
     from sagrasp_jax.checkpoint import CheckpointError
-    from sagrasp_jax.env import ACTION_SIZE, OBS_SIZE
     from sagrasp_jax.evaluate import load_policy_state
 
     if not os.path.exists(run_dir):
@@ -167,7 +166,7 @@ def load_run(run_dir: str) -> tuple[Any, Any, Any, dict[str, Any]]:
     if not os.path.isdir(run_dir):
         raise ExportError(f"{run_dir}: not a folder (pass the run folder written by sagrasp_jax.train)")
     try:
-        return load_policy_state(run_dir, OBS_SIZE, ACTION_SIZE)
+        return load_policy_state(run_dir)
     except CheckpointError as exc:
         raise ExportError(f"cannot export {run_dir}: {exc}") from None
 
@@ -175,14 +174,13 @@ def load_run(run_dir: str) -> tuple[Any, Any, Any, dict[str, Any]]:
 def export_run(run_dir: str, out_dir: str, *, onnx: bool = True, opset: int = DEFAULT_OPSET) -> dict[str, Any]:
     """Export a run folder's policy into ``out_dir``; returns the manifest (also written there)."""
     from sagrasp_jax.checkpoint import atomic_write_bytes
-    from sagrasp_jax.env import OBS_SIZE
     from sagrasp_jax.train import export_policy, make_schedule
 
     cfg, params, normaliser, counters = load_run(run_dir)
     if os.path.exists(out_dir) and not os.path.isdir(out_dir):
         raise ExportError(f"{out_dir}: exists and is not a folder")
     os.makedirs(out_dir, exist_ok=True)
-    npz_path = export_policy(os.path.join(out_dir, NPZ_FILE), cfg, params, normaliser, OBS_SIZE)
+    npz_path = export_policy(os.path.join(out_dir, NPZ_FILE), cfg, params, normaliser, int(normaliser.mean.shape[-1]))
     policy = runtime.load_policy(npz_path)
     planned = make_schedule(cfg).num_iterations
     manifest: dict[str, Any] = {

@@ -1,44 +1,123 @@
-"""The 17-number observation of SPEC §2, written once for the MJX env, the PyBullet
-reference env and the deployment loop (``xp`` = numpy or jax.numpy; no jax import)."""
+"""The policy's observation, every layout, written once for the MJX env, the PyBullet reference
+env, parity, export and the deployment loop (``xp`` = numpy or jax.numpy; no jax import).
+
+Layouts (``env.task.obs_layout``; a policy file records its entry names and its config):
+
+* ``paper`` — the 17 numbers the paper lists (SPEC §2): q1..q6, gripper centre, target centre,
+  nearest obstacle centre, Δpo, θgz; with no obstacle the centre is the sentinel
+  ``no_obstacle_pos`` and Δpo the clip value.  Kept for reproduction and parity with the paper.
+* ``relative`` — the same 13 robot/target numbers, then per obstacle slot, nearest first: a
+  presence flag, the vector from the gripper centre to the obstacle's nearest surface point,
+  the vector from the closest robot point to it (both / ``obs_vector_scale``, clipped to
+  ± ``obs_vector_clip``), and a closeness max(0, 1 − Δpo / ``obs_closeness_range``).  Every
+  obstacle entry is 0 when the slot is empty, so "absent" is the natural value, and these
+  entries are hand-scaled: the trainer's running normaliser leaves them alone
+  (``hand_scaled_mask``; docs/design.md, "Observation layouts").
+
+Joint readings carry Gaussian sensor noise in training (``noisy_joints``; the only place the
+noise model lives).
+"""
 
 from __future__ import annotations
 
+import re
 from typing import Any, NamedTuple
 
+import numpy as np
+
 from sagrasp_jax import collision
-from sagrasp_jax.config import EnvConfig
+from sagrasp_jax.config import EnvConfig, TaskConfig
 from sagrasp_jax.robot import Kinematics, RobotModel, forward_kinematics, tilt
 
-# Entries in order; the exporter stores these names with every policy.
-OBS_LAYOUT: tuple[str, ...] = (
+_ROBOT_ENTRIES: tuple[str, ...] = (
     "q1", "q2", "q3", "q4", "q5", "q6",
     "gripper_x", "gripper_y", "gripper_z",
     "target_x", "target_y", "target_z",
-    "obstacle_x", "obstacle_y", "obstacle_z",
-    "d_po", "theta_gz",
 )  # fmt: skip
+PAPER_LAYOUT: tuple[str, ...] = _ROBOT_ENTRIES + ("obstacle_x", "obstacle_y", "obstacle_z", "d_po", "theta_gz")
+OBS_LAYOUT = PAPER_LAYOUT  # the first release's names (policy files of version 0.1 hold exactly these)
 OBS_SIZE = len(OBS_LAYOUT)
+_SLOT_ENTRIES = ("present", "gripper_dx", "gripper_dy", "gripper_dz", "robot_dx", "robot_dy", "robot_dz", "closeness")
+
+
+def _relative_layout(slots: int) -> tuple[str, ...]:
+    return _ROBOT_ENTRIES + ("theta_gz",) + tuple(f"obstacle{k}_{e}" for k in range(slots) for e in _SLOT_ENTRIES)
+
+
+LAYOUT_NAMES = ("paper", "relative")
+
+
+def layout(name: str, slots: int = 2) -> tuple[str, ...]:
+    """Entry names of a layout, in order."""
+    if name == "paper":
+        return PAPER_LAYOUT
+    if name == "relative":
+        return _relative_layout(slots)
+    raise ValueError(f"unknown observation layout {name!r}; valid layouts: {', '.join(LAYOUT_NAMES)}")
+
+
+def layout_of(cfg: EnvConfig) -> tuple[str, ...]:
+    return layout(cfg.task.obs_layout, cfg.sampling.max_obstacles)
+
+
+def hand_scaled_mask(names: tuple[str, ...]) -> np.ndarray:
+    """Entries the running normaliser must leave alone (mean 0, std 1): the relative layout's
+    obstacle entries, already scaled by hand and 0 when absent."""
+    return np.array([re.fullmatch(r"obstacle\d+_\w+", n) is not None for n in names])
 
 
 class Observed(NamedTuple):
-    obs: Any  # (17,)
+    obs: Any
     kin: Kinematics
     col: collision.CollisionResult
     tilt: Any  # θgz, rad
 
 
-def assemble(xp: Any, q: Any, gripper_centre: Any, target_pos: Any, col: collision.CollisionResult, theta: Any) -> Any:
-    """Concatenate the entries in ``OBS_LAYOUT`` order (``q`` may already carry sensor noise)."""
-    return xp.concatenate(
+def noise_std(task: TaskConfig, progress: Any) -> Any:
+    """σ of the joint-reading noise at training progress p (grows with p if obs_noise_growth > 0)."""
+    return task.obs_noise_std * (1.0 + task.obs_noise_growth * progress)
+
+
+def noisy_joints(task: TaskConfig, q: Any, progress: Any, standard_normal: Any) -> Any:
+    """Joint readings with sensor noise: ``standard_normal`` is a (6,) draw of N(0, 1) from the env's RNG."""
+    return q + noise_std(task, progress) * standard_normal
+
+
+def _sorted_slots(xp: Any, key: Any, values: Any) -> Any:
+    """``values`` (slots, k) reordered by ascending ``key`` (slots,) with a one-hot permutation."""
+    order = xp.argsort(key)
+    perm = xp.arange(key.shape[0])[None, :] == order[:, None]  # (slots, slots): row i picks slot order[i]
+    return xp.sum(xp.where(perm[:, :, None], values[None, :, :], 0.0), axis=1)
+
+
+def assemble(xp: Any, cfg: EnvConfig, q: Any, gripper_centre: Any, reset: Any, col: collision.CollisionResult,
+             theta: Any) -> Any:
+    """The observation of layout ``cfg.task.obs_layout`` (``q`` may already carry sensor noise)."""
+    task = cfg.task
+    dtype = gripper_centre.dtype
+    target = xp.asarray(reset.target_pos, dtype=dtype)
+    theta = xp.reshape(xp.asarray(theta, dtype=dtype), (1,))
+    if task.obs_layout == "paper":
+        return xp.concatenate(
+            [q, gripper_centre, target, col.nearest_obstacle_pos, xp.reshape(col.nearest_obstacle_dist, (1,)), theta]
+        )
+    if task.obs_layout != "relative":
+        raise ValueError(f"unknown observation layout {task.obs_layout!r}")
+    active = xp.asarray(reset.obstacle_active)
+    present = active.astype(dtype)
+    scale, clip = task.obs_vector_scale, task.obs_vector_clip
+    closeness = xp.clip(1.0 - col.obstacle_dist / task.obs_closeness_range, 0.0, 1.0) * present
+    slots = xp.concatenate(
         [
-            q,
-            gripper_centre,
-            xp.asarray(target_pos, dtype=gripper_centre.dtype),
-            col.nearest_obstacle_pos,
-            xp.reshape(col.nearest_obstacle_dist, (1,)),
-            xp.reshape(theta, (1,)),
-        ]
-    )
+            present[:, None],
+            xp.clip(col.gripper_to_obstacle / scale, -clip, clip),
+            xp.clip(col.robot_to_obstacle / scale, -clip, clip),
+            closeness[:, None],
+        ],
+        axis=-1,
+    )  # (slots, 8), zero rows for empty slots
+    key = xp.where(active, col.obstacle_dist, xp.inf)
+    return xp.concatenate([q, gripper_centre, target, theta, xp.reshape(_sorted_slots(xp, key, slots), (-1,))])
 
 
 def observe(xp: Any, robot: RobotModel, cfg: EnvConfig, q: Any, reset: Any, kin: Kinematics | None = None) -> Observed:
@@ -48,4 +127,4 @@ def observe(xp: Any, robot: RobotModel, cfg: EnvConfig, q: Any, reset: Any, kin:
     kin = forward_kinematics(xp, robot, q) if kin is None else kin
     col = collision.check(xp, robot, kin, reset, cfg)
     theta = tilt(xp, kin.approach_axis)
-    return Observed(assemble(xp, q, kin.gripper_centre, reset.target_pos, col, theta), kin, col, theta)
+    return Observed(assemble(xp, cfg, q, kin.gripper_centre, reset, col, theta), kin, col, theta)

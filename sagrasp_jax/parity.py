@@ -61,7 +61,7 @@ class Tolerances:
 
     gripper_centre: float | None  # m
     reward: float | None  # per step, total and each term
-    obs: float | None  # max abs over the 17 entries
+    obs: float | None  # max abs over the observation entries
     flag_agreement: float  # fraction of episodes whose flags agree at every compared step
 
 
@@ -106,7 +106,8 @@ def _stack_specs(specs: list[sampling.ResetSpec]) -> sampling.ResetSpec:
 # action sources
 # --------------------------------------------------------------------------------------------
 def scripted_actions(cfg: EnvConfig, obs: np.ndarray) -> np.ndarray:
-    """The package's scripted controller (``sagrasp_jax.scripted``) from observations (n, 17)."""
+    """The package's scripted controller (``sagrasp_jax.scripted``) from observations (n, size): every
+    layout starts with q1..q6, the gripper centre and the target centre."""
     obs = np.atleast_2d(np.asarray(obs, dtype=np.float64))
     return scripted.scripted_action(np, cfg, obs[:, :6], obs[:, 9:12])
 
@@ -165,7 +166,8 @@ class JaxSide:
                 "r_obstacle": state.metrics["r_obstacle"],
                 "success": ep["success"], "collision": ep["collision"], "timeout": ep["timeout"],
                 "episode": ep, "q": q, "qd": qd, "q_target": state.info["q_target"],
-                "d_prev": state.info["d_prev"], "clean": state.info["clean"], "steps": state.info["steps"],
+                "d_prev": state.info["tracker"].d_prev, "clean": state.info["tracker"].clean,
+                "obstacle_dist_prev": state.info["tracker"].obstacle_dist_prev, "steps": state.info["steps"],
             }
 
         def reset(spec: sampling.ResetSpec, keys: Any, progress: Any) -> tuple[Any, dict[str, Any]]:
@@ -208,8 +210,12 @@ def _pybullet_env(cfg: EnvConfig) -> Any:
 class Errors:
     """Per-step errors of one comparison kind (trajectory or forced single step)."""
 
+    size: int
     values: dict[str, list[float]] = field(default_factory=dict)
-    obs_entry_max: np.ndarray = field(default_factory=lambda: np.zeros(17))
+    obs_entry_max: np.ndarray = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.obs_entry_max = np.zeros(self.size)
 
     def add(self, key: str, value: float) -> None:
         self.values.setdefault(key, []).append(float(value))
@@ -260,7 +266,8 @@ def run_source(
     from sagrasp_jax.reference.pybullet_env import EPISODE_KEYS
 
     n_total, batch = len(specs), jax_side.batch
-    traj, single = Errors(), Errors()
+    size = jax_side.env.observation_size
+    traj, single = Errors(size), Errors(size)
     reset_obs_err = 0.0
     agree_count = 0
     disagreements: list[dict[str, Any]] = []
@@ -273,7 +280,7 @@ def run_source(
         n = len(ids)
         state, jout = jax_side.reset([specs[i] for i in ids], progress[ids], seed + start)
         j_obs = jout["obs"][:n]
-        p_obs = np.zeros((n, 17))
+        p_obs = np.zeros((n, size))
         for k, i in enumerate(ids):
             p_obs[k], _ = pb_envs[k].reset(options={"reset_spec": specs[i], "progress": float(progress[i])})
             if probes is not None:
@@ -330,7 +337,8 @@ def run_source(
                 if probes is not None and was_alive:
                     probe = probes[k]
                     probe.force_state(prev["q"][k], prev["q_target"][k], prev["qd"][k], steps=int(prev["steps"][k]),
-                                      d_prev=float(prev["d_prev"][k]), clean=bool(prev["clean"][k] > 0.5))
+                                      d_prev=float(prev["d_prev"][k]), clean=bool(prev["clean"][k]),
+                                      obstacle_dist_prev=float(prev["obstacle_dist_prev"][k]))
                     s_obs, s_rew, s_term, _, s_info = probe.step(a_j[k])
                     s_row = {"reward": float(s_rew), "r_distance": s_info["r_distance"], "r_success": s_info["r_success"],
                              "r_obstacle": s_info["r_obstacle"]}
@@ -409,6 +417,8 @@ def run_parity(
     reference_overrides: list[str] | None = None,
     tolerances: Tolerances | None = None,
     log: Callable[[str], None] = lambda s: None,
+    preset: str = "paper",
+    overrides: list[str] | None = None,
 ) -> dict[str, Any]:
     """Run the comparison and return the report (``report["passed"]`` says whether it met the tolerances)."""
     import jax
@@ -417,14 +427,12 @@ def run_parity(
     if mode not in TOLERANCES:
         raise ValueError(f"mode must be one of {', '.join(TOLERANCES)}, got {mode!r}")
     policy = None
-    base = get_config("paper")
+    base = apply_overrides(get_config(preset), list(overrides or []))
     if policy_path is not None:
         from sagrasp_jax.runtime import load_policy
 
         policy = load_policy(policy_path)
-        if policy.obs_size != 17 or policy.action_size != 6:
-            raise ValueError(f"{policy_path}: policy has obs {policy.obs_size} / action {policy.action_size}, the task needs 17 / 6")
-        base = policy.config()  # the env constants the policy was trained with
+        base = policy.config()  # the env constants (and observation layout) the policy was trained with
         sources = tuple(dict.fromkeys(tuple(sources) + ("policy",)))
     elif "policy" in sources:
         raise ValueError("the policy action source needs --policy")
@@ -451,6 +459,9 @@ def run_parity(
         "obs_noise": 0.0,
         "reference_overrides": list(reference_overrides or []),
         "policy": policy_path,
+        "preset": preset if policy_path is None else None,
+        "obs_layout": jax_cfg.task.obs_layout,
+        "obstacle_geometry": jax_cfg.task.obstacle_geometry,
         "obstacle_episodes": int(sum(bool(np.any(s.obstacle_active)) for s in specs)),
         "tolerances": dataclasses.asdict(tol),
         "sources": {},
@@ -482,7 +493,8 @@ def _fmt(value: Any) -> str:
 
 def format_report(report: dict[str, Any]) -> str:
     lines = [f"parity {report['mode']}: {report['episodes_per_source']} episodes per source, seed {report['seed']}, "
-             f"max {report['max_steps']} steps, {report['obstacle_episodes']} episodes with obstacles"]
+             f"max {report['max_steps']} steps, {report['obstacle_episodes']} episodes with obstacles, "
+             f"observation layout {report.get('obs_layout', 'paper')}"]
     tol = report["tolerances"]
     limits = {"gripper_centre": tol["gripper_centre"], "obs": tol["obs"], **{k: tol["reward"] for k in REWARD_KEYS}}
     for name, sec in report["sources"].items():
@@ -533,6 +545,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--single-step", dest="single_step", action="store_true", default=None,
                         help="also compare single steps from forced identical states (default: dynamic mode only)")
     parser.add_argument("--no-single-step", dest="single_step", action="store_false")
+    parser.add_argument("--preset", default="paper", help="config preset of both envs (default paper; a --policy brings its own)")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                        help="config override for both envs, e.g. env.task.obs_layout=relative")
     parser.add_argument("--reference-set", action="append", default=[], metavar="KEY=VALUE",
                         help="config override for the reference env only (e.g. env.reward.ratio=10.5): a deliberate mismatch")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
@@ -554,7 +569,7 @@ def main(argv: list[str] | None = None) -> int:
         report = run_parity(
             mode=args.mode, episodes=episodes, seed=args.seed, sources=sources, policy_path=args.policy,
             max_steps=max_steps, batch=args.batch, single_step=args.single_step,
-            reference_overrides=args.reference_set, log=log,
+            reference_overrides=args.reference_set, log=log, preset=args.preset, overrides=args.overrides,
         )
     except (ConfigError, ValueError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -320,9 +320,22 @@ def _all_finite(tree: Any) -> jax.Array:
     return jnp.all(jnp.stack(leaves)) if leaves else jnp.array(True)
 
 
+def update_normaliser(normaliser: Normaliser, obs: jax.Array, cfg: PPOConfig,
+                      hand_scaled: np.ndarray | None = None) -> Normaliser:
+    """Running mean/std update (std floored at ``obs_std_floor``); ``hand_scaled`` entries stay at
+    mean 0, std 1 — observation entries already scaled by hand (and 0 when absent), which a
+    normaliser fitted on mostly obstacle-free data would turn into outliers (SPEC §2, Layouts)."""
+    normaliser = running_statistics.update(normaliser, obs, std_min_value=cfg.obs_std_floor)
+    if hand_scaled is None or not np.any(hand_scaled):
+        return normaliser
+    mask = jnp.asarray(hand_scaled)
+    return normaliser.replace(mean=jnp.where(mask, 0.0, normaliser.mean).astype(normaliser.mean.dtype),
+                              std=jnp.where(mask, 1.0, normaliser.std).astype(normaliser.std.dtype))
+
+
 def iteration(train_state: TrainingState, env_state: State, key: jax.Array, progress: jax.Array, *,
               env: Env, networks: PPONetworks, optimizer: optax.GradientTransformation,
-              cfg: PPOConfig) -> tuple[TrainingState, State, dict[str, Any]]:
+              cfg: PPOConfig, hand_scaled: np.ndarray | None = None) -> tuple[TrainingState, State, dict[str, Any]]:
     """One PPO iteration; if the loss or new params are non-finite the old train state is kept.
 
     ``metrics["finite"]`` tells the host to count the rollback (the envs keep running).
@@ -333,7 +346,7 @@ def iteration(train_state: TrainingState, env_state: State, key: jax.Array, prog
     env_state, data, episodes = rollout(env, networks, params, train_state.normaliser, env_state, k_roll,
                                         cfg.unroll_length)
     entropy = mean_policy_entropy(networks, params, train_state.normaliser, data.obs)
-    normaliser = running_statistics.update(train_state.normaliser, data.obs, std_min_value=cfg.obs_std_floor)
+    normaliser = update_normaliser(train_state.normaliser, data.obs, cfg, hand_scaled)
     batch = make_batch(networks, params, normaliser, data, env_state.obs, cfg)
     new_params, opt_state, sgd_metrics = sgd_epochs(params, train_state.opt_state, normaliser, batch, k_sgd,
                                                     networks, optimizer, cfg)
@@ -346,13 +359,13 @@ def iteration(train_state: TrainingState, env_state: State, key: jax.Array, prog
 
 
 def make_iteration(env: Env, networks: PPONetworks, optimizer: optax.GradientTransformation, cfg: PPOConfig,
-                   mesh: Mesh) -> Callable[..., tuple[TrainingState, State, dict[str, Any]]]:
+                   mesh: Mesh, hand_scaled: np.ndarray | None = None) -> Callable[..., tuple[TrainingState, State, dict[str, Any]]]:
     """Jit ``iteration`` with env-batch sharding on the env state and replicated params."""
     repl, shard = replicated(mesh), batch_sharding(mesh)
 
     def fn(train_state: TrainingState, env_state: State, key: jax.Array, progress: jax.Array):
         ts, es, metrics = iteration(train_state, env_state, key, progress, env=env, networks=networks,
-                                    optimizer=optimizer, cfg=cfg)
+                                    optimizer=optimizer, cfg=cfg, hand_scaled=hand_scaled)
         ts = jax.lax.with_sharding_constraint(ts, repl)
         es = jax.lax.with_sharding_constraint(es, shard)
         return ts, es, metrics

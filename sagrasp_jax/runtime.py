@@ -23,11 +23,11 @@ obs_std           float64 (obs_size,)         normaliser std, already floored (â
 obs_std_floor     float64 ()                  the floor used in training (``ppo.obs_std_floor``)
 obs_clip          float64 ()                  normalised obs are clipped to Â±obs_clip
 action_size       int64 ()                    6
-obs_size          int64 ()                    17
-obs_layout        str (obs_size,)             name of each observation entry (``OBS_LAYOUT``)
+obs_size          int64 ()                    17 (layout ``paper``) or 29 (``relative``)
+obs_layout        str (obs_size,)             name of each observation entry (``observation.layout``)
 action_scale      float64 ()                  q_max: rad per control step at |a| = 1
 config_json       str ()                      the full training ``Config`` as JSON
-config_hash       str ()                      ``config.config_hash`` of that config (env part)
+config_hash       str ()                      ``config.env_dict_hash`` of that config's env part, as written
 package_version   str ()                      ``sagrasp_jax.__version__`` that wrote the file
 ================  ==========================  =================================================
 
@@ -47,11 +47,11 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 
 from sagrasp_jax import __version__, fileio, observation
-from sagrasp_jax.config import Config, ConfigError, EnvConfig, config_from_dict, config_hash, config_to_dict
+from sagrasp_jax.config import Config, ConfigError, EnvConfig, config_from_dict, config_hash, config_to_dict, env_dict_hash
 
 FORMAT_VERSION = 1
 
-OBS_LAYOUT = observation.OBS_LAYOUT  # re-exported: the names stored with every policy
+OBS_LAYOUT = observation.OBS_LAYOUT  # re-exported: the paper layout's names (every version-0.1 policy)
 
 
 def _silu(x: np.ndarray) -> np.ndarray:
@@ -314,12 +314,21 @@ def _policy_from_arrays(arrays: Mapping[str, np.ndarray], path: str) -> NumpyPol
     cfg_json = _scalar(arrays, "config_json", path, str)
     stored_hash = _scalar(arrays, "config_hash", path, str)
     try:
-        cfg = config_from_dict(json.loads(cfg_json))
-    except (ConfigError, ValueError, TypeError) as exc:
+        raw = json.loads(cfg_json)
+        cfg = config_from_dict(raw)  # keys added since the file was written get their legacy values
+        actual_hash = env_dict_hash(raw["env"])
+    except (ConfigError, ValueError, TypeError, KeyError) as exc:
         raise PolicyFormatError(f"{path}: config_json does not load as a Config: {exc}") from None
-    if config_hash(cfg) != stored_hash:
+    if actual_hash != stored_hash:
         raise PolicyFormatError(
-            f"{path}: config_hash {stored_hash} does not match its config_json ({config_hash(cfg)}): file edited?"
+            f"{path}: config_hash {stored_hash} does not match its config_json ({actual_hash}): file edited?"
+        )
+    names = tuple(str(s) for s in layout)
+    expected = observation.layout_of(cfg.env)
+    if names[:1] == expected[:1] and names != expected:  # a grasp policy must see its config's layout
+        raise PolicyFormatError(
+            f"{path}: obs_layout ({obs_size} entries) is not the {cfg.env.task.obs_layout!r} layout its config names "
+            f"({len(expected)} entries)"
         )
     if not np.isclose(scale, cfg.env.control.q_max, rtol=1e-9, atol=0.0):
         raise PolicyFormatError(

@@ -10,7 +10,7 @@ jits, vmaps and costs the same for every env.
 Feasibility of an obstacle (SPEC §1): (a) horizontal clearance from its surface to the
 target centre ≥ ``target_clearance``; (b) every robot primitive at the (noisy) start
 pose ≥ ``robot_clearance`` from the obstacle — measured between the obstacle's exact shape
-and the robot's conservative sphere cover (``collision.py``), so never optimistic; (c) the two
+and the robot's sphere cover (``collision.py``) less the cover's capsule dip, so never optimistic; (c) the two
 obstacles' bounding spheres do not overlap (conservative).  When a slot has no feasible
 candidate the whole scene (target too) is re-drawn, up to ``scene_redraws`` times; the
 rare fallback is an obstacle-free scene, counted in ``fallback``.
@@ -23,7 +23,7 @@ from typing import Any, NamedTuple
 from sagrasp_jax.config import SamplingConfig, TaskConfig
 import numpy as np
 
-from sagrasp_jax import collision
+from sagrasp_jax import collision, shapes
 from sagrasp_jax.robot import BOX, CYLINDER, SPHERE, RobotModel, forward_kinematics
 
 OBSTACLE_KINDS = (SPHERE, CYLINDER, BOX)
@@ -49,7 +49,55 @@ class ResetSpec(NamedTuple):
 def uniforms_needed(cfg: SamplingConfig) -> int:
     attempts = cfg.scene_redraws + 1
     per_attempt = cfg.target_candidates * _PER_TARGET + cfg.max_obstacles * cfg.obstacle_candidates * _PER_CANDIDATE
-    return 2 + 6 + attempts * per_attempt  # presence, count, start noise, attempts
+    return 2 + 6 + attempts * per_attempt + 1  # presence, count, start noise, attempts, blocking placement
+
+
+PATH_SAMPLES = 24  # points along the approach segment for the blocking test of obstacle candidates
+BLOCKING_T = (0.1, 0.9)  # where along the approach segment a blocking obstacle is placed
+BLOCKING_OFFSET = 0.03  # m, lateral (horizontal) and, for spheres, vertical jitter about the segment
+
+
+def grasp_point(xp: Any, task: TaskConfig, target_pos: Any) -> Any:
+    """Where the gripper centre is at a grasp: above the target centre, mid success band."""
+    dz = 0.5 * (task.success_dz_min + task.success_dz_max)
+    return target_pos + xp.asarray([0.0, 0.0, dz], dtype=target_pos.dtype)
+
+
+def path_clearance(xp: Any, robot: RobotModel, task: TaskConfig, reset: "ResetSpec", samples: int = 32,
+                   levels: int = 3) -> Any:
+    """Distance (slots,) from the straight segment (gripper centre at the start pose → grasp point)
+    to each obstacle's surface; +inf for empty slots.  The obstacle's SDF along the segment is convex,
+    so a grid of ``samples`` points finds the cell holding the minimum and each further level grids
+    the two cells around the best point: at 3 levels of 32 the result overshoots the true minimum by
+    < 0.05 mm on a 0.5 m segment (tested against a 20,001-point scan)."""
+    dtype = xp.asarray(reset.target_pos).dtype
+    q0 = xp.asarray(reset.q0, dtype=dtype)
+    start = forward_kinematics(xp, robot, q0).gripper_centre
+    end = grasp_point(xp, task, xp.asarray(reset.target_pos, dtype=dtype))
+    kind, pos = xp.asarray(reset.obstacle_kind), xp.asarray(reset.obstacle_pos, dtype=dtype)
+    yaw, size = xp.asarray(reset.obstacle_yaw, dtype=dtype), xp.asarray(reset.obstacle_size, dtype=dtype)
+
+    def f(t: Any) -> Any:  # (slots, n) SDF at start + t·(end − start)
+        points = start + t[..., None] * (end - start)
+        return shapes.sdf(xp, kind[:, None], pos[:, None], yaw[:, None], size[:, None], points)
+
+    grid = xp.linspace(-1.0, 1.0, samples, dtype=dtype)
+    t = xp.broadcast_to(xp.linspace(0.0, 1.0, samples, dtype=dtype), kind.shape + (samples,))
+    half_width = 1.0 / (samples - 1)
+    best = xp.full(kind.shape, xp.inf, dtype=dtype)
+    for _ in range(levels):
+        values = f(t)
+        best = xp.minimum(best, xp.min(values, axis=-1))
+        onehot = xp.arange(samples)[None, :] == xp.argmin(values, axis=-1)[:, None]
+        centre = xp.sum(xp.where(onehot, t, 0.0), axis=-1)  # (slots,) best point of this level
+        t = xp.clip(centre[:, None] + half_width * grid, 0.0, 1.0)
+        half_width = 2.0 * half_width / (samples - 1)
+    return xp.where(xp.asarray(reset.obstacle_active), best, xp.inf)
+
+
+def is_blocking(xp: Any, robot: RobotModel, cfg: SamplingConfig, task: TaskConfig, reset: "ResetSpec") -> Any:
+    """An obstacle scene whose straight approach path passes within ``cfg.blocking_margin`` of an obstacle."""
+    return xp.any(path_clearance(xp, robot, task, reset) < cfg.blocking_margin)
 
 
 def _lerp(lo_hi: tuple[float, float], u: Any) -> Any:
@@ -98,8 +146,39 @@ def _obstacle_to_robot(xp: Any, robot: RobotModel, kin: Any, kind: int, pos: Any
     robot's conservative sphere cover (collision.py): the SPEC's "every robot collision geometry"."""
     cover = collision.sphere_cover(robot)
     spheres = collision.cover_centres(xp, robot, kin)  # (S, 3)
-    sdf = collision.upright_sdf(xp, kind, pos[..., None, :], yaw[..., None], size[..., None, :], spheres)
+    sdf = shapes.sdf(xp, kind, pos[..., None, :], yaw[..., None], size[..., None, :], spheres)
     return xp.min(sdf - xp.asarray(cover.radius, dtype=spheres.dtype), axis=-1)
+
+
+def _blocking_placement(xp: Any, cfg: SamplingConfig, task: TaskConfig, kin: Any, u_obs: Any, kind: Any, size: Any,
+                        oyaw: Any, standing_z: Any, disc_pos: Any, target_xy: Any, block: Any) -> tuple[Any, Any]:
+    """Candidate positions (attempts, slots, n_o, 3) with slot 0 on the approach path when ``block``,
+    and the mask of candidates that satisfy the blocking requirement."""
+    attempts, slots, n_o = kind.shape
+    per_kind = n_o // len(OBSTACLE_KINDS)
+    groups = [slice(g * per_kind, (g + 1) * per_kind) for g in range(len(OBSTACLE_KINDS))]
+    start = kin.gripper_centre  # (3,)
+    dtype = start.dtype
+    t_grasp = xp.concatenate([target_xy, xp.full((attempts, 1), cfg.target_size[2] / 2, dtype=dtype)], axis=-1)
+    end = grasp_point(xp, task, t_grasp)  # (attempts, 3)
+    t = _lerp(BLOCKING_T, u_obs[:, 0, :, 4])  # (attempts, n_o)
+    along = start + t[..., None] * (end - start)[:, None, :]  # (attempts, n_o, 3)
+    heading = (end - start)[:, :2]
+    perp = xp.stack([-heading[:, 1], heading[:, 0]], axis=-1) / xp.sqrt(xp.sum(heading**2, axis=-1, keepdims=True))
+    lateral = BLOCKING_OFFSET * (2 * u_obs[:, 0, :, 5] - 1)
+    bz = xp.where(kind[:, 0] == SPHERE,
+                  xp.clip(along[..., 2] + BLOCKING_OFFSET * (2 * u_obs[:, 0, :, 6] - 1), *cfg.sphere_z), standing_z[:, 0])
+    path_pos = xp.stack([along[..., 0] + lateral * perp[:, None, 0], along[..., 1] + lateral * perp[:, None, 1], bz], -1)
+    pos = xp.concatenate([xp.where(block, path_pos, disc_pos[:, 0])[:, None], disc_pos[:, 1:]], axis=1)
+    frac = xp.linspace(0.0, 1.0, PATH_SAMPLES, dtype=dtype)
+    path = start + frac[:, None] * (end - start)[:, None, :]  # (attempts, PATH_SAMPLES, 3)
+    near_path = xp.concatenate(
+        [xp.min(shapes.sdf(xp, k, pos[:, 0, sl, None, :], oyaw[:, 0, sl, None], size[:, 0, sl, None, :], path[:, None]), axis=-1)
+         for k, sl in zip(OBSTACLE_KINDS, groups)],
+        axis=-1,
+    ) < cfg.blocking_margin  # (attempts, n_o): an upper bound of the true clearance is below the margin
+    blocking_ok = xp.concatenate([(near_path | ~block)[:, None], xp.ones((attempts, slots - 1, n_o), bool)], axis=1)
+    return pos, blocking_ok
 
 
 def sample_reset(xp: Any, robot: RobotModel, cfg: SamplingConfig, task: TaskConfig, u: Any) -> ResetSpec:
@@ -109,7 +188,7 @@ def sample_reset(xp: Any, robot: RobotModel, cfg: SamplingConfig, task: TaskConf
     u_present, u_count = u[0], u[1]
     noise = _lerp((-task.start_noise, task.start_noise), u[2:8])
     q0 = xp.asarray(task.home_q) + noise
-    body = u[8:].reshape(attempts, -1)
+    body = u[8:-1].reshape(attempts, -1)
     u_target = body[:, : n_t * _PER_TARGET].reshape(attempts, n_t, _PER_TARGET)
     u_obs = body[:, n_t * _PER_TARGET :].reshape(attempts, slots, n_o, _PER_CANDIDATE)
 
@@ -150,20 +229,32 @@ def sample_reset(xp: Any, robot: RobotModel, cfg: SamplingConfig, task: TaskConf
     ox = mid[:, None, None, 0] + rho * xp.cos(phi)
     oy = mid[:, None, None, 1] + rho * xp.sin(phi)
     # spheres float; cylinders and boxes stand on the table (centre at their half height)
-    oz = xp.where(kind == SPHERE, _lerp(cfg.sphere_z, u_obs[..., 6]), xp.where(kind == CYLINDER, size[..., 1], size[..., 2]))
+    standing_z = xp.where(kind == CYLINDER, size[..., 1], size[..., 2])
+    oz = xp.where(kind == SPHERE, _lerp(cfg.sphere_z, u_obs[..., 6]), standing_z)
     oyaw = xp.where(kind == BOX, 2 * xp.pi * u_obs[..., 7] - xp.pi, 0.0)
-    pos = xp.stack([ox, oy, oz], axis=-1)  # (attempts, slots, n_o, 3)
+    kin = forward_kinematics(xp, robot, q0)
+
+    # "Blocking" scenes (probability blocking_prob among obstacle scenes): slot 0's candidates sit on
+    # the straight segment from the start gripper centre to the grasp point (same shapes and sizes,
+    # a horizontal offset of ≤ BLOCKING_OFFSET, spheres at the segment's height) and must pass within
+    # blocking_margin of it; slot 1 keeps the disc placement.
+    disc_pos = xp.stack([ox, oy, oz], axis=-1)  # (attempts, slots, n_o, 3)
+    if cfg.blocking_prob > 0:
+        pos, blocking_ok = _blocking_placement(xp, cfg, task, kin, u_obs, kind, size, oyaw, standing_z, disc_pos,
+                                               target_xy, u[-1] < cfg.blocking_prob)
+    else:
+        pos, blocking_ok = disc_pos, True
 
     clear_target = horizontal_clearance(xp, kind, pos, oyaw, size, target_xy[:, None, None, :]) >= cfg.target_clearance
-    kin = forward_kinematics(xp, robot, q0)
     bound = bounding_radius(xp, kind, size)
     groups = [slice(g * per_kind, (g + 1) * per_kind) for g in range(len(OBSTACLE_KINDS))]
     robot_gap = xp.concatenate(
         [_obstacle_to_robot(xp, robot, kin, k, pos[..., sl, :], oyaw[..., sl], size[..., sl, :]) for k, sl in zip(OBSTACLE_KINDS, groups)],
         axis=-1,
     )
-    clear_robot = robot_gap >= cfg.robot_clearance
-    ok_single = clear_target & clear_robot  # (attempts, slots, n_o)
+    # the cover over-reaches boxes and cylinders but dips ≤ CAPSULE_DIP between a capsule's spheres
+    clear_robot = robot_gap >= cfg.robot_clearance + collision.CAPSULE_DIP
+    ok_single = clear_target & clear_robot & blocking_ok  # (attempts, slots, n_o)
 
     def first_in_order(mask: Any, slot: int) -> tuple[Any, Any]:
         rank = xp.where(mask, order[:, slot], n_o + 1)

@@ -29,10 +29,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sagrasp_jax import checkpoint, ppo, runtime, sa_schedule
+from sagrasp_jax import checkpoint, observation, ppo, runtime, sa_schedule
 from sagrasp_jax.checkpoint import CheckpointError
 from sagrasp_jax.config import (
-    PRESETS, Config, ConfigError, apply_overrides, config_from_dict, config_to_dict, get_config, validate,
+    PRESETS, Config, ConfigError, apply_overrides, config_from_dict, config_to_dict, get_config, training_env_config,
+    validate,
 )
 
 ALGOS = ("sa-ppo", "ppo")
@@ -60,7 +61,8 @@ def default_envs(cfg: Config) -> tuple[ppo.Env, ppo.Env]:
     from sagrasp_jax.env import GraspEnv
     from sagrasp_jax.wrappers import AutoReset
 
-    return AutoReset(GraspEnv(cfg.env)), GraspEnv(cfg.env)
+    # training episodes follow the training mix (train.obstacle_prob / blocking_prob), evaluation the SPEC's
+    return AutoReset(GraspEnv(training_env_config(cfg))), GraspEnv(cfg.env)
 
 
 def build_config(preset: str = "cpu-quick", algo: str = "sa-ppo", seed: int | None = None,
@@ -121,7 +123,8 @@ def export_policy(path: str, cfg: Config, params: ppo.Params, normaliser: ppo.No
     layers = jax.device_get(params.policy["params"])
     weights = [(np.asarray(layers[f"hidden_{i}"]["kernel"]), np.asarray(layers[f"hidden_{i}"]["bias"]))
                for i in range(len(layers))]
-    layout = runtime.OBS_LAYOUT if obs_size == len(runtime.OBS_LAYOUT) else tuple(f"obs_{i}" for i in range(obs_size))
+    names = observation.layout_of(cfg.env)
+    layout = names if obs_size == len(names) else tuple(f"obs_{i}" for i in range(obs_size))
     return runtime.save_policy_npz(path, weights=weights, activation=cfg.ppo.network.activation,
                                    obs_mean=np.asarray(normaliser.mean), obs_std=np.asarray(normaliser.std),
                                    config=cfg, obs_layout=layout)
@@ -145,7 +148,9 @@ class Trainer:
         self.schedule = make_schedule(cfg)
         self.networks = ppo.make_networks(cfg.ppo.network, self.obs_size, self.action_size, cfg.ppo.obs_clip)
         self.optimizer = ppo.make_optimizer(cfg.ppo, cfg.sa.lr0 if cfg.sa.enabled else cfg.ppo.learning_rate)
-        self._iteration = ppo.make_iteration(self.train_env, self.networks, self.optimizer, cfg.ppo, self.mesh)
+        self.hand_scaled = getattr(self.eval_env, "hand_scaled_mask", None)  # normaliser leaves these entries alone
+        self._iteration = ppo.make_iteration(self.train_env, self.networks, self.optimizer, cfg.ppo, self.mesh,
+                                             self.hand_scaled)
         self._evaluate = ppo.make_evaluator(self.networks, self.eval_env, cfg.env.task.max_steps)
         keys = ppo.eval_keys(cfg.sa.eval_seed, cfg.sa.eval_episodes)
         self.eval_keys = (ppo.shard_batch(keys, self.mesh) if cfg.sa.eval_episodes % self.mesh.size == 0

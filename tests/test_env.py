@@ -354,7 +354,7 @@ def test_hovering_inside_the_grab_zone_does_not_pay_by_default(rc_mode, hovering
     low = robot.solve_home_pose(config.HOME_Q, target + np.array([0.0, 0.0, 0.04]))  # pointing down, 4 cm above
     spec = jax.tree_util.tree_map(jnp.asarray, _spec(low, target=target))
     start = env.reset_to(spec, jax.random.PRNGKey(0))
-    assert float(start.info["d_prev"]) == pytest.approx(0.04, abs=1e-4)
+    assert float(start.info["tracker"].d_prev) == pytest.approx(0.04, abs=1e-4)
     step = jax.jit(env.step)
     action = jax.jit(lambda q, t: scripted_action(cfg, q, t))
 

@@ -4,9 +4,9 @@ Why it is built the way it is: a policy only transfers if it sees what it saw in
 its actions mean what they meant there.  So every number here comes from the modules the
 training env runs, with NumPy:
 
-* observation: measured joints, gripper centre (``robot.forward_kinematics``), target centre,
-  nearest obstacle and Δpo (``collision.check``) — the 17 entries of
-  ``runtime.OBS_LAYOUT``, no noise (a test compares them with ``env.GraspEnv``'s);
+* observation: ``observation.observe`` in the layout the policy was trained with (its config's
+  ``env.task.obs_layout``: the paper's 17 numbers or the relative obstacle encoding), from the
+  measured joints, no noise (a test compares them with ``env.GraspEnv``'s);
 * action: ``runtime.NumpyPolicy`` with the normaliser it was trained with;
 * joint target: ``control.control_step`` (slow-down, wrist fine-tuning, target accumulation,
   joint-limit clip) with the policy's own ``env.control`` constants;
@@ -119,7 +119,7 @@ def obstacles_from_spec(spec: ResetSpec) -> list[Obstacle]:
 
 
 class Observation(NamedTuple):
-    obs: np.ndarray  # (17,) in runtime.OBS_LAYOUT order
+    obs: np.ndarray  # in the policy's observation layout (observation.layout_of(env_cfg))
     gripper_centre: np.ndarray
     tilt: float
     collision: collision.CollisionResult

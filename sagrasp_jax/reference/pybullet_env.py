@@ -54,15 +54,14 @@ except ImportError as exc:  # pragma: no cover - exercised only without the extr
         "the PyBullet reference env needs pybullet and gymnasium: pip install -e .[reference]"
     ) from exc
 
-from sagrasp_jax import collision, config, control, observation, reward, robot, sampling
+from sagrasp_jax import collision, config, control, episode, observation, robot, sampling
 from sagrasp_jax.config import EnvConfig
 from sagrasp_jax.robot import BOX, CAPSULE, CYLINDER, SPHERE, Kinematics
 from sagrasp_jax.scene import SCENE
 
 ENV_ID = "SAGrasp-PyBullet-v0"
-OBS_SIZE = observation.OBS_SIZE
-ACTION_SIZE = 6
-EPISODE_KEYS = reward.EPISODE_KEYS
+ACTION_SIZE = control.ACTION_SIZE
+EPISODE_KEYS = episode.EPISODE_KEYS
 
 # POSITION_CONTROL gains of the dynamic mode, per arm joint: positionGain kp and velocityGain kd of
 # PyBullet's motor constraint (after a substep h: v = kp·(q* − q)/h + (1 − kd)·v).  MuJoCo's
@@ -202,7 +201,8 @@ class PyBulletGraspEnv(gym.Env):
         self.progress = 0.0
 
         self.action_space = spaces.Box(-1.0, 1.0, (ACTION_SIZE,), dtype=np.float32)
-        self.observation_space = spaces.Box(-np.inf, np.inf, (OBS_SIZE,), dtype=np.float64)
+        self.obs_layout = observation.layout_of(cfg)
+        self.observation_space = spaces.Box(-np.inf, np.inf, (len(self.obs_layout),), dtype=np.float64)
 
         if render_mode == "human" and sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):
             # PyBullet's GUI would kill the whole process when it cannot open a window.
@@ -363,10 +363,10 @@ class PyBulletGraspEnv(gym.Env):
 
     def _observe(self, q: np.ndarray, kin: Kinematics, col: collision.CollisionResult, tilt: Any) -> np.ndarray:
         task = self.cfg.task
-        std = task.obs_noise_std * (1.0 + task.obs_noise_growth * self.progress)
-        noisy_q = q + std * self.np_random.normal(size=6) if std > 0 else q
+        noise = self.np_random.normal(size=6) if observation.noise_std(task, self.progress) > 0 else np.zeros(6)
         assert self._spec is not None
-        return observation.assemble(np, noisy_q, kin.gripper_centre, self._spec.target_pos, col, tilt).astype(np.float64)
+        noisy_q = observation.noisy_joints(task, q, self.progress, noise)
+        return observation.assemble(np, self.cfg, noisy_q, kin.gripper_centre, self._spec, col, tilt).astype(np.float64)
 
     # -- Gymnasium API ---------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
@@ -387,14 +387,12 @@ class PyBulletGraspEnv(gym.Env):
         kin = self.kinematics()
         col = collision.check(np, self.robot, kin, spec, self.cfg)
         tilt = float(robot.tilt(np, kin.approach_axis))
-        self._d_prev = float(np.linalg.norm(kin.gripper_centre - spec.target_pos))
-        self._clean = True
-        self._steps = 0
-        self._acc = {"return": 0.0, "r_distance": 0.0, "r_success": 0.0, "r_obstacle": 0.0,
-                     "min_obstacle_dist": float(col.nearest_obstacle_dist)}
+        d0 = float(np.linalg.norm(kin.gripper_centre - spec.target_pos))
+        blocking = bool(sampling.is_blocking(np, self.robot, self.cfg.sampling, self.cfg.task, spec))
+        self._tracker = episode.start(np, np.float64(d0), col, blocking)
         self._done = False
         obs = self._observe(self._q, kin, col, tilt)
-        info = {"reset_spec": spec, "gripper_centre": kin.gripper_centre.copy(), "distance": self._d_prev, "tilt": tilt}
+        info = {"reset_spec": spec, "gripper_centre": kin.gripper_centre.copy(), "distance": d0, "tilt": tilt}
         return obs, info
 
     def step(self, action: Any) -> tuple[np.ndarray, SupportsFloat, bool, bool, dict[str, Any]]:
@@ -410,27 +408,11 @@ class PyBulletGraspEnv(gym.Env):
         col = collision.check(np, self.robot, kin, spec, cfg)
         tilt = float(robot.tilt(np, kin.approach_axis))
         d_now = float(np.linalg.norm(kin.gripper_centre - spec.target_pos))
-        self._steps += 1
-        success_raw = reward.success_flag(np, cfg.task, kin.gripper_centre, spec.target_pos, tilt)
-        timeout = self._steps >= cfg.task.max_steps
-        outcome = reward.resolve_outcome(np, col.any_collision, success_raw, timeout)
-        present = bool(np.any(spec.obstacle_active))
-        if present and float(col.nearest_obstacle_dist) < cfg.reward.near_miss_distance:
-            self._clean = False
-        total, terms = reward.step_reward(
-            np, cfg.reward, progress=self.progress, d_prev=self._d_prev, d_now=d_now,
-            collision=outcome.collision, success=outcome.success, timeout=outcome.timeout,
-            obstacle_dist=float(col.nearest_obstacle_dist), obstacle_present=present, clean_so_far=self._clean,
-        )
-        total = float(total)
-        self._d_prev = d_now
-        acc = self._acc
-        acc["return"] += total
-        acc["r_distance"] += float(terms.r_distance)
-        acc["r_success"] += float(terms.r_success)
-        acc["r_obstacle"] += float(terms.r_obstacle)
-        acc["min_obstacle_dist"] = min(acc["min_obstacle_dist"], float(col.nearest_obstacle_dist))
-        terminated = bool(outcome.collision or outcome.success or outcome.timeout)
+        step = episode.advance(np, cfg, self._tracker, spec, progress=self.progress, d_now=np.float64(d_now), col=col,
+                               gripper_centre=kin.gripper_centre, tilt=tilt)
+        self._tracker = step.tracker
+        total, terms, outcome = float(step.reward), step.terms, step.outcome
+        terminated = bool(step.done)
         self._done = terminated
         obs = self._observe(self._q, kin, col, tilt)
         info: dict[str, Any] = {
@@ -449,31 +431,11 @@ class PyBulletGraspEnv(gym.Env):
             "q_target": self._q_target.copy(),
         }
         if terminated:
-            info["episode"] = self.episode_metrics(outcome, col)
+            info["episode"] = {k: float(v) for k, v in step.episode.items()}
             info["is_success"] = bool(outcome.success)  # what Stable-Baselines3 logs as success rate
         if self.render_mode == "human":
             self.render()
         return obs, total, terminated, False, info
-
-    def episode_metrics(self, outcome: reward.Outcome, col: collision.CollisionResult) -> dict[str, float]:
-        """The finished episode's metrics, the same keys and meaning as GraspEnv's ``info["episode"]``."""
-        assert self._spec is not None
-        acc = self._acc
-        metrics = {
-            "return": acc["return"],
-            "r_distance": acc["r_distance"],
-            "r_success": acc["r_success"],
-            "r_obstacle": acc["r_obstacle"],
-            "success": float(outcome.success),
-            "collision": float(outcome.collision),
-            "timeout": float(outcome.timeout),
-            "steps": float(self._steps),
-            "obstacle_present": float(np.any(self._spec.obstacle_active)),
-            "redraws": float(self._spec.redraws),
-            "fallback": float(self._spec.fallback),
-            "min_obstacle_dist": acc["min_obstacle_dist"],
-        } | {f"hit_{name}": float(bool(outcome.collision) and bool(hit)) for name, hit in col.hits.items()}
-        return {k: metrics[k] for k in EPISODE_KEYS}
 
     # -- extras ----------------------------------------------------------------------------
     def force_state(
@@ -485,9 +447,10 @@ class PyBulletGraspEnv(gym.Env):
         steps: int | None = None,
         d_prev: float | None = None,
         clean: bool | None = None,
+        obstacle_dist_prev: float | None = None,
     ) -> None:
         """Put the episode mid-way into a given state: joints ``q`` (velocities ``qd``), accumulated
-        target ``q_target``, step count, previous distance and clean-so-far flag.  For single-step
+        target ``q_target``, step count, previous distance, clean-so-far flag and previous Δpo.  For single-step
         comparisons from a state forced identical to the other simulator's (SPEC §2 parity rules)."""
         if self._spec is None:
             raise RuntimeError("call reset() before force_state()")
@@ -497,11 +460,14 @@ class PyBulletGraspEnv(gym.Env):
         self._q_target = np.asarray(q_target, dtype=float).copy()
         if d_prev is None:
             d_prev = float(np.linalg.norm(self.kinematics().gripper_centre - self._spec.target_pos))
-        self._d_prev = float(d_prev)
+        tracker = self._tracker._replace(d_prev=np.float64(d_prev))
         if steps is not None:
-            self._steps = int(steps)
+            tracker = tracker._replace(steps=np.int32(steps))
         if clean is not None:
-            self._clean = bool(clean)
+            tracker = tracker._replace(clean=np.bool_(clean))
+        if obstacle_dist_prev is not None:
+            tracker = tracker._replace(obstacle_dist_prev=np.float64(obstacle_dist_prev))
+        self._tracker = tracker
         self._done = False
 
     def pybullet_distance(self, max_distance: float = 0.5) -> dict[str, float]:
