@@ -27,7 +27,7 @@ import numpy as np
 from flax import serialization
 
 from sagrasp_jax import __version__, fileio
-from sagrasp_jax.config import Config, config_to_dict, upgrade_config_dict
+from sagrasp_jax.config import Config, ConfigError, config_from_dict, config_to_dict
 
 MAGIC = b"SAGRASP-CKPT\n"
 FORMAT_VERSION = 1
@@ -163,6 +163,10 @@ def config_differences(saved: dict[str, Any], current: dict[str, Any], prefix: s
 
 def check_config(ckpt: Checkpoint, config: Config) -> None:
     """Refuse to resume a run with a different config (the result would not be that run)."""
-    diffs = config_differences(upgrade_config_dict(ckpt.header["config"]), config_to_dict(config))
+    try:  # a checkpoint written before a key existed means that key's legacy value (config.LEGACY_VALUES)
+        saved = config_to_dict(config_from_dict(ckpt.header["config"]))
+    except (ConfigError, TypeError, ValueError, AttributeError) as exc:
+        raise CheckpointError(f"{ckpt.path}: the checkpoint's config does not load ({exc})") from None
+    diffs = config_differences(saved, config_to_dict(config))
     if diffs:
         raise CheckpointError(f"{ckpt.path}: incompatible checkpoint: config differs: " + "; ".join(diffs))

@@ -120,6 +120,20 @@ def assemble(xp: Any, cfg: EnvConfig, q: Any, gripper_centre: Any, reset: Any, c
     return xp.concatenate([q, gripper_centre, target, theta, xp.reshape(_sorted_slots(xp, key, slots), (-1,))])
 
 
+def blind(xp: Any, cfg: EnvConfig, obs: Any) -> Any:
+    """``obs`` (..., size) with every obstacle entry replaced by its "no obstacle" value: what the
+    policy would see if the obstacles were not there (experiments/obstacle_blind_eval.py)."""
+    names = layout_of(cfg)
+    if cfg.task.obs_layout == "paper":
+        absent = dict(zip(("obstacle_x", "obstacle_y", "obstacle_z"), cfg.task.no_obstacle_pos))
+        absent["d_po"] = cfg.task.obstacle_dist_clip
+    else:
+        absent = {n: 0.0 for n, hand in zip(names, hand_scaled_mask(names)) if hand}
+    mask = np.array([n in absent for n in names])
+    values = np.array([absent.get(n, 0.0) for n in names])
+    return xp.where(xp.asarray(mask), xp.asarray(values, dtype=obs.dtype), obs)
+
+
 def observe(xp: Any, robot: RobotModel, cfg: EnvConfig, q: Any, reset: Any, kin: Kinematics | None = None) -> Observed:
     """Noise-free observation at measured joints ``q`` for the scene ``reset`` (a ResetSpec).
 
