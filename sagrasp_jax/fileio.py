@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import tempfile
 from collections.abc import Callable
 from typing import Any
@@ -19,6 +20,21 @@ def _umask_mode() -> int:
     mask = os.umask(0)
     os.umask(mask)
     return 0o666 & ~mask
+
+
+# ``atomic_write``'s temp names: ".<file name>.<8 random chars from mkstemp>.tmp<extension>".
+_TEMP_NAME = re.compile(r"^\.(?P<target>.+)\.[a-z0-9_]{8}\.tmp(\.[^./]+)?$")
+
+
+def temp_files(folder: str) -> list[str]:
+    """Temp files ``atomic_write`` left in ``folder`` (a process killed between writing and
+    renaming leaves one): full paths, sorted.  Only the caller knows no write is in flight."""
+    try:
+        names = os.listdir(folder)
+    except (FileNotFoundError, NotADirectoryError):
+        return []
+    return sorted(os.path.join(folder, n) for n in names
+                  if _TEMP_NAME.match(n) and os.path.isfile(os.path.join(folder, n)))
 
 
 def atomic_write(path: str, write: Callable[[str], None]) -> str:
