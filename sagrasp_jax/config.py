@@ -373,7 +373,7 @@ _RANGES: dict[str, tuple[float | str, float]] = {
     "ppo.network.value_hidden": (1, 65_536),
     "sa.cycle_steps": (0, _BIG),
     "sa.num_cycles": (1, 10**6),
-    "sa.eval_episodes": (1, 10**6),
+    "sa.eval_episodes": (1, 100_000),  # evaluated in one batch
     "sa.eval_seed": SEED_RANGE,
     "sa.lr0": (">0", 1.0),
     "sa.decay": (">0", 1.0),

@@ -259,17 +259,23 @@ def checkpoint_counters(ckpt: checkpoint.Checkpoint) -> dict[str, Any]:
     return counters
 
 
+def restore_policy(cfg: Config, ckpt: checkpoint.Checkpoint, obs_size: int,
+                   action_size: int) -> tuple[ppo.Params, ppo.Normaliser]:
+    """Params and normaliser from a loaded checkpoint (structure, shapes and dtypes checked)."""
+    networks = ppo.make_networks(cfg.ppo.network, obs_size, action_size, cfg.ppo.obs_clip)
+    optimizer = ppo.make_optimizer(cfg.ppo, cfg.sa.lr0)
+    template = ppo.init_training_state(jax.random.PRNGKey(0), networks, optimizer, obs_size)
+    ts = checkpoint.restore_tree(template, ckpt.trees.get("train_state", {}), "train_state", ckpt.path)
+    return ts.params, ts.normaliser
+
+
 def load_policy_state(run: str, obs_size: int, action_size: int) -> tuple[Config, ppo.Params, ppo.Normaliser,
                                                                            dict[str, Any]]:
     """Config, params and normaliser of the run's latest checkpoint (and its counters)."""
     cfg = load_config(run)
     ckpt = load_checkpoint(run, cfg)
-    counters = checkpoint_counters(ckpt)
-    networks = ppo.make_networks(cfg.ppo.network, obs_size, action_size, cfg.ppo.obs_clip)
-    optimizer = ppo.make_optimizer(cfg.ppo, cfg.sa.lr0)
-    template = ppo.init_training_state(jax.random.PRNGKey(0), networks, optimizer, obs_size)
-    ts = checkpoint.restore_tree(template, ckpt.trees.get("train_state", {}), "train_state", ckpt.path)
-    return cfg, ts.params, ts.normaliser, counters
+    params, normaliser = restore_policy(cfg, ckpt, obs_size, action_size)
+    return cfg, params, normaliser, checkpoint_counters(ckpt)
 
 
 def export_policy(file: str, cfg: Config, params: ppo.Params, normaliser: ppo.Normaliser, obs_size: int) -> str:

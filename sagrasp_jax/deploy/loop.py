@@ -32,14 +32,13 @@ from sagrasp_jax import collision, control, observation, reward
 from sagrasp_jax.config import EnvConfig
 from sagrasp_jax.deploy.calibration import validate_target
 from sagrasp_jax.deploy.safety import SafetyLayer, SafetyViolation
-from sagrasp_jax.robot import BOX, CYLINDER, SPHERE, RobotModel, forward_kinematics, load_robot, solve_home_pose
+from sagrasp_jax.robot import BOX, CYLINDER, SPHERE, IKError, RobotModel, forward_kinematics, lift_pose, load_robot
 from sagrasp_jax.runtime import NumpyPolicy
 from sagrasp_jax.sampling import ResetSpec
 
 OBSTACLE_KINDS = {"sphere": SPHERE, "cylinder": CYLINDER, "box": BOX}
 LIFT_HEIGHT = 0.05  # m, SPEC §2/§5: lift after closing the gripper
 LIFT_MIN_STEPS = 10  # control periods the lift takes at least (0.5 s: ≤ 0.1 m/s)
-LIFT_MAX_JOINT_MOVE = 0.5  # rad; a lift pose further than this from the grasp pose means IK left the branch
 
 
 class DeployError(RuntimeError):
@@ -141,20 +140,6 @@ def collision_hook(model: RobotModel, env_cfg: EnvConfig, spec: ResetSpec,
         return f"pose would collide with: {', '.join(hits)}" if hits else None
 
     return check
-
-
-def lift_pose(model: RobotModel, q: Any, height: float = LIFT_HEIGHT) -> np.ndarray:
-    """Joints that put the gripper centre ``height`` m straight above where it is at ``q``,
-    pointing down, found by IK seeded at ``q`` (so the arm stays on its branch)."""
-    q = np.asarray(q, dtype=float)
-    goal = forward_kinematics(np, model, q).gripper_centre + np.array([0.0, 0.0, height])
-    q_lift = solve_home_pose(q, goal, model)
-    kin = forward_kinematics(np, model, q_lift)
-    error = float(np.linalg.norm(kin.gripper_centre - goal))
-    move = float(np.abs(q_lift - q).max())
-    if error > 1e-3 or move > LIFT_MAX_JOINT_MOVE or not np.isfinite(q_lift).all():
-        raise DeployError(f"no lift pose found near the grasp pose (IK error {error * 1000:.1f} mm, joint move {move:.3f} rad)")
-    return q_lift
 
 
 @dataclass
@@ -303,7 +288,7 @@ def _grasp_and_lift(robot: RobotInterface, model: RobotModel, env_cfg: EnvConfig
         for k in range(1, n + 1):
             q_target = send_checked(robot, lift_safety, q_target + (q_lift - q_target) / (n - k + 1), q_target)
         result["lifted"] = True
-    except (SafetyViolation, DeployError) as exc:
+    except (SafetyViolation, DeployError, IKError) as exc:
         result["message"] = f"lift stopped: {exc}"
     q_end = _read(robot)
     result["gripper_rise"] = float(forward_kinematics(np, model, q_end).gripper_centre[2] - centre0[2])
