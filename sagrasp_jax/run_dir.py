@@ -43,7 +43,6 @@ import fcntl
 import json
 import os
 import shutil
-import tempfile
 from typing import Any
 
 import jax
@@ -158,11 +157,9 @@ def check_writable(folder: str, what: str = "folder") -> None:
     """Refuse a folder this process cannot write into (read-only mount, permissions, full disk),
     by writing a probe file, before any expensive work starts."""
     try:
-        fd, probe = tempfile.mkstemp(prefix=".write-probe-", dir=folder)
-    except OSError as exc:
-        raise RunDirError(f"cannot write into {what} {folder}: {exc.strerror or exc}") from None
-    os.close(fd)
-    os.unlink(probe)
+        fileio.check_writable(folder, what)
+    except fileio.NotWritable as exc:
+        raise RunDirError(str(exc)) from None
 
 
 def remove_temp_files(folder: str) -> list[str]:
