@@ -194,12 +194,14 @@ def export_run(run: str, out_dir: str, *, onnx: bool = True, opset: int = DEFAUL
 
     if onnx:
         check_opset(opset)
-    cfg, params, normaliser, counters = load_run(run)
+    if not os.path.isdir(run):
+        load_run(run)  # says what is wrong with it
     if os.path.exists(out_dir) and not os.path.isdir(out_dir):
         raise ExportError(f"{out_dir}: exists and is not a folder")
     try:
         with run_dir.FolderLock(out_dir, create=True, what="output folder"):
             run_dir.check_writable(out_dir, "output folder")
+            cfg, params, normaliser, counters = load_run(run)
             return _export(run, out_dir, cfg, params, normaliser, counters, onnx, opset)
     except run_dir.RunDirError as exc:
         raise ExportError(str(exc)) from None

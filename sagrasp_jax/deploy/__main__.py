@@ -26,6 +26,7 @@ import argparse
 import json
 import math
 import sys
+import typing
 from typing import Any, Sequence
 
 import numpy as np
@@ -127,10 +128,23 @@ def parse_obstacle(tokens: Sequence[str], cal: CameraCalibration, units: str, in
     return Obstacle(kind, tuple(float(v) for v in centre), size, yaw)
 
 
+class _Parser(argparse.ArgumentParser):
+    """With ``--json`` on the command line, argparse's own refusals are JSON refusals too."""
+
+    json_argv: list[str] | None = None
+
+    def error(self, message: str) -> typing.NoReturn:
+        if self.json_argv is not None:
+            print(json.dumps({"outcome": "input_refused", "message": message, "input": {"argv": self.json_argv}},
+                             indent=2, allow_nan=False))
+            print(f"error: refused before moving: {message}", file=sys.stderr)
+            sys.exit(2)
+        super().error(message)
+
+
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m sagrasp_jax.deploy", description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter,
-                                epilog=__doc__.split("\n\n", 2)[2])
+    p = _Parser(prog="python -m sagrasp_jax.deploy", description=__doc__.split("\n\n")[0],
+                formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n\n", 2)[2])
     p.add_argument("--policy", required=True, help="exported policy.npz")
     p.add_argument("--target-cam", nargs=3, type=float, required=True, metavar=("X", "Y", "Z"),
                    help="detected top of the cube in the camera frame")
@@ -171,7 +185,11 @@ def _emit(args: argparse.Namespace, payload: dict[str, Any], text: str, error: b
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
+    parser = _parser()
+    tokens = list(sys.argv[1:] if argv is None else argv)
+    if "--json" in tokens:
+        parser.json_argv = tokens
+    args = parser.parse_args(tokens)
     given: dict[str, Any] = {"target_cam": args.target_cam, "units": args.units, "target_yaw_cam_deg": args.target_yaw,
                              "obstacles_cam": args.obstacle, "backend": args.backend}
     try:
