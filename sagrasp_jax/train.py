@@ -505,6 +505,9 @@ def main(argv: list[str] | None = None) -> int:
     except (ConfigError, CheckpointError, RunDirError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print(f"\ninterrupted: {args.out} continues from its last checkpoint with --resume", file=sys.stderr)
+        return 130
     return 0
 
 
