@@ -12,7 +12,8 @@ A run folder (``python -m sagrasp_jax.train --out RUN``) holds:
 =============================================  ==============================================
 
 Every file is written through ``fileio`` (temp file + rename), so a kill leaves either the old
-or the new file, plus at worst a temp file that the next writer removes.
+or the new file, plus at worst a temp file that the next writer removes; ``metrics.jsonl`` is
+appended by :class:`RunLogger` (a line cut short by a kill is dropped when it is read back).
 
 **Lock.** A command that writes into a folder (``train`` into its run, ``evaluate`` and
 ``export`` into their output folder) holds :class:`FolderLock` on it for as long as it
@@ -41,6 +42,7 @@ import sagrasp_jax  # noqa: F401  (sets XLA_FLAGS before jax is imported)
 import errno
 import fcntl
 import json
+import math
 import os
 import shutil
 from typing import Any
@@ -222,6 +224,42 @@ def read_metrics(file: str) -> list[dict[str, Any]]:
             raise RunDirError(f"{file}: damaged metrics log at line {number} ({exc})") from None
         rows.append(row)
     return rows
+
+
+def _json_safe(value: Any) -> Any:
+    if isinstance(value, (np.generic, np.ndarray)):
+        value = value.item() if np.ndim(value) == 0 else value.tolist()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+class RunLogger:
+    """metrics.jsonl + TensorBoard; on resume drops rows past the checkpoint so the log stays exact."""
+
+    def __init__(self, out_dir: str, resume_iteration: int, resume_step: int) -> None:
+        from tensorboardX import SummaryWriter
+
+        self.path = os.path.join(out_dir, METRICS_FILE)
+        if os.path.exists(self.path):
+            keep = [line for line in read_metrics(self.path) if line.get("iteration", -1) < resume_iteration]
+            text = "".join(json.dumps(r, allow_nan=False) + "\n" for r in keep)
+            fileio.atomic_write_text(self.path, text)  # under the run folder's lock
+        self.file = open(self.path, "a", encoding="utf-8")
+        self.tb = SummaryWriter(os.path.join(out_dir, TB_DIR), purge_step=resume_step + 1 if resume_step else None)
+
+    def write(self, row: dict[str, Any]) -> None:
+        clean = {k: _json_safe(v) for k, v in row.items()}
+        self.file.write(json.dumps(clean, allow_nan=False) + "\n")
+        self.file.flush()
+        step = int(row["env_steps"])
+        for key, value in clean.items():
+            if isinstance(value, (int, float)) and not isinstance(value, bool) and key not in ("iteration", "env_steps"):
+                self.tb.add_scalar(f"train/{key}", value, step)
+
+    def close(self) -> None:
+        self.file.close()
+        self.tb.close()
 
 
 def check_metrics_reach(run: str, iteration: int, log_every: int) -> list[dict[str, Any]]:

@@ -19,8 +19,6 @@ import sagrasp_jax  # noqa: F401  (sets XLA_FLAGS and the compile-cache dir befo
 
 import argparse
 import dataclasses
-import json
-import math
 import os
 import sys
 import time
@@ -35,7 +33,7 @@ from sagrasp_jax import checkpoint, ppo, run_dir, sa_schedule
 from sagrasp_jax.checkpoint import CheckpointError
 from sagrasp_jax.config import PRESETS, SEED_RANGE, Config, ConfigError, apply_overrides, check_range, get_config, validate
 from sagrasp_jax.run_dir import (  # noqa: F401  (the run-folder names and readers, re-exported for callers)
-    CHECKPOINT_FILE, CONFIG_FILE, METRICS_FILE, POLICY_FILE, TB_DIR, RunDirError, export_policy, read_metrics,
+    CHECKPOINT_FILE, CONFIG_FILE, METRICS_FILE, POLICY_FILE, TB_DIR, RunDirError, RunLogger, export_policy, read_metrics,
 )
 
 ALGOS = ("sa-ppo", "ppo")
@@ -104,14 +102,6 @@ class HostState:
     entropy_sum: float = 0.0  # over the current cycle's iterations
     entropy_n: int = 0
     nonfinite: int = 0  # iterations rolled back for NaN/inf
-
-
-def _json_safe(value: Any) -> Any:
-    if isinstance(value, (np.generic, np.ndarray)):
-        value = value.item() if np.ndim(value) == 0 else value.tolist()
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
 
 
 class Trainer:
@@ -403,34 +393,6 @@ def _progress_bar(enabled: bool, sched: Schedule, initial: int, stream: TextIO) 
 
     return tqdm(total=sched.num_iterations * sched.steps_per_iteration, initial=initial, unit="step",
                 unit_scale=True, dynamic_ncols=True, mininterval=1.0, file=stream)
-
-
-class RunLogger:
-    """metrics.jsonl + TensorBoard; on resume drops rows past the checkpoint so the log stays exact."""
-
-    def __init__(self, out_dir: str, resume_iteration: int, resume_step: int) -> None:
-        from tensorboardX import SummaryWriter
-
-        self.path = os.path.join(out_dir, METRICS_FILE)
-        if os.path.exists(self.path):
-            keep = [line for line in read_metrics(self.path) if line.get("iteration", -1) < resume_iteration]
-            text = "".join(json.dumps(r, allow_nan=False) + "\n" for r in keep)
-            checkpoint.atomic_write_bytes(self.path, text.encode())  # under the run folder's lock
-        self.file = open(self.path, "a", encoding="utf-8")
-        self.tb = SummaryWriter(os.path.join(out_dir, TB_DIR), purge_step=resume_step + 1 if resume_step else None)
-
-    def write(self, row: dict[str, Any]) -> None:
-        clean = {k: _json_safe(v) for k, v in row.items()}
-        self.file.write(json.dumps(clean, allow_nan=False) + "\n")
-        self.file.flush()
-        step = int(row["env_steps"])
-        for key, value in clean.items():
-            if isinstance(value, (int, float)) and not isinstance(value, bool) and key not in ("iteration", "env_steps"):
-                self.tb.add_scalar(f"train/{key}", value, step)
-
-    def close(self) -> None:
-        self.file.close()
-        self.tb.close()
 
 
 # ---------------------------------------------------------------------- CLI
