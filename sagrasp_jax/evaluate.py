@@ -20,7 +20,6 @@ from __future__ import annotations
 import sagrasp_jax  # noqa: F401  (sets XLA_FLAGS before jax is imported)
 
 import argparse
-import json
 import math
 import os
 import sys
