@@ -59,7 +59,7 @@ CURVES = (
 )
 RESULTS_JSON = "results.json"
 RESULTS_MD = "results.md"
-EVAL_FILE = evaluate.RESULT_FILE
+EVAL_FILE = "evaluation.json"  # this experiment's own evaluation of each run (--eval-episodes, default seed)
 # t_{0.975, df} for df = 1..30 (95 % two-sided); larger df use 1.96.
 _T975 = (12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228, 2.201, 2.179, 2.160, 2.145,
          2.131, 2.120, 2.110, 2.101, 2.093, 2.086, 2.080, 2.074, 2.069, 2.064, 2.060, 2.056, 2.052, 2.048,

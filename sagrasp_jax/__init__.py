@@ -4,11 +4,25 @@ Importing the package sets ``XLA_FLAGS=--xla_cpu_use_fusion_emitters=false`` (MJ
 CPU compiles and runs 20-70x faster with it) unless the user already set XLA_FLAGS,
 and points jax's persistent compilation cache at ``~/.cache/sagrasp_jax/jax`` unless
 ``JAX_COMPILATION_CACHE_DIR`` is set.  Neither imports jax.
+
+It also silences one known line of noise: when the optional NVIDIA Warp backend is not
+installed, ``mujoco.mjx.warp`` prints "Failed to import warp: No module named 'warp'" and
+"Failed to import mujoco_warp: No module named 'warp'" (to stdout, on every import of
+mujoco, brax or our env).  Users read it as an error; it is the normal state on CPU.  A
+one-shot import hook runs that module with its prints captured and passes on every line
+except exactly those two, so a broken Warp install (any other message) still shows.
 """
 
 from __future__ import annotations
 
+import contextlib
+import importlib.abc
+import importlib.util
+import io
 import os
+import re
+import sys
+from typing import Any
 
 __version__ = "0.1.0"
 
@@ -18,3 +32,48 @@ os.environ.setdefault(
     "JAX_COMPILATION_CACHE_DIR", os.path.join(os.path.expanduser("~"), ".cache", "sagrasp_jax", "jax")
 )
 os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "1")
+
+
+_WARP_MODULE = "mujoco.mjx.warp"
+_WARP_ABSENT = re.compile(r"^Failed to import (warp|mujoco_warp): No module named 'warp'$")
+
+
+def filter_warp_noise(text: str) -> str:
+    """``text`` without the two lines mjx prints when the optional Warp backend is absent."""
+    return "".join(line for line in text.splitlines(keepends=True) if not _WARP_ABSENT.match(line.rstrip("\n")))
+
+
+class _QuietLoader(importlib.abc.Loader):
+    """Runs ``mujoco.mjx.warp`` with stdout captured, then re-prints all but the known noise."""
+
+    def __init__(self, loader: Any) -> None:
+        self._loader = loader
+
+    def create_module(self, spec: Any) -> Any:
+        return self._loader.create_module(spec)
+
+    def exec_module(self, module: Any) -> None:
+        buffer = io.StringIO()
+        try:
+            with contextlib.redirect_stdout(buffer):
+                self._loader.exec_module(module)
+        finally:
+            sys.stdout.write(filter_warp_noise(buffer.getvalue()))
+
+    def __getattr__(self, name: str) -> Any:  # get_source, get_code, ... for tracebacks and tools
+        return getattr(self._loader, name)
+
+
+class _QuietWarpImport(importlib.abc.MetaPathFinder):
+    def find_spec(self, fullname: str, path: Any, target: Any = None) -> Any:
+        if fullname != _WARP_MODULE:
+            return None
+        sys.meta_path.remove(self)  # one shot, and no recursion through the lookup below
+        spec = importlib.util.find_spec(fullname)
+        if spec is not None and spec.loader is not None:
+            spec.loader = _QuietLoader(spec.loader)
+        return spec
+
+
+if _WARP_MODULE not in sys.modules and not any(isinstance(f, _QuietWarpImport) for f in sys.meta_path):
+    sys.meta_path.insert(0, _QuietWarpImport())

@@ -321,6 +321,182 @@ _CHOICES = {
 }
 
 
+SEED_RANGE = (0, 2**32 - 1)  # jax.random.PRNGKey wraps larger seeds silently (2**32 gives seed 0's key)
+_BIG = 10**12  # an upper bound for counts that only has to stop overflow and runaway runs
+
+# The sane range of every numeric key (inclusive; a tuple key: each element).  ``validate`` refuses
+# a value outside it naming the key, so NaN, inf, a sign slip or a units slip (1e30, 50 for 0.05)
+# stops at the command line instead of crashing or silently misbehaving later.  The ranges are
+# wide: they catch nonsense, not tuning choices.  A ``>`` prefix on the low end makes it exclusive.
+_RANGES: dict[str, tuple[float | str, float]] = {
+    "env.control.q_max": (">0", 0.5),
+    "env.control.d_slow": (0.0, 1.0),
+    "env.control.slow_factor": (">0", 1.0),
+    "env.control.d_fine": (0.0, 1.0),
+    "env.control.fine_tilt_deg": (0.0, 90.0),
+    "env.control.fine_gain": (0.0, 100.0),
+    "env.control.fine_damping": (">0", 10.0),
+    "env.control.fine_clip": (0.0, 0.5),
+    "env.control.q_limit": (">0", math.pi),
+    "env.control.control_dt": (">0", 1.0),
+    "env.control.physics_dt": (">0", 0.1),
+    "env.control.substeps": (1, 1000),
+    "env.reward.ratio": (0.0, 1e3),
+    "env.reward.rc": (-1e3, 1e3),
+    "env.reward.d_grab": (0.0, 1.0),
+    "env.reward.success_reward": (-1e3, 1e3),
+    "env.reward.failure_reward": (-1e3, 1e3),
+    "env.reward.collision_penalty": (-1e3, 1e3),
+    "env.reward.near_miss_distance": (0.0, 1.0),
+    "env.reward.near_miss_scale": (-1e3, 1e3),
+    "env.reward.clean_success_bonus": (-1e3, 1e3),
+    "env.reward.f_d0": (-1e3, 1e3),
+    "env.reward.f_d1": (-1e3, 1e3),
+    "env.reward.f_s0": (-1e3, 1e3),
+    "env.reward.f_s1": (-1e3, 1e3),
+    "env.reward.f_o": (-1e3, 1e3),
+    "env.task.home_q": (-math.pi, math.pi),
+    "env.task.start_noise": (0.0, 1.0),
+    "env.task.obs_noise_std": (0.0, 1.0),
+    "env.task.obs_noise_growth": (0.0, 100.0),
+    "env.task.max_steps": (1, 100_000),
+    "env.task.success_xy": (">0", 0.5),
+    "env.task.success_dz_min": (-0.5, 0.5),
+    "env.task.success_dz_max": (-0.5, 0.5),
+    "env.task.success_tilt_deg": (0.0, 180.0),
+    "env.task.obstacle_dist_clip": (">0", 10.0),
+    "env.task.no_obstacle_pos": (-100.0, 100.0),
+    "env.sampling.target_size": (">0", 0.5),
+    "env.sampling.target_x": (-2.0, 2.0),
+    "env.sampling.target_y": (-2.0, 2.0),
+    "env.sampling.target_yaw": (-math.pi, math.pi),
+    "env.sampling.target_radius": (0.0, 2.0),
+    "env.sampling.target_candidates": (1, 4096),
+    "env.sampling.obstacle_prob": (0.0, 1.0),
+    "env.sampling.max_obstacles": (0, 16),
+    "env.sampling.sphere_radius": (">0", 0.5),
+    "env.sampling.sphere_z": (0.0, 2.0),
+    "env.sampling.cylinder_radius": (">0", 0.5),
+    "env.sampling.cylinder_height": (">0", 2.0),
+    "env.sampling.box_half": (">0", 0.5),
+    "env.sampling.obstacle_disc_radius": (0.0, 2.0),
+    "env.sampling.home_xy": (-2.0, 2.0),
+    "env.sampling.target_clearance": (0.0, 1.0),
+    "env.sampling.robot_clearance": (0.0, 1.0),
+    "env.sampling.obstacle_candidates": (1, 4096),
+    "env.sampling.scene_redraws": (0, 1000),
+    "env.sampling.blocking_prob": (0.0, 1.0),
+    "env.sampling.blocking_margin": (">0", 1.0),
+    "env.task.obs_vector_scale": (">0", 10.0),
+    "env.task.obs_vector_clip": (">0", 1e3),
+    "env.task.obs_closeness_range": (">0", 10.0),
+    "ppo.num_envs": (1, 2**24),
+    "ppo.unroll_length": (1, 100_000),
+    "ppo.num_minibatches": (1, 2**24),
+    "ppo.num_epochs": (1, 10_000),
+    "ppo.clip_eps": (">0", 10.0),
+    "ppo.gamma": (">0", 1.0),
+    "ppo.gae_lambda": (0.0, 1.0),
+    "ppo.entropy_coef": (0.0, 100.0),
+    "ppo.value_coef": (0.0, 1e3),
+    "ppo.max_grad_norm": (">0", 1e6),
+    "ppo.learning_rate": (">0", 1.0),
+    "ppo.obs_std_floor": (">0", 1e3),
+    "ppo.obs_clip": (">0", 1e6),
+    "ppo.network.policy_hidden": (1, 65_536),
+    "ppo.network.value_hidden": (1, 65_536),
+    "sa.cycle_steps": (0, _BIG),
+    "sa.num_cycles": (1, 10**6),
+    "sa.eval_episodes": (1, 100_000),  # evaluated in one batch
+    "sa.eval_seed": SEED_RANGE,
+    "sa.lr0": (">0", 1.0),
+    "sa.decay": (">0", 1.0),
+    "sa.lr_min": (">0", 1.0),
+    "sa.tol": (0.0, 1e6),
+    "sa.min_delta": (0.0, 1e6),
+    "sa.patience": (1, 10**6),
+    "sa.max_rollbacks": (1, 10**6),
+    "sa.t0": (">0", 1e6),
+    "sa.kappa": (0.0, 1e6),
+    "train.total_steps": (1, _BIG),
+    "train.seed": SEED_RANGE,
+    "train.log_every": (1, 10**9),
+    "train.checkpoint_every_cycles": (1, 10**9),
+    "train.metrics_window": (1, 10**7),
+}
+
+
+def _num(v: float) -> str:
+    return str(v) if isinstance(v, int) else f"{v:g}"
+
+
+def _range_text(lo: float | str, hi: float) -> str:
+    return f"({lo[1:]}, {_num(hi)}]" if isinstance(lo, str) else f"[{_num(lo)}, {_num(hi)}]"
+
+
+def _in_range(value: float, lo: float | str, hi: float) -> bool:
+    low = float(lo[1:]) if isinstance(lo, str) else lo
+    return math.isfinite(value) and (value > low if isinstance(lo, str) else value >= low) and value <= hi
+
+
+def check_range(name: str, value: Any, lo: float | str, hi: float) -> Any:
+    """Refuse ``value`` (a command-line option or a config key) outside ``[lo, hi]`` (``">x"``: an
+    exclusive low end), NaN, inf or not a number, with a ConfigError naming ``name``."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not _in_range(value, lo, hi):
+        raise ConfigError(f"{name}={value!r} is outside the allowed range {_range_text(lo, hi)}")
+    return value
+
+
+def _type_problem(value: Any, annotation: Any) -> str | None:
+    """What is wrong with ``value`` for a field annotated ``annotation`` (None: nothing)."""
+    if annotation is bool:
+        return None if isinstance(value, bool) else "expected true/false"
+    if annotation is int:
+        return None if isinstance(value, int) and not isinstance(value, bool) else "expected an integer"
+    if annotation is float:
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+        return None if ok else "expected a finite number"
+    if annotation is str:
+        return None if isinstance(value, str) else "expected a string"
+    if typing.get_origin(annotation) is tuple:
+        args = typing.get_args(annotation)
+        if not isinstance(value, tuple):
+            return "expected a list"
+        variadic = len(args) == 2 and args[1] is Ellipsis
+        if not variadic and len(value) != len(args):
+            return f"expected {len(args)} values, got {len(value)}"
+        for v, a in zip(value, [args[0]] * len(value) if variadic else args):
+            problem = _type_problem(v, a)
+            if problem:
+                return f"{problem} in each entry"
+        return None
+    return None
+
+
+def _check_types(obj: Any, prefix: str = "") -> None:
+    """Every field holds its declared type (a hand-edited config.json can hold anything)."""
+    hints = _field_types(type(obj))
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        if dataclasses.is_dataclass(hints[f.name]):
+            if not dataclasses.is_dataclass(value):
+                raise ConfigError(f"invalid value for {prefix}{f.name}: {value!r} (expected a section)")
+            _check_types(value, f"{prefix}{f.name}.")
+            continue
+        problem = _type_problem(value, hints[f.name])
+        if problem:
+            raise ConfigError(f"invalid value for {prefix}{f.name}: {value!r} ({problem})")
+
+
+def _check_ranges(cfg: "Config") -> None:
+    for key, (lo, hi) in _RANGES.items():
+        value = get_key(cfg, key)
+        for v in value if isinstance(value, tuple) else (value,):
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not _in_range(v, lo, hi):
+                each = "each entry " if isinstance(value, tuple) else ""
+                raise ConfigError(f"invalid value for {key}: {value!r} ({each}must be in {_range_text(lo, hi)})")
+
+
 def valid_keys(cfg: Config | None = None) -> list[str]:
     """All dotted keys that ``apply_overrides`` accepts."""
     cfg = cfg or Config()
@@ -370,6 +546,8 @@ def apply_overrides(cfg: Config, overrides: list[str]) -> Config:
 
 def validate(cfg: Config) -> None:
     """Reject values that would make training meaningless or crash later."""
+    _check_types(cfg)
+    _check_ranges(cfg)
     for key, choices in _CHOICES.items():
         value = get_key(cfg, key)
         if value not in choices:
@@ -440,8 +618,12 @@ def _from_dict(cls: type, data: dict[str, Any], prefix: str) -> Any:
         value = data[f.name]
         hint = hints[f.name]
         if dataclasses.is_dataclass(hint):
+            if not isinstance(value, dict):
+                raise ConfigError(f"saved config: {prefix}{f.name} must be a section (a JSON object), got {value!r}")
             kwargs[f.name] = _from_dict(hint, value, f"{prefix}{f.name}.")
         elif typing.get_origin(hint) is tuple:
+            if not isinstance(value, (list, tuple)):
+                raise ConfigError(f"saved config: {prefix}{f.name} must be a list, got {value!r}")
             kwargs[f.name] = tuple(value)
         else:
             kwargs[f.name] = value
@@ -472,6 +654,8 @@ def upgrade_config_dict(data: dict[str, Any]) -> dict[str, Any]:
 
 def config_from_dict(data: dict[str, Any]) -> Config:
     """Build and validate a Config from its dict; keys a saved config lacks get their legacy value."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"saved config must be a JSON object, got {type(data).__name__}")
     cfg = _from_dict(Config, upgrade_config_dict(data), "")
     validate(cfg)
     return cfg

@@ -5,7 +5,14 @@ mean) and reward weights frozen at p = 1, one episode per seed from a held-out e
 seed (by default ``sa.eval_seed + 1``, so the SA selection set is not reused).  Reported:
 success rate with its 95 % Wilson interval, mean steps per successful grasp, collision rate
 (and what was hit, from the episodes' ``hit_*`` flags), timeout rate, each overall and split by
-obstacle present / absent.  The JSON goes atomically into the run folder.
+obstacle present / absent.  The JSON goes atomically into the run folder, named by episodes and
+seed (``run_dir.evaluation_file``: ``evaluation-1000ep-seed12346.json``), or to ``--out``.  An
+existing file is replaced only if it holds the same evaluation (same run, checkpoint, episodes,
+seed, step cap, physical check) or with ``--force``.  The output folder is locked while the
+evaluation runs, and checked to be writable before it starts.
+
+``--physical`` also replays every kinematic success through the physical grasp check
+(``evaluate_physical``, ``sagrasp_jax.physical``).
 """
 
 from __future__ import annotations
@@ -14,7 +21,6 @@ import sagrasp_jax  # noqa: F401  (sets XLA_FLAGS before jax is imported)
 
 import argparse
 import dataclasses
-import json
 import math
 import os
 import sys
@@ -24,14 +30,15 @@ from typing import Any, Callable
 import jax
 import numpy as np
 
-from sagrasp_jax import checkpoint, observation, ppo
-from sagrasp_jax.control import ACTION_SIZE
+from sagrasp_jax import ppo, run_dir
 from sagrasp_jax.checkpoint import CheckpointError
-from sagrasp_jax.config import Config, ConfigError, blocking_sampling, config_from_dict
+from sagrasp_jax.config import SEED_RANGE, Config, ConfigError, blocking_sampling, check_range
+from sagrasp_jax.run_dir import RunDirError
 
-RESULT_FILE = "evaluation.json"
 EvalEnvFactory = Callable[[Config], ppo.Env]
 SCENE_SETS = ("mix", "blocking")
+MAX_EPISODES = 100_000  # one batch: every episode's env state is in memory at once
+MAX_STEPS = 100_000
 
 
 def default_eval_env(cfg: Config) -> ppo.Env:
@@ -63,30 +70,6 @@ def wilson_interval(successes: float, n: int, z: float = 1.959964) -> tuple[floa
     return (max(0.0, centre - half), min(1.0, centre + half))
 
 
-def load_policy_state(run_dir: str, obs_size: int | None = None, action_size: int = ACTION_SIZE
-                      ) -> tuple[Config, ppo.Params, ppo.Normaliser, dict[str, Any]]:
-    """Config, params and normaliser of the run's latest checkpoint (and its counters); the
-    observation size defaults to that of the run's observation layout."""
-    from sagrasp_jax.train import CHECKPOINT_FILE, CONFIG_FILE
-
-    cfg_path = os.path.join(run_dir, CONFIG_FILE)
-    try:
-        with open(cfg_path, encoding="utf-8") as f:
-            cfg = config_from_dict(json.load(f))
-    except FileNotFoundError:
-        raise CheckpointError(f"{cfg_path}: not a run folder (no config.json)") from None
-    except (json.JSONDecodeError, TypeError, ValueError) as exc:
-        raise CheckpointError(f"{cfg_path}: unreadable config ({exc})") from None
-    ckpt = checkpoint.load(os.path.join(run_dir, CHECKPOINT_FILE))
-    checkpoint.check_config(ckpt, cfg)
-    obs_size = len(observation.layout_of(cfg.env)) if obs_size is None else obs_size
-    networks = ppo.make_networks(cfg.ppo.network, obs_size, action_size, cfg.ppo.obs_clip)
-    optimizer = ppo.make_optimizer(cfg.ppo, cfg.sa.lr0)
-    template = ppo.init_training_state(jax.random.PRNGKey(0), networks, optimizer, obs_size)
-    ts = checkpoint.restore_tree(template, ckpt.trees.get("train_state", {}), "train_state", ckpt.path)
-    return cfg, ts.params, ts.normaliser, ckpt.host.get("counters", {})
-
-
 def summarise(episodes: dict[str, np.ndarray], mask: np.ndarray) -> dict[str, Any]:
     """Rates over the episodes selected by ``mask``."""
     n = int(mask.sum())
@@ -109,19 +92,31 @@ def summarise(episodes: dict[str, np.ndarray], mask: np.ndarray) -> dict[str, An
     }
 
 
-def evaluate_run(run_dir: str, episodes: int = 1000, seed: int | None = None, max_steps: int | None = None,
+def check_options(episodes: int, seed: int | None, max_steps: int | None) -> None:
+    check_range("--episodes", episodes, 1, MAX_EPISODES)
+    if seed is not None:
+        check_range("--seed", seed, *SEED_RANGE)
+    if max_steps is not None:
+        check_range("--max-steps", max_steps, 1, MAX_STEPS)
+
+
+def resolve_options(cfg: Config, seed: int | None, max_steps: int | None) -> tuple[int, int]:
+    """The evaluation seed (default ``sa.eval_seed + 1``, held out) and step cap (default the config's)."""
+    seed = (cfg.sa.eval_seed + 1) % (SEED_RANGE[1] + 1) if seed is None else seed
+    return seed, cfg.env.task.max_steps if max_steps is None else max_steps
+
+
+def evaluate_run(run: str, episodes: int = 1000, seed: int | None = None, max_steps: int | None = None,
                  env_factory: EvalEnvFactory | None = None, scenes: str = "mix") -> dict[str, Any]:
     """Play ``episodes`` fixed-seed episodes with the run's policy and summarise them."""
-    if episodes < 1:
-        raise ConfigError(f"--episodes must be >= 1, got {episodes}")
-    from sagrasp_jax.train import CONFIG_FILE
-
-    with open(os.path.join(run_dir, CONFIG_FILE), encoding="utf-8") as f:
-        env = (env_factory or default_eval_env)(scene_config(config_from_dict(json.load(f)), scenes))
-    cfg, params, normaliser, counters = load_policy_state(run_dir, env.observation_size, env.action_size)
+    check_options(episodes, seed, max_steps)
+    cfg = run_dir.load_config(run)
+    ckpt = run_dir.load_checkpoint(run, cfg)  # verified before the env is built
+    counters = run_dir.checkpoint_counters(ckpt)
+    env = (env_factory or default_eval_env)(scene_config(cfg, scenes))
+    params, normaliser = run_dir.restore_policy(cfg, ckpt, env.observation_size, env.action_size)
     networks = ppo.make_networks(cfg.ppo.network, env.observation_size, env.action_size, cfg.ppo.obs_clip)
-    seed = cfg.sa.eval_seed + 1 if seed is None else seed
-    steps = max_steps or cfg.env.task.max_steps
+    seed, steps = resolve_options(cfg, seed, max_steps)
     t = time.perf_counter()
     result = jax.device_get(ppo.make_evaluator(networks, env, steps)(params, normaliser, ppo.eval_keys(seed, episodes)))
     wall = time.perf_counter() - t
@@ -130,7 +125,7 @@ def evaluate_run(run_dir: str, episodes: int = 1000, seed: int | None = None, ma
     blocking = present & (eps["blocking"] > 0) if "blocking" in eps else np.zeros(episodes, bool)
     everyone = np.ones(episodes, bool)
     return {
-        "run": os.path.abspath(run_dir),
+        "run": os.path.abspath(run),
         "episodes": episodes,
         "scenes": scenes,
         "seed": seed,
@@ -149,9 +144,74 @@ def evaluate_run(run_dir: str, episodes: int = 1000, seed: int | None = None, ma
 
 
 def write_results(path: str, results: dict[str, Any]) -> str:
-    text = json.dumps(results, indent=2, sort_keys=True, allow_nan=False) + "\n"
-    checkpoint.atomic_write_bytes(path, text.encode())
-    return path
+    return run_dir.write_json(path, results)
+
+
+def evaluate_physical(run: str, episodes: int, seed: int, max_steps: int, lift: float | None = None) -> dict[str, Any]:
+    """Replay ``evaluate_run``'s episodes (same keys, same jitted evaluator) recording each final
+    pose, and run the physical grasp check (``physical.physical_grasp_check``) on every kinematic
+    success.
+
+    The replay goes through ``ppo.evaluate_policy`` with the env wrapped to copy the final
+    joints into the episode record, so it is the evaluation's own code path; the kinematic
+    success count is reported next to the physical one so a mismatch would show.
+    """
+    from sagrasp_jax import physical
+    from sagrasp_jax.env import GraspEnv
+    from sagrasp_jax.sampling import ResetSpec
+
+    lift = physical.LIFT_HEIGHT if lift is None else lift
+    cfg = run_dir.load_config(run)
+    env = _FinalPoseRecorder(GraspEnv(cfg.env))
+    cfg, params, normaliser, _ = run_dir.load_policy_state(run, env.observation_size, env.action_size)
+    networks = ppo.make_networks(cfg.ppo.network, env.observation_size, env.action_size, cfg.ppo.obs_clip)
+    keys = ppo.eval_keys(seed, episodes)
+    result = jax.device_get(ppo.make_evaluator(networks, env, max_steps)(params, normaliser, keys))
+    specs = jax.device_get(jax.jit(jax.vmap(env.reset))(keys).info["reset"])
+    eps = {k: np.asarray(v) for k, v in result.episodes.items()}
+    q_final = np.stack([eps[f"final_q{i + 1}"] for i in range(physical.ARM_DOF)], axis=-1)
+    successes = np.nonzero(eps["success"] > 0)[0]
+    checks = []
+    for i in successes:
+        spec = ResetSpec(*(np.asarray(leaf)[i] for leaf in specs))
+        checks.append(physical.physical_grasp_check(q_final[i], spec, lift=lift))
+    held = sum(c["success"] for c in checks)
+    failures = {name: sum(not c["criteria"][name] for c in checks) for name in checks[0]["criteria"]} if checks else {}
+    return {
+        "episodes": episodes,
+        "kinematic_successes": int(len(successes)),
+        "physical_successes": int(held),
+        "physical_success_rate": held / episodes,
+        "physical_given_kinematic": held / len(successes) if len(successes) else None,
+        "mean_cube_rise": float(np.mean([c["cube_rise"] for c in checks])) if checks else None,
+        "failed_criteria": failures,
+        "lift": lift,
+    }
+
+
+class _FinalPoseRecorder:
+    """Env wrapper that copies the measured arm joints into ``info["episode"]`` as scalar
+    entries ``final_q1..6`` (scalars, so ``ppo.evaluate_policy`` keeps them per episode)."""
+
+    ARM_DOF = 6
+
+    def __init__(self, env: Any) -> None:
+        self.env = env
+        self.observation_size = env.observation_size
+        self.action_size = env.action_size
+
+    def _record(self, state: Any) -> Any:
+        pipeline = state.pipeline_state
+        n = self.ARM_DOF
+        q = state.info["q_target"] if pipeline is None else pipeline.qpos[:n].astype(state.info["q_target"].dtype)
+        episode = dict(state.info["episode"], **{f"final_q{i + 1}": q[i] for i in range(n)})
+        return state.replace(info=dict(state.info, episode=episode))
+
+    def reset(self, rng: Any) -> Any:
+        return self._record(self.env.reset(rng))
+
+    def step(self, state: Any, action: Any) -> Any:
+        return self._record(self.env.step(state, action))
 
 
 def format_table(results: dict[str, Any]) -> str:
@@ -195,21 +255,36 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--max-steps", type=int, default=None, help="step cap per episode (default env.task.max_steps)")
     p.add_argument("--scenes", default="mix", choices=SCENE_SETS,
                    help="mix: the SPEC's scene mix (20 %% obstacle episodes); blocking: every episode has an obstacle "
-                        "on the straight approach path")
-    p.add_argument("--out", default=None, help=f"result JSON (default RUN/{RESULT_FILE})")
+                        "on the straight approach path (the file name says so)")
+    p.add_argument("--out", default=None,
+                   help="result JSON (default RUN/evaluation-<EPISODES>ep-seed<SEED>[-<MAX_STEPS>steps].json)")
+    p.add_argument("--force", action="store_true", help="replace an existing result file that holds another evaluation")
     p.add_argument("--physical", action="store_true",
                    help="also replay each kinematic success through the MuJoCo physical grasp check (close, lift 5 cm)")
     args = p.parse_args(argv)
     try:
-        results = evaluate_run(args.run, args.episodes, args.seed, args.max_steps, scenes=args.scenes)
-        if args.physical:
-            from sagrasp_jax.physical import evaluate_physical
-
-            results["physical"] = evaluate_physical(args.run, args.episodes, results["seed"], results["max_steps"])
-    except (ConfigError, CheckpointError, FileNotFoundError) as exc:
+        check_options(args.episodes, args.seed, args.max_steps)
+        cfg = run_dir.load_config(args.run)
+        counters = run_dir.checkpoint_counters(run_dir.load_checkpoint(args.run, cfg))
+        seed, steps = resolve_options(cfg, args.seed, args.max_steps)
+        path = args.out or run_dir.path(args.run, run_dir.evaluation_file(
+            args.episodes, seed, None if steps == cfg.env.task.max_steps else steps, args.scenes))
+        identity = {"run": os.path.abspath(args.run), "episodes": args.episodes, "seed": seed, "max_steps": steps,
+                    "checkpoint_iteration": counters.get("iteration"),
+                    "checkpoint_env_steps": counters.get("env_steps"), "physical_check": args.physical,
+                    "scenes": args.scenes}
+        folder = os.path.dirname(os.path.abspath(path))
+        with run_dir.FolderLock(folder, create=True, what="output folder"):
+            run_dir.check_writable(folder, "output folder")  # before the evaluation, not after it
+            run_dir.check_replace(path, identity, args.force)
+            results = evaluate_run(args.run, args.episodes, seed, steps, scenes=args.scenes)
+            results["physical_check"] = args.physical
+            if args.physical:
+                results["physical"] = evaluate_physical(args.run, args.episodes, seed, steps)
+            write_results(path, results)
+    except (ConfigError, CheckpointError, RunDirError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    path = write_results(args.out or os.path.join(args.run, RESULT_FILE), results)
     print(format_table(results))
     if "physical" in results:
         ph = results["physical"]

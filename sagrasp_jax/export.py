@@ -5,7 +5,7 @@ Writes, each atomically (temp file + rename), into ``--out``:
 * ``policy.npz`` — the ``sagrasp_jax.runtime`` format (weights, normaliser with its std floor
   and clip, action scale, observation layout, training config and its hash, package
   version), from the run's latest checkpoint (its final params at the end of training), via
-  ``train.export_policy``;
+  ``run_dir.export_policy``;
 * ``policy.onnx`` — the same deterministic policy as an ONNX graph (opset ≥ 17), built with
   ``onnx.helper`` from the npz weights: ``clip((obs − mean)/std, ±clip)``, the dense layers
   with their activation, the ``action_size`` loc outputs, ``tanh``.  Input ``obs`` float32
@@ -16,6 +16,9 @@ Writes, each atomically (temp file + rename), into ``--out``:
 Why both: ``policy.npz`` runs with NumPy alone on the robot PC (``runtime.load_policy``);
 ONNX serves any other runtime.  Both come from the same arrays, and the exporter checks that
 they agree (``onnxruntime``, when installed) before it reports success.
+
+The run is read and checked first; then ``--out`` is locked (``run_dir.FolderLock``: a second
+export or a training writing there is refused) and checked to be writable.
 """
 
 from __future__ import annotations
@@ -156,35 +159,63 @@ def onnx_actions(path: str, obs: np.ndarray) -> np.ndarray:
     return session.run(["action"], {"obs": np.asarray(obs, dtype=np.float32)})[0]
 
 
-def load_run(run_dir: str) -> tuple[Any, Any, Any, dict[str, Any]]:
-    """Config, final params, normaliser and counters of a run folder, with clear errors."""
-    from sagrasp_jax.checkpoint import CheckpointError
-    from sagrasp_jax.evaluate import load_policy_state
-
-    if not os.path.exists(run_dir):
-        raise ExportError(f"{run_dir}: run folder not found")
-    if not os.path.isdir(run_dir):
-        raise ExportError(f"{run_dir}: not a folder (pass the run folder written by sagrasp_jax.train)")
+def check_opset(opset: int) -> int:
+    """17 ≤ opset ≤ the newest opset the installed onnx knows."""
     try:
-        return load_policy_state(run_dir)
-    except CheckpointError as exc:
-        raise ExportError(f"cannot export {run_dir}: {exc}") from None
+        import onnx
+
+        newest = int(onnx.defs.onnx_opset_version())
+    except ImportError:
+        newest = 100  # checked again by onnx itself when it is installed
+    if isinstance(opset, bool) or not isinstance(opset, int) or not DEFAULT_OPSET <= opset <= newest:
+        raise ExportError(f"--opset={opset!r} is outside the supported range [{DEFAULT_OPSET}, {newest}]")
+    return opset
 
 
-def export_run(run_dir: str, out_dir: str, *, onnx: bool = True, opset: int = DEFAULT_OPSET) -> dict[str, Any]:
+def load_run(run: str) -> tuple[Any, Any, Any, dict[str, Any]]:
+    """Config, final params, normaliser and counters of a run folder, with clear errors."""
+    from sagrasp_jax import run_dir
+    from sagrasp_jax.checkpoint import CheckpointError
+
+    if not os.path.exists(run):
+        raise ExportError(f"{run}: run folder not found")
+    if not os.path.isdir(run):
+        raise ExportError(f"{run}: not a folder (pass the run folder written by sagrasp_jax.train)")
+    try:
+        return run_dir.load_policy_state(run)
+    except (CheckpointError, run_dir.RunDirError) as exc:
+        raise ExportError(f"cannot export {run}: {exc}") from None
+
+
+def export_run(run: str, out_dir: str, *, onnx: bool = True, opset: int = DEFAULT_OPSET) -> dict[str, Any]:
     """Export a run folder's policy into ``out_dir``; returns the manifest (also written there)."""
-    from sagrasp_jax.checkpoint import atomic_write_bytes
-    from sagrasp_jax.train import export_policy, make_schedule
+    from sagrasp_jax import run_dir
 
-    cfg, params, normaliser, counters = load_run(run_dir)
+    if onnx:
+        check_opset(opset)
+    if not os.path.isdir(run):
+        load_run(run)  # says what is wrong with it
     if os.path.exists(out_dir) and not os.path.isdir(out_dir):
         raise ExportError(f"{out_dir}: exists and is not a folder")
-    os.makedirs(out_dir, exist_ok=True)
-    npz_path = export_policy(os.path.join(out_dir, NPZ_FILE), cfg, params, normaliser, int(normaliser.mean.shape[-1]))
+    try:
+        with run_dir.FolderLock(out_dir, create=True, what="output folder"):
+            run_dir.check_writable(out_dir, "output folder")
+            cfg, params, normaliser, counters = load_run(run)
+            return _export(run, out_dir, cfg, params, normaliser, counters, onnx, opset)
+    except run_dir.RunDirError as exc:
+        raise ExportError(str(exc)) from None
+
+
+def _export(run: str, out_dir: str, cfg: Any, params: Any, normaliser: Any, counters: dict[str, Any], onnx: bool,
+            opset: int) -> dict[str, Any]:
+    from sagrasp_jax import ppo, run_dir
+    from sagrasp_jax.checkpoint import atomic_write_bytes
+
+    npz_path = run_dir.export_policy(os.path.join(out_dir, NPZ_FILE), cfg, params, normaliser, int(normaliser.mean.shape[-1]))
     policy = runtime.load_policy(npz_path)
-    planned = make_schedule(cfg).num_iterations
+    planned = ppo.num_iterations(cfg.train.total_steps, cfg.ppo)
     manifest: dict[str, Any] = {
-        "run": os.path.abspath(run_dir),
+        "run": os.path.abspath(run),
         "checkpoint_iteration": counters.get("iteration"),
         "checkpoint_env_steps": counters.get("env_steps"),
         "finished": counters.get("iteration") == planned,

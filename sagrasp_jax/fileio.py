@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import tempfile
 from collections.abc import Callable
 from typing import Any
@@ -19,6 +20,46 @@ def _umask_mode() -> int:
     mask = os.umask(0)
     os.umask(mask)
     return 0o666 & ~mask
+
+
+# ``atomic_write``'s temp names: ".<file name>.<8 random chars from mkstemp>.tmp<extension>".
+_TEMP_NAME = re.compile(r"^\.(?P<target>.+)\.[a-z0-9_]{8}\.tmp(\.[^./]+)?$")
+
+
+def temp_files(folder: str) -> list[str]:
+    """Temp files ``atomic_write`` left in ``folder`` (a process killed between writing and
+    renaming leaves one): full paths, sorted.  Only the caller knows no write is in flight."""
+    try:
+        names = os.listdir(folder)
+    except (FileNotFoundError, NotADirectoryError):
+        return []
+    return sorted(os.path.join(folder, n) for n in names
+                  if _TEMP_NAME.match(n) and os.path.isfile(os.path.join(folder, n)))
+
+
+class NotWritable(OSError):
+    """An output location this process cannot write into; the message names it and why."""
+
+    def __str__(self) -> str:
+        return str(self.args[0]) if self.args else "not writable"
+
+
+def check_writable(path: str, what: str = "output folder", is_folder: bool = True) -> None:
+    """Refuse, before any expensive work, an output this process could not write: ``path`` is
+    the folder (or with ``is_folder=False`` the file) to be written.  A probe file is created and
+    removed in the folder, or in its nearest existing parent when it does not exist yet (it would
+    be made there), so read-only mounts, permissions and full disks all show."""
+    folder = os.path.abspath(path if is_folder else os.path.dirname(os.path.abspath(path)))
+    while not os.path.exists(folder):
+        folder = os.path.dirname(folder)
+    if not os.path.isdir(folder):
+        raise NotWritable(f"cannot write {path}: {folder} is a file, not a folder")
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".write-probe-", dir=folder)
+    except OSError as exc:
+        raise NotWritable(f"cannot write into {what} {folder}: {exc.strerror or exc}") from None
+    os.close(fd)
+    os.unlink(probe)
 
 
 def atomic_write(path: str, write: Callable[[str], None]) -> str:

@@ -46,7 +46,7 @@ from typing import Any, Callable
 import numpy as np
 
 from sagrasp_jax import fileio, robot, sampling, scripted
-from sagrasp_jax.config import Config, ConfigError, EnvConfig, apply_overrides, get_config
+from sagrasp_jax.config import Config, ConfigError, EnvConfig, apply_overrides, check_range, get_config
 
 SOURCES = ("random", "scripted", "policy")
 FLAGS = ("done", "success", "collision", "timeout")
@@ -556,8 +556,16 @@ def main(argv: list[str] | None = None) -> int:
     episodes = args.episodes if args.episodes is not None else (50 if args.quick else 1000)
     max_steps = args.max_steps if args.max_steps is not None else (100 if args.quick else None)
     sources = tuple(s.strip() for s in args.actions.split(",") if s.strip())
-    if episodes < 1 or args.batch < 1:
-        print("error: --episodes and --batch must be ≥ 1", file=sys.stderr)
+    try:
+        check_range("--episodes", episodes, 1, 100_000)
+        check_range("--batch", args.batch, 1, 1000)
+        check_range("--seed", args.seed, 0, 2**31 - 1)  # seed + episode index must stay a distinct jax seed
+        if max_steps is not None:
+            check_range("--max-steps", max_steps, 1, 100_000)
+        if args.out:
+            fileio.check_writable(args.out, "output folder", is_folder=False)
+    except (ConfigError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
         return 2
     bad = [s for s in sources if s not in ("random", "scripted")]
     if bad:

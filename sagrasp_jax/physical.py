@@ -8,20 +8,19 @@ collision).  This check replays the end of an episode with physics on CPU MuJoCo
   the episode's pose; the obstacle slots get the episode's shape, size and pose;
 * the arm starts at the final joint vector, fingers open, and is held by its position servos;
 * the fingers close (pad-cube contacts on), then the servos lift the gripper centre by
-  ``lift`` metres along the same IK path the deployment loop uses (``deploy.loop.lift_pose``);
+  ``lift`` metres along the same IK path the deployment loop uses (``robot.lift_pose``);
 * success: the cube rose with the gripper (within ``HOLD_TOLERANCE``), both pads still touch
   it, and its centre lies between the pads.
 
-``GraspScene`` is the adapted model with those operations; ``MujocoRobot`` wraps it as a
-``deploy.loop.RobotInterface`` so the deployment loop itself can run in MuJoCo (the renderer
-uses it).  ``evaluate_physical`` re-plays an evaluation's episodes with the JAX env and checks
-every kinematic success (``python -m sagrasp_jax.evaluate --physical``).  Only that function
-imports jax, lazily.
+``GraspScene`` is the adapted model with those operations; ``MujocoRobot`` implements the
+deployment loop's ``RobotInterface`` protocol so the loop itself can run in MuJoCo (the renderer
+uses it).  ``evaluate.evaluate_physical`` re-plays an evaluation's episodes with the JAX env and
+checks every kinematic success here (``python -m sagrasp_jax.evaluate --physical``).  Nothing
+here imports jax or the deployment package.
 """
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from typing import Any, Callable
@@ -30,9 +29,7 @@ import mujoco
 import numpy as np
 
 from sagrasp_jax import robot as robot_mod
-from sagrasp_jax.config import config_from_dict
-from sagrasp_jax.deploy.loop import lift_pose
-from sagrasp_jax.robot import BOX, CYLINDER, SPHERE
+from sagrasp_jax.robot import BOX, CYLINDER, SPHERE, lift_pose
 from sagrasp_jax.sampling import ResetSpec
 
 SCENE_XML = os.path.normpath(os.path.join(os.path.dirname(robot_mod.URDF_PATH), "..", "mjcf", "scene.xml"))
@@ -247,7 +244,7 @@ def physical_grasp_check(q_final: Any, reset_spec: ResetSpec, *, lift: float = L
 
 
 class MujocoRobot:
-    """``deploy.loop.RobotInterface`` on a ``GraspScene``: the deployment loop run in MuJoCo.
+    """The deployment loop's ``RobotInterface`` on a ``GraspScene``: the loop run in MuJoCo.
 
     Joint targets are applied kinematically (``qpos = q``, training's default mode: the AUBO
     tracks targets precisely) until the gripper closes; from then on they are tracked by the
@@ -280,69 +277,3 @@ class MujocoRobot:
 
     def object_position(self) -> np.ndarray:
         return self.scene.cube_pos
-
-
-def evaluate_physical(run_dir: str, episodes: int, seed: int, max_steps: int,
-                      lift: float = LIFT_HEIGHT) -> dict[str, Any]:
-    """Replay ``evaluate``'s episodes (same keys, same jitted evaluator) recording each final
-    pose, and run the physical check on every kinematic success.
-
-    The replay goes through ``ppo.evaluate_policy`` with the env wrapped to copy the final
-    joints into the episode record, so it is the evaluation's own code path; the kinematic
-    success count is reported next to the physical one so a mismatch would show.
-    """
-    import jax  # only this evaluation helper needs jax: keep the check itself importable without it
-
-    from sagrasp_jax import ppo
-    from sagrasp_jax.env import GraspEnv
-    from sagrasp_jax.evaluate import load_policy_state
-    from sagrasp_jax.train import CONFIG_FILE
-
-    with open(os.path.join(run_dir, CONFIG_FILE), encoding="utf-8") as f:
-        env = _FinalPoseRecorder(GraspEnv(config_from_dict(json.load(f)).env))
-    cfg, params, normaliser, _ = load_policy_state(run_dir, env.observation_size, env.action_size)
-    networks = ppo.make_networks(cfg.ppo.network, env.observation_size, env.action_size, cfg.ppo.obs_clip)
-    keys = ppo.eval_keys(seed, episodes)
-    result = jax.device_get(ppo.make_evaluator(networks, env, max_steps)(params, normaliser, keys))
-    specs = jax.device_get(jax.jit(jax.vmap(env.reset))(keys).info["reset"])
-    eps = {k: np.asarray(v) for k, v in result.episodes.items()}
-    q_final = np.stack([eps[f"final_q{i + 1}"] for i in range(ARM_DOF)], axis=-1)
-    successes = np.nonzero(eps["success"] > 0)[0]
-    checks = []
-    for i in successes:
-        spec = ResetSpec(*(np.asarray(leaf)[i] for leaf in specs))
-        checks.append(physical_grasp_check(q_final[i], spec, lift=lift))
-    held = sum(c["success"] for c in checks)
-    failures = {name: sum(not c["criteria"][name] for c in checks) for name in checks[0]["criteria"]} if checks else {}
-    return {
-        "episodes": episodes,
-        "kinematic_successes": int(len(successes)),
-        "physical_successes": int(held),
-        "physical_success_rate": held / episodes,
-        "physical_given_kinematic": held / len(successes) if len(successes) else None,
-        "mean_cube_rise": float(np.mean([c["cube_rise"] for c in checks])) if checks else None,
-        "failed_criteria": failures,
-        "lift": lift,
-    }
-
-
-class _FinalPoseRecorder:
-    """Env wrapper that copies the measured arm joints into ``info["episode"]`` as scalar
-    entries ``final_q1..6`` (scalars, so ``ppo.evaluate_policy`` keeps them per episode)."""
-
-    def __init__(self, env: Any) -> None:
-        self.env = env
-        self.observation_size = env.observation_size
-        self.action_size = env.action_size
-
-    def _record(self, state: Any) -> Any:
-        pipeline = state.pipeline_state
-        q = state.info["q_target"] if pipeline is None else pipeline.qpos[:ARM_DOF].astype(state.info["q_target"].dtype)
-        episode = dict(state.info["episode"], **{f"final_q{i + 1}": q[i] for i in range(ARM_DOF)})
-        return state.replace(info=dict(state.info, episode=episode))
-
-    def reset(self, rng: Any) -> Any:
-        return self._record(self.env.reset(rng))
-
-    def step(self, state: Any, action: Any) -> Any:
-        return self._record(self.env.step(state, action))

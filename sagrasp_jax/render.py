@@ -27,6 +27,8 @@ from typing import Any, Sequence
 import numpy as np
 
 from sagrasp_jax import fileio
+from sagrasp_jax.config import SEED_RANGE, ConfigError, check_range
+from sagrasp_jax.deploy.safety import PolicyMismatch
 from sagrasp_jax.runtime import PolicyFormatError, load_policy
 
 CAMERAS = ("overview", "depth_camera")
@@ -164,6 +166,16 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise RenderError(f"--out {args.out!r} must end in .mp4")
         if args.width % 16 or args.height % 16 or args.width < 16 or args.height < 16:
             raise RenderError(f"--width/--height must be positive multiples of 16 (H.264 blocks), got {args.width}×{args.height}")
+        check_range("--width", args.width, 16, 4096)
+        check_range("--height", args.height, 16, 4096)
+        check_range("--episodes", args.episodes, 1, 1000)
+        check_range("--seed", args.seed, *SEED_RANGE)
+        check_range("--fps", args.fps, 1, 240)
+        if args.max_steps is not None:
+            check_range("--max-steps", args.max_steps, 1, 100_000)
+        fileio.check_writable(args.out, "output folder", is_folder=False)
+        if args.png:
+            fileio.check_writable(args.png, "output folder", is_folder=False)
         load_policy(args.policy)  # the user input first, then the GL backend and the writer
         _mujoco()
         _imageio()
@@ -172,7 +184,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         write_video(args.out, frames, args.fps)
         if args.png:
             write_png(args.png, frames[still])
-    except (RenderError, PolicyFormatError, OSError) as exc:
+    except (RenderError, PolicyFormatError, PolicyMismatch, ConfigError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     for i, r in enumerate(reports):

@@ -37,6 +37,10 @@ class URDFError(ValueError):
     """The URDF is missing, malformed, or lacks something the project needs."""
 
 
+class IKError(RuntimeError):
+    """Inverse kinematics found no acceptable joint vector for the requested pose."""
+
+
 def rpy_to_matrix(rpy: Any) -> np.ndarray:
     """URDF fixed-axis roll-pitch-yaw: R = Rz(yaw)·Ry(pitch)·Rx(roll)."""
     r, p, y = (float(v) for v in rpy)
@@ -368,3 +372,22 @@ def solve_home_pose(
         step = jac.T @ np.linalg.solve(jac @ jac.T + damping**2 * np.eye(5), -r)
         q = q + step
     return q
+
+
+LIFT_MAX_JOINT_MOVE = 0.5  # rad; a lift pose further than this from the grasp pose means IK left the branch
+
+
+def lift_pose(model: RobotModel, q: Any, height: float, max_joint_move: float = LIFT_MAX_JOINT_MOVE) -> np.ndarray:
+    """Joints that put the gripper centre ``height`` m straight above where it is at ``q``,
+    pointing down, found by IK seeded at ``q`` (so the arm stays on its branch).  Used by the
+    deployment loop's lift and the physical grasp check; raises IKError if the solution misses
+    the goal by more than 1 mm or moves a joint by more than ``max_joint_move``."""
+    q = np.asarray(q, dtype=float)
+    goal = forward_kinematics(np, model, q).gripper_centre + np.array([0.0, 0.0, height])
+    q_lift = solve_home_pose(q, goal, model)
+    kin = forward_kinematics(np, model, q_lift)
+    error = float(np.linalg.norm(kin.gripper_centre - goal))
+    move = float(np.abs(q_lift - q).max())
+    if not (error <= 1e-3 and move <= max_joint_move and np.isfinite(q_lift).all()):
+        raise IKError(f"no lift pose found near the grasp pose (IK error {error * 1000:.1f} mm, joint move {move:.3f} rad)")
+    return q_lift

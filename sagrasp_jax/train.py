@@ -6,9 +6,11 @@ iteration: rollout + update), ``evaluate`` (fixed-seed deterministic episodes at
 Everything that changes the numbers lives in jax arrays or in the checkpoint's host state,
 so a killed run resumed from its last checkpoint continues exactly as if uninterrupted.
 
-Run folder: ``config.json``, ``metrics.jsonl`` (one row per iteration), ``tb/`` (TensorBoard),
-``checkpoint.ckpt`` (every ``train.checkpoint_every_cycles`` cycles and at the end) and
-``policy.npz`` (the final policy in the ``sagrasp_jax.runtime`` format).
+Run folder (``sagrasp_jax.run_dir`` owns its layout): ``config.json``, ``metrics.jsonl`` (one row
+per iteration), ``tb/`` (TensorBoard), ``checkpoint.ckpt`` (every ``train.checkpoint_every_cycles``
+cycles and at the end) and ``policy.npz`` (the final policy in the ``sagrasp_jax.runtime``
+format).  The folder is locked while a training writes it; ``--resume`` continues from the
+checkpoint, or restarts a run killed before its first checkpoint from the beginning.
 """
 
 from __future__ import annotations
@@ -17,8 +19,6 @@ import sagrasp_jax  # noqa: F401  (sets XLA_FLAGS and the compile-cache dir befo
 
 import argparse
 import dataclasses
-import json
-import math
 import os
 import sys
 import time
@@ -29,19 +29,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sagrasp_jax import checkpoint, observation, ppo, runtime, sa_schedule
+from sagrasp_jax import checkpoint, ppo, run_dir, sa_schedule
 from sagrasp_jax.checkpoint import CheckpointError
 from sagrasp_jax.config import (
-    PRESETS, Config, ConfigError, apply_overrides, config_from_dict, config_to_dict, get_config, training_env_config,
-    validate,
+    PRESETS, SEED_RANGE, Config, ConfigError, apply_overrides, check_range, get_config, training_env_config, validate,
+)
+from sagrasp_jax.run_dir import (  # noqa: F401  (the run-folder names and readers, re-exported for callers)
+    CHECKPOINT_FILE, CONFIG_FILE, METRICS_FILE, POLICY_FILE, TB_DIR, RunDirError, RunLogger, export_policy, read_metrics,
 )
 
 ALGOS = ("sa-ppo", "ppo")
-CONFIG_FILE = "config.json"
-METRICS_FILE = "metrics.jsonl"
-CHECKPOINT_FILE = "checkpoint.ckpt"
-POLICY_FILE = "policy.npz"
-TB_DIR = "tb"
 # Row fields that depend on wall-clock time, not on the training maths.
 TIME_FIELDS = ("time_s", "steps_per_s", "compile_s", "compile_iteration_s", "compile_eval_s", "eval_s", "eta_s")
 
@@ -108,26 +105,6 @@ class HostState:
     entropy_sum: float = 0.0  # over the current cycle's iterations
     entropy_n: int = 0
     nonfinite: int = 0  # iterations rolled back for NaN/inf
-
-
-def _json_safe(value: Any) -> Any:
-    if isinstance(value, (np.generic, np.ndarray)):
-        value = value.item() if np.ndim(value) == 0 else value.tolist()
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
-
-
-def export_policy(path: str, cfg: Config, params: ppo.Params, normaliser: ppo.Normaliser, obs_size: int) -> str:
-    """Write the deterministic policy (weights + normaliser) as ``runtime``'s ``policy.npz``."""
-    layers = jax.device_get(params.policy["params"])
-    weights = [(np.asarray(layers[f"hidden_{i}"]["kernel"]), np.asarray(layers[f"hidden_{i}"]["bias"]))
-               for i in range(len(layers))]
-    names = observation.layout_of(cfg.env)
-    layout = names if obs_size == len(names) else tuple(f"obs_{i}" for i in range(obs_size))
-    return runtime.save_policy_npz(path, weights=weights, activation=cfg.ppo.network.activation,
-                                   obs_mean=np.asarray(normaliser.mean), obs_std=np.asarray(normaliser.std),
-                                   config=cfg, obs_layout=layout)
 
 
 class Trainer:
@@ -423,48 +400,6 @@ def _progress_bar(enabled: bool, sched: Schedule, initial: int, stream: TextIO) 
                 unit_scale=True, dynamic_ncols=True, mininterval=1.0, file=stream)
 
 
-class RunLogger:
-    """metrics.jsonl + TensorBoard; on resume drops rows past the checkpoint so the log stays exact."""
-
-    def __init__(self, out_dir: str, resume_iteration: int, resume_step: int) -> None:
-        from tensorboardX import SummaryWriter
-
-        self.path = os.path.join(out_dir, METRICS_FILE)
-        if os.path.exists(self.path):
-            keep = [line for line in read_metrics(self.path) if line.get("iteration", -1) < resume_iteration]
-            text = "".join(json.dumps(r, allow_nan=False) + "\n" for r in keep)
-            checkpoint.atomic_write_bytes(self.path, text.encode())
-        self.file = open(self.path, "a", encoding="utf-8")
-        self.tb = SummaryWriter(os.path.join(out_dir, TB_DIR), purge_step=resume_step + 1 if resume_step else None)
-
-    def write(self, row: dict[str, Any]) -> None:
-        clean = {k: _json_safe(v) for k, v in row.items()}
-        self.file.write(json.dumps(clean, allow_nan=False) + "\n")
-        self.file.flush()
-        step = int(row["env_steps"])
-        for key, value in clean.items():
-            if isinstance(value, (int, float)) and not isinstance(value, bool) and key not in ("iteration", "env_steps"):
-                self.tb.add_scalar(f"train/{key}", value, step)
-
-    def close(self) -> None:
-        self.file.close()
-        self.tb.close()
-
-
-def read_metrics(path: str) -> list[dict[str, Any]]:
-    """Rows of metrics.jsonl; a last line cut short by a kill is dropped, any other bad line raises."""
-    with open(path, encoding="utf-8") as f:
-        lines = [line for line in f if line.strip()]
-    rows = []
-    for i, line in enumerate(lines):
-        try:
-            rows.append(json.loads(line))
-        except json.JSONDecodeError:
-            if i < len(lines) - 1:
-                raise
-    return rows
-
-
 # ---------------------------------------------------------------------- CLI
 
 def _parser() -> argparse.ArgumentParser:
@@ -476,68 +411,70 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="config override, repeatable (e.g. ppo.num_envs=512)")
     p.add_argument("--total-steps", type=int, default=None)
-    p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.ckpt")
+    p.add_argument("--resume", action="store_true",
+                   help="continue from OUT/checkpoint.ckpt (a run killed before its first checkpoint restarts)")
     p.add_argument("--stop-after-cycles", type=int, default=None,
                    help="checkpoint and stop after this many SA cycles (simulates a preemption)")
     p.add_argument("--no-progress", action="store_true", help="no live progress bar")
     return p
 
 
+def check_args(args: argparse.Namespace) -> None:
+    """Range checks of the numeric options (their config keys are checked again by ``validate``)."""
+    if args.seed is not None:
+        check_range("--seed", args.seed, *SEED_RANGE)
+    if args.total_steps is not None:
+        check_range("--total-steps", args.total_steps, 1, 10**12)
+    if args.stop_after_cycles is not None:
+        check_range("--stop-after-cycles", args.stop_after_cycles, 1, 10**6)
+
+
 def resolve_config(args: argparse.Namespace) -> Config:
     """The run's config; on --resume without config options it is the run folder's config.json."""
     explicit = any(v is not None for v in (args.preset, args.algo, args.seed, args.total_steps)) or args.overrides
     if args.resume and not explicit:
-        path = os.path.join(args.out, CONFIG_FILE)
-        try:
-            with open(path, encoding="utf-8") as f:
-                return config_from_dict(json.load(f))
-        except FileNotFoundError:
-            raise CheckpointError(f"{path}: cannot resume, the run folder has no config.json") from None
-        except (json.JSONDecodeError, TypeError, ValueError) as exc:
-            raise CheckpointError(f"{path}: unreadable config ({exc})") from None
+        if not os.path.isfile(os.path.join(args.out, CONFIG_FILE)) and not os.path.isfile(os.path.join(args.out, CHECKPOINT_FILE)):
+            raise RunDirError(f"{args.out}: cannot resume, no {CONFIG_FILE} and no {CHECKPOINT_FILE} there (the run "
+                              "wrote neither); start it again without --resume, or pass its config options")
+        return run_dir.load_config(args.out)
     return build_config(args.preset or "cpu-quick", args.algo or "sa-ppo", args.seed, args.total_steps,
                         args.overrides)
 
 
-def check_run_dir(out: str, resume: bool) -> None:
-    """Refuse to overwrite a run, or to resume one that has no checkpoint."""
-    if resume:
-        if not os.path.isfile(os.path.join(out, CHECKPOINT_FILE)):
-            raise CheckpointError(f"{os.path.join(out, CHECKPOINT_FILE)}: cannot resume, no checkpoint found")
-        return
-    if os.path.exists(out) and not os.path.isdir(out):
-        raise FileExistsError(f"{out} exists and is not a folder")
-    if os.path.isdir(out) and os.listdir(out):
-        raise FileExistsError(f"{out} exists and is not empty; choose a new --out or pass --resume")
-
-
-def write_config(out: str, cfg: Config) -> None:
-    os.makedirs(out, exist_ok=True)
-    text = json.dumps(config_to_dict(cfg), indent=2, sort_keys=True) + "\n"
-    checkpoint.atomic_write_bytes(os.path.join(out, CONFIG_FILE), text.encode())
-
-
 def run(cfg: Config, out: str, *, resume: bool = False, env_factory: EnvFactory | None = None,
-        progress: bool = True, stop_after_cycles: int | None = None) -> Trainer:
-    """Library entry point: validate, prepare the folder, train; returns the finished trainer."""
+        progress: bool = True, stop_after_cycles: int | None = None, stream: TextIO | None = None) -> Trainer:
+    """Library entry point: validate, lock and check the folder, train; returns the finished trainer.
+
+    Everything that can refuse the run (config, folder, checkpoint, metrics log, a second writer,
+    a read-only location) is checked before the env is built, and nothing is written before
+    all of it passed.  See ``run_dir`` for the fresh / resume / restart rules."""
     validate(cfg)
-    check_run_dir(out, resume)
-    trainer = Trainer(cfg, out, env_factory=env_factory, resume=resume, progress=progress)  # writes nothing
-    if not resume:
-        write_config(out, cfg)
-    trainer.train(stop_after_cycles=stop_after_cycles)
+    with run_dir.FolderLock(out, create=True, what="run folder"):
+        mode = run_dir.prepare_training(out, cfg, resume)
+        if mode == "restart":
+            print(f"{out}: no checkpoint yet (the run stopped before its first one): restarting it from the beginning",
+                  file=stream if stream is not None else sys.stderr)
+        trainer = Trainer(cfg, out, env_factory=env_factory, resume=mode == "resume", progress=progress,
+                          stream=stream)  # writes nothing
+        if mode != "resume":
+            run_dir.write_config(out, cfg)
+        trainer.train(stop_after_cycles=stop_after_cycles)
     return trainer
 
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
+        check_args(args)
         cfg = resolve_config(args)
         run(cfg, args.out, resume=args.resume, progress=not args.no_progress,
             stop_after_cycles=args.stop_after_cycles)
-    except (ConfigError, CheckpointError, FileExistsError) as exc:
+    except (ConfigError, CheckpointError, RunDirError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print(f"\ninterrupted: {args.out} continues from its last checkpoint with --resume", file=sys.stderr)
+        return 130
     return 0
 
 

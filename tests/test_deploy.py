@@ -111,7 +111,7 @@ def test_observation_is_the_training_envs() -> None:
 
 
 def test_safety_refuses_over_limit_and_too_fast_commands_twin_stays(policy) -> None:
-    layer = SafetyLayer(policy.env_config())
+    layer = SafetyLayer()
     with _twin() as twin:
         before = twin.read_joints()
         over = before.copy()
@@ -155,7 +155,7 @@ def test_tiny_policy_episode_on_twin_reports_and_obeys_safety(policy) -> None:
     # every command the twin received passes the layer the loop uses, one after the other
     cfg = policy.env_config()
     spec = scene_spec(HOME, TARGET, 0.0, [obstacle], cfg)
-    layer = SafetyLayer(cfg, MODEL, collision_check=collision_hook(MODEL, cfg, spec))
+    layer = SafetyLayer(robot=MODEL, collision_check=collision_hook(MODEL, cfg, spec))
     previous = HOME
     for q in spy.sent:
         layer.check(q, previous)
@@ -167,9 +167,8 @@ def test_loop_stops_at_the_first_refused_command(tmp_path) -> None:
     """A policy that drives the gripper down under a tightened workspace floor is stopped by the
     layer; the refused command never reaches the twin."""
     down = constant_policy(tmp_path, [0, 0.9, 0, 0, 0, 0])  # q2 up: the arm tips forward and down
-    cfg = down.env_config()
     start_z = float(forward_kinematics(np, MODEL, HOME).gripper_centre[2])
-    layer = SafetyLayer(cfg, MODEL, workspace=WorkspaceBox(lower=(-0.5, -0.85, start_z - 0.05)))
+    layer = SafetyLayer(robot=MODEL, workspace=WorkspaceBox(lower=(-0.5, -0.85, start_z - 0.05)))
     with _twin() as twin:
         spy = Spy(twin)
         report = run_episode(spy, down, TARGET, safety=layer)

@@ -138,7 +138,7 @@ def test_import_does_not_import_jax(policy_file):
         "import sys, numpy as np\n"
         "import sagrasp_jax.runtime as rt, sagrasp_jax.deploy.calibration, sagrasp_jax.deploy.safety\n"
         f"p = rt.load_policy({str(policy_file[0])!r})\n"
-        "a = p(np.zeros(17)); s = sagrasp_jax.deploy.safety.SafetyLayer(p.env_config())\n"
+        "a = p(np.zeros(17)); sagrasp_jax.deploy.safety.check_policy_constants(p.env_config()); s = sagrasp_jax.deploy.safety.SafetyLayer()\n"
         "bad = sorted(m for m in sys.modules if m == 'jax' or m.startswith(('jax.', 'jaxlib', 'brax', 'flax')))\n"
         "assert not bad, bad\n"
         "print('ok', a.shape)\n"

@@ -8,7 +8,14 @@ import numpy as np
 import pytest
 
 from sagrasp_jax.config import HOME_GRIPPER_CENTRE, HOME_Q, EnvConfig
-from sagrasp_jax.deploy.safety import SafetyLayer, SafetyViolation, WorkspaceBox
+from sagrasp_jax.deploy.safety import (
+    DeploySettings,
+    PolicyMismatch,
+    SafetyLayer,
+    SafetyViolation,
+    WorkspaceBox,
+    check_policy_constants,
+)
 from sagrasp_jax.robot import forward_kinematics, load_robot, solve_home_pose
 
 HOME = np.array(HOME_Q)
@@ -70,17 +77,31 @@ def test_too_fast_refused(layer):
         layer.check(q, HOME)
 
 
-def test_step_limit_is_velocity_times_dt_when_smaller_than_q_max():
-    base = EnvConfig()
-    cfg = dataclasses.replace(base, control=dataclasses.replace(base.control, q_max=0.2))
-    layer = SafetyLayer(cfg)
+def test_step_limit_is_velocity_times_dt_when_smaller_than_max_step():
+    layer = SafetyLayer(DeploySettings(max_step=0.2))
     # 2.5964 rad/s × 0.05 s = 0.12982 (J1-J3); 3.1105 × 0.05 = 0.155525 (J4-J6).
     np.testing.assert_allclose(layer.step_limit, [0.12982] * 3 + [0.155525] * 3)
     assert np.all(SafetyLayer().step_limit == 0.05)
     q = HOME.copy()
     q[0] += 0.13
-    with pytest.raises(SafetyViolation, match=r"over the limit 0\.1298 rad = min\(velocity 2\.5964 rad/s × 0\.05 s, q_max 0\.2"):
+    with pytest.raises(SafetyViolation, match=r"over the limit 0\.1298 rad = min\(velocity 2\.5964 rad/s × 0\.05 s, max step 0\.2"):
         layer.check(q, HOME)
+
+
+def test_limits_never_come_from_a_policy_config():
+    """Issue 16 #8: a policy's env config (here one claiming q_max = 0.5) can neither be passed as the
+    layer's limits nor get past the deployment's constants."""
+    base = EnvConfig()
+    loose = dataclasses.replace(base, control=dataclasses.replace(base.control, q_max=0.5, control_dt=0.2))
+    with pytest.raises(TypeError, match="never from a policy"):
+        SafetyLayer(loose)
+    with pytest.raises(PolicyMismatch, match=r"env.control.q_max \(rad per step\): policy 0.5, deployment 0.05.*"
+                                             r"env.control.control_dt \(s\): policy 0.2, deployment 0.05"):
+        check_policy_constants(loose)
+    wide = dataclasses.replace(base, control=dataclasses.replace(base.control, q_limit=3.14))
+    with pytest.raises(PolicyMismatch, match=r"q_limit \(rad\): policy 3.14, URDF joint limit 3.0543"):
+        check_policy_constants(wide)
+    check_policy_constants(base)  # the training defaults are this robot's
 
 
 def test_out_of_workspace_refused(layer):

@@ -13,7 +13,7 @@ import pytest
 
 from conftest import toy_config, toy_factory
 
-from sagrasp_jax import ppo, runtime, train
+from sagrasp_jax import ppo, run_dir, runtime, train
 from sagrasp_jax.checkpoint import CheckpointError
 
 
@@ -175,9 +175,9 @@ def test_short_cpu_quick_run_learns_to_grasp(trained_run):
 
     assert train.main(["--out", trained_run]) == 2  # a finished run is not overwritten
     assert evaluate.main(["--run", trained_run, "--episodes", "256"]) == 0
-    with open(os.path.join(trained_run, evaluate.RESULT_FILE)) as f:
-        trained = json.load(f)["overall"]
     cfg = train.build_config("cpu-quick")
+    with open(os.path.join(trained_run, run_dir.evaluation_file(256, cfg.sa.eval_seed + 1))) as f:
+        trained = json.load(f)["overall"]
     env = GraspEnv(cfg.env)
     nets = ppo.make_networks(cfg.ppo.network, env.observation_size, env.action_size, cfg.ppo.obs_clip)
     ts = ppo.init_training_state(jax.random.PRNGKey(0), nets, ppo.make_optimizer(cfg.ppo, 3e-4),

@@ -7,8 +7,10 @@
 Detections are camera-frame points as the depth camera reports them: the **top** of the cube
 (and of each obstacle), in ``--units`` (default mm, the Mech-Eye's and the calibration's
 unit).  They are mapped to the robot base frame with the hand-eye calibration, the top is
-mapped to the centre, and the cube centre must lie in the trained region — all checked
-before the robot moves; bad input exits with status 2 and says what is wrong.
+mapped to the centre, and the cube centre must lie in the trained region, every obstacle
+outside the training clearance of the cube (``env.sampling.target_clearance``), and the
+policy's control constants must be this robot's — all checked before the robot moves; bad
+input exits with status 2 and says what is wrong (with ``--json``, as a JSON refusal).
 
 Obstacles: ``--obstacle sphere X Y Z R``, ``--obstacle cylinder X Y Z R H``,
 ``--obstacle box X Y Z LX LY LZ [YAW_DEG]`` (full lengths; LX along the camera's x axis
@@ -24,6 +26,7 @@ import argparse
 import json
 import math
 import sys
+import typing
 from typing import Any, Sequence
 
 import numpy as np
@@ -37,7 +40,7 @@ from sagrasp_jax.deploy.calibration import (
     validate_target,
 )
 from sagrasp_jax.deploy.loop import OBSTACLE_KINDS, DeployError, Obstacle, format_report, run_episode, scene_spec
-from sagrasp_jax.deploy.safety import SafetyViolation
+from sagrasp_jax.deploy.safety import SafetyViolation, check_policy_constants
 from sagrasp_jax.runtime import PolicyFormatError, load_policy
 
 BACKENDS = ("twin",)
@@ -46,6 +49,9 @@ DETECTION_RANGE = (0.3, 3.0)  # m from the camera: where a depth camera over the
 OBSTACLE_SIZE_RANGE = (0.005, 0.5)  # m, any obstacle dimension
 CELL_BOX = ((-1.0, -1.2, -0.05), (1.0, 0.6, 1.5))  # m, world box an obstacle centre must lie in
 SIZE_COUNTS = {"sphere": (1,), "cylinder": (2,), "box": (3, 4)}
+MAX_YAW_DEG = 360.0
+MAX_BASE_Z_OFFSET = 0.5  # m; the controller base is within half a metre of the URDF's
+MAX_STEPS = 100_000
 
 
 class InputRefused(ValueError):
@@ -102,7 +108,10 @@ def parse_obstacle(tokens: Sequence[str], cal: CameraCalibration, units: str, in
     else:
         size = (lengths[0] / 2, lengths[1] / 2, lengths[2] / 2)
         half_height = lengths[2] / 2
-        yaw = camera_yaw_to_world(cal, math.radians(numbers[6]) if len(numbers) == 7 else 0.0, math.pi)
+        yaw_deg = numbers[6] if len(numbers) == 7 else 0.0
+        if not (math.isfinite(yaw_deg) and abs(yaw_deg) <= MAX_YAW_DEG):
+            raise InputRefused(f"{what}: box yaw {yaw_deg} deg must be a finite angle within ±{MAX_YAW_DEG:g} deg")
+        yaw = camera_yaw_to_world(cal, math.radians(yaw_deg), math.pi)
     for v in lengths:
         if not (math.isfinite(v) and OBSTACLE_SIZE_RANGE[0] <= v <= OBSTACLE_SIZE_RANGE[1]):
             raise InputRefused(
@@ -119,10 +128,23 @@ def parse_obstacle(tokens: Sequence[str], cal: CameraCalibration, units: str, in
     return Obstacle(kind, tuple(float(v) for v in centre), size, yaw)
 
 
+class _Parser(argparse.ArgumentParser):
+    """With ``--json`` on the command line, argparse's own refusals are JSON refusals too."""
+
+    json_argv: list[str] | None = None
+
+    def error(self, message: str) -> typing.NoReturn:
+        if self.json_argv is not None:
+            print(json.dumps({"outcome": "input_refused", "message": message, "input": {"argv": self.json_argv}},
+                             indent=2, allow_nan=False))
+            print(f"error: refused before moving: {message}", file=sys.stderr)
+            sys.exit(2)
+        super().error(message)
+
+
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m sagrasp_jax.deploy", description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter,
-                                epilog=__doc__.split("\n\n", 2)[2])
+    p = _Parser(prog="python -m sagrasp_jax.deploy", description=__doc__.split("\n\n")[0],
+                formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n\n", 2)[2])
     p.add_argument("--policy", required=True, help="exported policy.npz")
     p.add_argument("--target-cam", nargs=3, type=float, required=True, metavar=("X", "Y", "Z"),
                    help="detected top of the cube in the camera frame")
@@ -142,25 +164,46 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
+def _json_safe(value: Any) -> Any:
+    """NaN/inf as the strings "nan", "inf", "-inf" (strict JSON has no such numbers; a refusal
+    must still echo what it was given)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return str(value)
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    return value
+
+
 def _emit(args: argparse.Namespace, payload: dict[str, Any], text: str, error: bool = False) -> None:
     """The report on stdout (JSON with --json); a refusal's message also on stderr."""
     if args.json:
-        print(json.dumps(payload, indent=2, allow_nan=False))
+        print(json.dumps(_json_safe(payload), indent=2, allow_nan=False))
     if error or not args.json:
         print(text, file=sys.stderr if error else sys.stdout)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
+    parser = _parser()
+    tokens = list(sys.argv[1:] if argv is None else argv)
+    if "--json" in tokens:
+        parser.json_argv = tokens
+    args = parser.parse_args(tokens)
     given: dict[str, Any] = {"target_cam": args.target_cam, "units": args.units, "target_yaw_cam_deg": args.target_yaw,
                              "obstacles_cam": args.obstacle, "backend": args.backend}
     try:
-        if args.max_steps is not None and args.max_steps < 1:
-            raise InputRefused(f"--max-steps must be >= 1, got {args.max_steps}")
-        if not math.isfinite(args.target_yaw):
-            raise InputRefused(f"--target-yaw {args.target_yaw} must be finite")
+        if args.max_steps is not None and not 1 <= args.max_steps <= MAX_STEPS:
+            raise InputRefused(f"--max-steps must be in [1, {MAX_STEPS}], got {args.max_steps}")
+        if not (math.isfinite(args.target_yaw) and abs(args.target_yaw) <= MAX_YAW_DEG):
+            raise InputRefused(f"--target-yaw {args.target_yaw} must be a finite angle within ±{MAX_YAW_DEG:g} deg")
+        if not (math.isfinite(args.base_z_offset) and abs(args.base_z_offset) <= MAX_BASE_Z_OFFSET):
+            raise InputRefused(f"--base-z-offset {args.base_z_offset} must be finite and within ±{MAX_BASE_Z_OFFSET:g} m")
+        if not (math.isfinite(args.base_yaw) and abs(args.base_yaw) <= math.pi):
+            raise InputRefused(f"--base-yaw {args.base_yaw} must be finite and within ±π rad")
         policy = load_policy(args.policy)
         env_cfg = policy.env_config()
+        check_policy_constants(env_cfg, source=args.policy)
         if args.calibration:
             cal = CameraCalibration.from_file(args.calibration, args.calibration_units, args.base_z_offset, args.base_yaw)
         else:

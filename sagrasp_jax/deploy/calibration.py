@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from sagrasp_jax.config import SamplingConfig
+from sagrasp_jax.sampling import horizontal_clearance
 
 # The paper's printed hand-eye matrix (mm) lives once, in the cell description; re-exported here.
 from sagrasp_jax.scene import T_CAM_BASE_MM
@@ -39,9 +40,11 @@ __all__ = [
     "T_CAM_BASE_MM",
     "CalibrationError",
     "CameraCalibration",
+    "ObstacleRejected",
     "TargetRejected",
     "checked_rotation",
     "detected_top_to_cube_centre",
+    "validate_obstacle_clearance",
     "validate_target",
     "yaw_rotation",
 ]
@@ -59,6 +62,10 @@ class CalibrationError(ValueError):
 
 class TargetRejected(ValueError):
     """A detected target the policy was not trained for; nothing may move towards it."""
+
+
+class ObstacleRejected(ValueError):
+    """A detected obstacle in a place the policy was never trained with; nothing may move."""
 
 
 def _unit_scale(units: str) -> float:
@@ -257,3 +264,26 @@ def validate_target(
     if problems:
         raise TargetRejected(f"target centre ({x:.4f}, {y:.4f}, {z:.4f}) m refused: " + "; ".join(problems))
     return p
+
+
+def validate_obstacle_clearance(target: Any, kind: Any, pos: Any, yaw: Any, size: Any,
+                                sampling_cfg: SamplingConfig | None = None, names: Any = None) -> None:
+    """Refuse obstacles whose footprint comes nearer the cube centre than training ever put one
+    (``env.sampling.target_clearance``, horizontal, SPEC §1 (a); 0.10 m): the policy was never
+    trained to reach past an obstacle that close, so the scene is refused before anything moves.
+
+    ``kind``, ``pos``, ``yaw``, ``size`` describe the active obstacles (N,), (N, 3), (N,), (N, 3);
+    ``names`` label them in the message."""
+    cfg = sampling_cfg or SamplingConfig()
+    kind = np.asarray(kind).reshape(-1)
+    if kind.size == 0:
+        return
+    gap = horizontal_clearance(np, kind, np.asarray(pos, float).reshape(-1, 3), np.asarray(yaw, float).reshape(-1),
+                               np.asarray(size, float).reshape(-1, 3), np.asarray(target, float)[:2])
+    names = list(names) if names is not None else [f"obstacle {i + 1}" for i in range(kind.size)]
+    close = [f"{names[i]} is {float(gap[i]):.4f} m from it" for i in range(kind.size)
+             if not float(gap[i]) >= cfg.target_clearance - 1e-9]
+    if close:
+        raise ObstacleRejected(
+            f"obstacle too close to the cube: {'; '.join(close)} horizontally (surface to cube centre), under the "
+            f"training clearance env.sampling.target_clearance = {cfg.target_clearance:g} m; refused before moving")

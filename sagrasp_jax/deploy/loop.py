@@ -9,7 +9,9 @@ training env runs, with NumPy:
   measured joints, no noise (a test compares them with ``env.GraspEnv``'s);
 * action: ``runtime.NumpyPolicy`` with the normaliser it was trained with;
 * joint target: ``control.control_step`` (slow-down, wrist fine-tuning, target accumulation,
-  joint-limit clip) with the policy's own ``env.control`` constants;
+  joint-limit clip) with the policy's own ``env.control`` constants, which must equal the
+  deployment's and the URDF's (``safety.check_policy_constants``; the safety limits never come
+  from the policy);
 * stop: ``reward.success_flag`` with no collision, a collision, ``env.task.max_steps``, or a
   refusal by the ``SafetyLayer``, which checks every command before it is sent.  The layer
   here also refuses a command whose pose would collide with the cell, the detected
@@ -30,16 +32,15 @@ import numpy as np
 
 from sagrasp_jax import collision, control, observation, reward
 from sagrasp_jax.config import EnvConfig
-from sagrasp_jax.deploy.calibration import validate_target
-from sagrasp_jax.deploy.safety import SafetyLayer, SafetyViolation
-from sagrasp_jax.robot import BOX, CYLINDER, SPHERE, RobotModel, forward_kinematics, load_robot, solve_home_pose
+from sagrasp_jax.deploy.calibration import validate_obstacle_clearance, validate_target
+from sagrasp_jax.deploy.safety import SafetyLayer, SafetyViolation, check_policy_constants
+from sagrasp_jax.robot import BOX, CYLINDER, SPHERE, IKError, RobotModel, forward_kinematics, lift_pose, load_robot
 from sagrasp_jax.runtime import NumpyPolicy
 from sagrasp_jax.sampling import ResetSpec
 
 OBSTACLE_KINDS = {"sphere": SPHERE, "cylinder": CYLINDER, "box": BOX}
 LIFT_HEIGHT = 0.05  # m, SPEC §2/§5: lift after closing the gripper
 LIFT_MIN_STEPS = 10  # control periods the lift takes at least (0.5 s: ≤ 0.1 m/s)
-LIFT_MAX_JOINT_MOVE = 0.5  # rad; a lift pose further than this from the grasp pose means IK left the branch
 
 
 class DeployError(RuntimeError):
@@ -94,6 +95,9 @@ def scene_spec(q0: Any, target_pos: Any, target_yaw: float, obstacles: Sequence[
         if not np.isfinite(values).all():
             raise ValueError(f"obstacle {i} ({ob.kind}) has NaN/inf in its position, size or yaw")
         active[i], kind[i], pos[i], yaw[i], size[i] = True, OBSTACLE_KINDS[ob.kind], ob.centre, ob.yaw, ob.size
+    n = len(obstacles)
+    validate_obstacle_clearance(target_pos, kind[:n], pos[:n], yaw[:n], size[:n], env_cfg.sampling,
+                                [f"obstacle {i + 1} ({ob.kind})" for i, ob in enumerate(obstacles)])
     return ResetSpec(
         q0=np.asarray(q0, dtype=float),
         target_pos=np.asarray(target_pos, dtype=float),
@@ -141,20 +145,6 @@ def collision_hook(model: RobotModel, env_cfg: EnvConfig, spec: ResetSpec,
         return f"pose would collide with: {', '.join(hits)}" if hits else None
 
     return check
-
-
-def lift_pose(model: RobotModel, q: Any, height: float = LIFT_HEIGHT) -> np.ndarray:
-    """Joints that put the gripper centre ``height`` m straight above where it is at ``q``,
-    pointing down, found by IK seeded at ``q`` (so the arm stays on its branch)."""
-    q = np.asarray(q, dtype=float)
-    goal = forward_kinematics(np, model, q).gripper_centre + np.array([0.0, 0.0, height])
-    q_lift = solve_home_pose(q, goal, model)
-    kin = forward_kinematics(np, model, q_lift)
-    error = float(np.linalg.norm(kin.gripper_centre - goal))
-    move = float(np.abs(q_lift - q).max())
-    if error > 1e-3 or move > LIFT_MAX_JOINT_MOVE or not np.isfinite(q_lift).all():
-        raise DeployError(f"no lift pose found near the grasp pose (IK error {error * 1000:.1f} mm, joint move {move:.3f} rad)")
-    return q_lift
 
 
 @dataclass
@@ -216,17 +206,21 @@ def run_episode(
     """Run the policy from the robot's current pose until success, collision, timeout or refusal.
 
     ``target_pos`` is the cube centre in the world (URDF base) frame; it is validated against
-    the trained region before anything moves (``TargetRejected``).  ``safety`` defaults to a
-    ``SafetyLayer`` with the policy's env config and a collision hook for this scene.
+    the trained region before anything moves (``TargetRejected``), and so are the obstacles
+    (``ObstacleRejected``: inside the training clearance of the target) and the policy's control
+    constants (``PolicyMismatch``: they must be the deployment's and the robot's).  ``safety``
+    defaults to a ``SafetyLayer`` with the default ``DeploySettings`` and a collision hook for
+    this scene; its limits never come from the policy.
     """
     t0 = time.perf_counter()
     env_cfg = policy.env_config()
     model = load_robot()
+    check_policy_constants(env_cfg, safety.settings if safety is not None else None, model, policy.path)
     target = validate_target(target_pos, env_cfg.sampling)
     q0 = _read(robot)
     spec = scene_spec(q0, target, target_yaw, obstacles, env_cfg)
     if safety is None:
-        safety = SafetyLayer(env_cfg, model, collision_check=collision_hook(model, env_cfg, spec))
+        safety = SafetyLayer(robot=model, collision_check=collision_hook(model, env_cfg, spec))
     steps_limit = env_cfg.task.max_steps if max_steps is None else int(max_steps)
     safety.check_pose(q0, "start pose")  # refuses a start that already breaks a rule
 
@@ -282,13 +276,13 @@ def run_episode(
         hits=hits,
     )
     if report.success and grasp:
-        report.grasp = _grasp_and_lift(robot, model, env_cfg, spec, q, q_target, lift_height)
+        report.grasp = _grasp_and_lift(robot, model, env_cfg, spec, q, q_target, lift_height, safety)
     report.wall_s = time.perf_counter() - t0
     return report
 
 
 def _grasp_and_lift(robot: RobotInterface, model: RobotModel, env_cfg: EnvConfig, spec: ResetSpec,
-                    q: np.ndarray, q_target: np.ndarray, height: float) -> dict[str, Any]:
+                    q: np.ndarray, q_target: np.ndarray, height: float, safety: SafetyLayer) -> dict[str, Any]:
     """Close the gripper, lift ``height`` m in safety-checked steps, measure what rose."""
     locate = getattr(robot, "object_position", None)
     cube0 = np.asarray(locate(), float) if locate is not None else None
@@ -296,14 +290,15 @@ def _grasp_and_lift(robot: RobotInterface, model: RobotModel, env_cfg: EnvConfig
     robot.close_gripper()
     result: dict[str, Any] = {"closed": True, "lift_commanded": float(height), "lifted": False, "message": ""}
     # The cube now rides between the pads: contact with it is the point, not a collision.
-    lift_safety = SafetyLayer(env_cfg, model, collision_check=collision_hook(model, env_cfg, spec, ignore=("target",)))
+    lift_safety = SafetyLayer(safety.settings, model, workspace=safety.workspace, table_clearance=safety.table_clearance,
+                              collision_check=collision_hook(model, env_cfg, spec, ignore=("target",)))
     try:
         q_lift = lift_pose(model, q, height)
         n = max(LIFT_MIN_STEPS, math.ceil(float(np.max(np.abs(q_lift - q_target) / lift_safety.step_limit)) * 2))
         for k in range(1, n + 1):
             q_target = send_checked(robot, lift_safety, q_target + (q_lift - q_target) / (n - k + 1), q_target)
         result["lifted"] = True
-    except (SafetyViolation, DeployError) as exc:
+    except (SafetyViolation, DeployError, IKError) as exc:
         result["message"] = f"lift stopped: {exc}"
     q_end = _read(robot)
     result["gripper_rise"] = float(forward_kinematics(np, model, q_end).gripper_centre[2] - centre0[2])

@@ -5,12 +5,20 @@ A command that breaks a rule raises ``SafetyViolation`` naming the joint or axis
 value and the limit; the loop must then stop the arm.  Clipping silently would hide a
 policy, calibration or control-step bug behind a motion nobody asked for.
 
-Rules (all NumPy, robot facts from the URDF via ``robot.load_robot``):
+Every limit comes from the robot description (``urdf/aubo_i5_eg2.urdf`` via
+``robot.load_robot``) and the deployment's own settings (``DeploySettings``: the controller's
+command period and the largest joint-target change per command, SPEC §2), **never from a
+policy file**: a policy is data from elsewhere, and an edited one must not be able to loosen
+a limit.  A policy trained with other control constants is refused before anything moves
+(``check_policy_constants``).
 
-1. joint limits: ``q_lower ≤ q ≤ q_upper`` per joint;
-2. per-step motion: ``|q − q_prev| ≤ min(velocity_limit·control_dt, q_max)`` per joint,
-   with ``q_prev`` the previous commanded target (the target accumulates, SPEC §2 step 4);
-   with the defaults q_max = 0.05 rad is the binding bound (2.5964 rad/s × 0.05 s = 0.13 rad);
+Rules (all NumPy):
+
+1. joint limits: ``q_lower ≤ q ≤ q_upper`` per joint (URDF);
+2. per-step motion: ``|q − q_prev| ≤ min(velocity_limit·control_dt, max_step)`` per joint
+   (URDF velocity limits, ``DeploySettings``), with ``q_prev`` the previous commanded target
+   (the target accumulates, SPEC §2 step 4); with the defaults max_step = 0.05 rad is the
+   binding bound (2.5964 rad/s × 0.05 s = 0.13 rad);
 3. workspace box for the gripper centre (``WorkspaceBox``, derivation below);
 4. table: every primitive on a moving link above the shoulder (upper arm, forearm, wrists,
    flange, gripper body, fingers) stays above the table top z = 0 (+ ``table_clearance``).
@@ -38,7 +46,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from sagrasp_jax.config import EnvConfig
+from sagrasp_jax.config import ControlConfig, EnvConfig
 from sagrasp_jax.robot import (
     ARM_JOINTS,
     BOX,
@@ -59,6 +67,10 @@ class SafetyViolation(RuntimeError):
     """A joint command that must not reach the robot; the message says which rule and by how much."""
 
 
+class PolicyMismatch(ValueError):
+    """A policy trained with control constants other than this robot's and deployment's."""
+
+
 @dataclass(frozen=True)
 class WorkspaceBox:
     """Axis-aligned box the gripper centre must stay in (world frame, m); see module docstring."""
@@ -69,6 +81,55 @@ class WorkspaceBox:
     def __post_init__(self) -> None:
         if not all(lo < hi for lo, hi in zip(self.lower, self.upper)):
             raise ValueError(f"workspace box lower {self.lower} must be below upper {self.upper} on every axis")
+
+
+_SPEC_CONTROL = ControlConfig()  # SPEC §2's constants: the code's, not a policy file's
+
+
+@dataclass(frozen=True)
+class DeploySettings:
+    """The deployment's own constants (SPEC §2, §5), fixed here and not read from any policy.
+
+    ``control_dt``: the controller's command period (s, 20 Hz); ``max_step``: the largest change
+    of one joint's target per command (rad, SPEC §2's q_max).  A policy must have been trained
+    with exactly these (``check_policy_constants``).
+    """
+
+    control_dt: float = _SPEC_CONTROL.control_dt
+    max_step: float = _SPEC_CONTROL.q_max
+    workspace: WorkspaceBox = WorkspaceBox()
+    table_clearance: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("control_dt", "max_step"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and 0 < value <= 1.0):
+                raise ValueError(f"deployment setting {name} = {value!r} must be in (0, 1]")
+        if not (np.isfinite(self.table_clearance) and 0 <= self.table_clearance <= 0.5):
+            raise ValueError(f"deployment setting table_clearance = {self.table_clearance!r} m must be in [0, 0.5]")
+
+
+def check_policy_constants(env_cfg: EnvConfig, settings: DeploySettings | None = None,
+                           robot: RobotModel | None = None, source: str = "policy") -> None:
+    """Refuse a policy whose control constants differ from the deployment's and the robot's:
+    its actions would not mean what they meant in training, and its joint clip would not be the
+    robot's limit.  Raises PolicyMismatch naming each constant, the policy's value and ours."""
+    settings = settings or DeploySettings()
+    robot = robot or load_robot()
+    ctl = env_cfg.control
+    urdf_limit = float(np.min(np.minimum(-robot.q_lower, robot.q_upper)))
+    problems = [
+        f"{name} {ours_name}: policy {theirs!r}, {where} {ours!r}"
+        for name, theirs, ours, ours_name, where in (
+            ("env.control.q_max", ctl.q_max, settings.max_step, "(rad per step)", "deployment"),
+            ("env.control.control_dt", ctl.control_dt, settings.control_dt, "(s)", "deployment"),
+            ("env.control.q_limit", ctl.q_limit, urdf_limit, "(rad)", "URDF joint limit"),
+        )
+        if not np.isclose(float(theirs), float(ours), rtol=1e-9, atol=0.0)
+    ]
+    if problems:
+        raise PolicyMismatch(f"{source} was trained with control constants this robot does not use: "
+                             + "; ".join(problems))
 
 
 def lowest_points(robot: RobotModel, prim_pos: np.ndarray, prim_rot: np.ndarray) -> np.ndarray:
@@ -91,22 +152,25 @@ class SafetyLayer:
 
     def __init__(
         self,
-        env_cfg: EnvConfig | None = None,
+        settings: DeploySettings | None = None,
         robot: RobotModel | None = None,
         workspace: WorkspaceBox | None = None,
-        table_clearance: float = 0.0,
+        table_clearance: float | None = None,
         collision_check: Callable[[np.ndarray], str | None] | None = None,
     ) -> None:
-        cfg = env_cfg or EnvConfig()
+        if settings is not None and not isinstance(settings, DeploySettings):
+            raise TypeError(f"SafetyLayer takes DeploySettings, got {type(settings).__name__}: its limits come from "
+                            "the URDF and the deployment settings, never from a policy's config")
+        self.settings = settings or DeploySettings()
         self.robot = robot or load_robot()
-        self.workspace = workspace or WorkspaceBox()
-        self.table_clearance = float(table_clearance)
+        self.workspace = workspace or self.settings.workspace
+        self.table_clearance = float(self.settings.table_clearance if table_clearance is None else table_clearance)
         self.collision_check = collision_check
         self.joint_names = tuple(f"joint {i + 1} ({name})" for i, name in enumerate(ARM_JOINTS))
-        self.control_dt = float(cfg.control.control_dt)
-        self.q_max = float(cfg.control.q_max)
+        self.control_dt = float(self.settings.control_dt)
+        self.max_step = float(self.settings.max_step)
         # Per-joint bound on one control step's change of the commanded target.
-        self.step_limit = np.minimum(self.robot.velocity_limit * self.control_dt, self.q_max)
+        self.step_limit = np.minimum(self.robot.velocity_limit * self.control_dt, self.max_step)
         self._checked_prims = np.nonzero(self.robot.prim_link >= _FIRST_CHECKED_LINK)[0]
 
     def _as_q(self, q: Any, what: str) -> np.ndarray:
@@ -164,6 +228,6 @@ class SafetyLayer:
                 raise SafetyViolation(
                     f"commanded target: {self.joint_names[i]} moves {step[i]:.4f} rad in one step, over the limit "
                     f"{self.step_limit[i]:.4f} rad = min(velocity {self.robot.velocity_limit[i]:.4f} rad/s × "
-                    f"{self.control_dt:g} s, q_max {self.q_max:g} rad)"
+                    f"{self.control_dt:g} s, max step {self.max_step:g} rad)"
                 )
         return self.check_pose(q, "commanded target")

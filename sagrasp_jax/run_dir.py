@@ -1,0 +1,408 @@
+"""The run folder: its layout, its lock, and reading and writing everything in it.
+
+A run folder (``python -m sagrasp_jax.train --out RUN``) holds:
+
+=============================================  ==============================================
+``config.json``                                the run's full config (written once, at start)
+``metrics.jsonl``                              one JSON row per logged iteration (appended)
+``tb/``                                        TensorBoard event files
+``checkpoint.ckpt``                            everything an exact resume needs (``checkpoint``)
+``policy.npz``                                 the final policy, ``runtime`` format
+``evaluation-<E>ep-seed<S>[-<N>steps].json``   ``evaluate``'s result for E episodes from seed S
+=============================================  ==============================================
+
+Every file is written through ``fileio`` (temp file + rename), so a kill leaves either the old
+or the new file, plus at worst a temp file that the next writer removes; ``metrics.jsonl`` is
+appended by :class:`RunLogger` (a line cut short by a kill is dropped when it is read back).
+
+**Lock.** A command that writes into a folder (``train`` into its run, ``evaluate`` and
+``export`` into their output folder) holds :class:`FolderLock` on it for as long as it
+writes; a second writer is refused at once with a message naming the holder.  The lock is
+``fcntl.flock`` on the folder itself: nothing is added to the folder, and the kernel drops
+it when the process dies, so a killed run never leaves a stale lock.
+
+**Starting a training** (:func:`prepare_training`, under the lock):
+
+* a fresh start needs a missing or empty folder (temp files of a killed write do not count);
+* ``--resume`` continues from ``checkpoint.ckpt`` after checking it, ``config.json`` and
+  ``metrics.jsonl``; it removes stale temp files;
+* a run killed before its first checkpoint (``config.json``, maybe ``metrics.jsonl`` and
+  ``tb/``, no checkpoint) is restarted from the beginning by ``--resume``: there is nothing to
+  continue from, and a restart with the same config is exactly the uninterrupted run.  Its
+  partial logs are removed first.  A fresh start into such a folder is refused and says so.
+
+Every reader raises :class:`RunDirError` (or ``checkpoint.CheckpointError``) naming the file
+and what is wrong with it; nothing here writes before all checks have passed.
+"""
+
+from __future__ import annotations
+
+import sagrasp_jax  # noqa: F401  (sets XLA_FLAGS before jax is imported)
+
+import errno
+import fcntl
+import json
+import math
+import os
+import shutil
+from typing import Any
+
+import jax
+import numpy as np
+
+from sagrasp_jax import checkpoint, fileio, observation, ppo, runtime
+from sagrasp_jax.control import ACTION_SIZE
+from sagrasp_jax.config import Config, ConfigError, config_from_dict, config_to_dict
+
+CONFIG_FILE = "config.json"
+METRICS_FILE = "metrics.jsonl"
+CHECKPOINT_FILE = "checkpoint.ckpt"
+POLICY_FILE = "policy.npz"
+TB_DIR = "tb"
+EVALUATION_PREFIX = "evaluation-"
+# What a training writes; the other files of a run folder are evaluations.
+TRAINING_FILES = (CONFIG_FILE, METRICS_FILE, CHECKPOINT_FILE, POLICY_FILE, TB_DIR)
+
+
+class RunDirError(RuntimeError):
+    """A run folder, run file or output location that cannot be used; the message names it."""
+
+
+def path(run: str, name: str) -> str:
+    return os.path.join(run, name)
+
+
+# ---------------------------------------------------------------------- lock and output location
+
+def _lock_holder(folder: str) -> str:
+    """' (pid N: command)' of the process holding the flock on ``folder``, from /proc/locks
+    (Linux); '' where that cannot be told."""
+    try:
+        st = os.stat(folder)
+        ident = f"{os.major(st.st_dev):02x}:{os.minor(st.st_dev):02x}:{st.st_ino}"
+        with open("/proc/locks", encoding="ascii") as f:
+            for line in f:
+                fields = line.split()
+                if "FLOCK" in fields and ident in fields:
+                    pid = fields[fields.index(ident) - 1]
+                    with open(f"/proc/{pid}/cmdline", "rb") as c:
+                        cmd = c.read().replace(b"\0", b" ").decode(errors="replace").strip()
+                    return f" (pid {pid}: {cmd[:200]})"
+    except (OSError, ValueError, IndexError):
+        pass
+    return ""
+
+
+class FolderLock:
+    """Exclusive, non-blocking lock on a folder while this process writes into it.
+
+    ``create=True`` makes the folder (and its parents) if needed; a folder made here and still
+    empty at release is removed again, so a refused command leaves nothing behind.
+    """
+
+    def __init__(self, folder: str, create: bool = False, what: str = "folder") -> None:
+        self.folder = folder
+        self.create = create
+        self.what = what
+        self.created = False
+        self._fd: int | None = None
+
+    def acquire(self) -> "FolderLock":
+        folder = self.folder
+        if os.path.exists(folder) and not os.path.isdir(folder):
+            raise RunDirError(f"{folder} exists and is not a folder")
+        if not os.path.isdir(folder):
+            if not self.create:
+                raise RunDirError(f"{folder}: {self.what} not found")
+            try:
+                os.makedirs(folder)
+                self.created = True
+            except FileExistsError:
+                pass  # made by a concurrent writer; the lock below decides which of us goes on
+            except OSError as exc:
+                raise RunDirError(f"cannot create {self.what} {folder}: {exc.strerror or exc}") from None
+        try:
+            fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+        except OSError as exc:
+            raise RunDirError(f"cannot open {self.what} {folder}: {exc.strerror or exc}") from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            os.close(fd)
+            if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                raise RunDirError(
+                    f"{folder} is in use by another process{_lock_holder(folder)} that is writing into it; "
+                    "wait until it has finished or choose another folder") from None
+            raise RunDirError(f"cannot lock {self.what} {folder}: {exc.strerror or exc}") from None
+        self._fd = fd
+        return self
+
+    def release(self) -> None:
+        if self._fd is None:
+            return
+        if self.created:
+            try:
+                os.rmdir(self.folder)  # only succeeds while empty: a refused start leaves nothing
+            except OSError:
+                pass
+        fcntl.flock(self._fd, fcntl.LOCK_UN)
+        os.close(self._fd)
+        self._fd = None
+
+    def __enter__(self) -> "FolderLock":
+        return self.acquire()
+
+    def __exit__(self, *exc: Any) -> None:
+        self.release()
+
+
+def check_writable(folder: str, what: str = "folder") -> None:
+    """Refuse a folder this process cannot write into (read-only mount, permissions, full disk),
+    by writing a probe file, before any expensive work starts."""
+    try:
+        fileio.check_writable(folder, what)
+    except fileio.NotWritable as exc:
+        raise RunDirError(str(exc)) from None
+
+
+def remove_temp_files(folder: str) -> list[str]:
+    """Remove the temp files killed writes left in ``folder`` (call with its lock held)."""
+    removed = fileio.temp_files(folder)
+    for name in removed:
+        os.unlink(name)
+    return removed
+
+
+# ---------------------------------------------------------------------- config
+
+def load_config(run: str) -> Config:
+    """The run's ``config.json``, validated; RunDirError naming the file if missing or damaged."""
+    file = path(run, CONFIG_FILE)
+    try:
+        with open(file, "rb") as f:
+            blob = f.read()
+    except FileNotFoundError:
+        raise RunDirError(f"{file}: not a run folder (no {CONFIG_FILE})") from None
+    except OSError as exc:
+        raise RunDirError(f"{file}: cannot read ({exc.strerror or exc})") from None
+    if not blob.strip():
+        raise RunDirError(f"{file}: damaged run config (the file is empty)")
+    try:
+        data = json.loads(blob.decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+        raise RunDirError(f"{file}: damaged run config, not valid JSON ({exc})") from None
+    try:
+        return config_from_dict(data)
+    except (ConfigError, TypeError, ValueError, AttributeError) as exc:
+        raise RunDirError(f"{file}: damaged run config ({exc})") from None
+
+
+def write_config(run: str, cfg: Config) -> str:
+    text = json.dumps(config_to_dict(cfg), indent=2, sort_keys=True) + "\n"
+    return fileio.atomic_write_text(path(run, CONFIG_FILE), text)
+
+
+# ---------------------------------------------------------------------- metrics
+
+def read_metrics(file: str) -> list[dict[str, Any]]:
+    """Rows of ``metrics.jsonl``.  The last line may be cut short by a kill and is then dropped;
+    any other damage (a bad line, binary bytes, a row without an iteration) raises RunDirError
+    naming the file and the line."""
+    try:
+        with open(file, "rb") as f:
+            lines = [(i + 1, line) for i, line in enumerate(f.read().split(b"\n")) if line.strip()]
+    except OSError as exc:
+        raise RunDirError(f"{file}: cannot read the metrics log ({exc.strerror or exc})") from None
+    rows = []
+    for k, (number, line) in enumerate(lines):
+        try:
+            row = json.loads(line.decode("utf-8"))
+            if not isinstance(row, dict) or type(row.get("iteration")) is not int or row["iteration"] < 0:
+                raise ValueError("not a metrics row (a JSON object with an integer 'iteration')")
+        except (UnicodeDecodeError, ValueError, RecursionError) as exc:
+            if k == len(lines) - 1:
+                break  # the last row, cut short by a kill mid-write
+            raise RunDirError(f"{file}: damaged metrics log at line {number} ({exc})") from None
+        rows.append(row)
+    return rows
+
+
+def _json_safe(value: Any) -> Any:
+    if isinstance(value, (np.generic, np.ndarray)):
+        value = value.item() if np.ndim(value) == 0 else value.tolist()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+class RunLogger:
+    """metrics.jsonl + TensorBoard; on resume drops rows past the checkpoint so the log stays exact."""
+
+    def __init__(self, out_dir: str, resume_iteration: int, resume_step: int) -> None:
+        from tensorboardX import SummaryWriter
+
+        self.path = os.path.join(out_dir, METRICS_FILE)
+        if os.path.exists(self.path):
+            keep = [line for line in read_metrics(self.path) if line.get("iteration", -1) < resume_iteration]
+            text = "".join(json.dumps(r, allow_nan=False) + "\n" for r in keep)
+            fileio.atomic_write_text(self.path, text)  # under the run folder's lock
+        self.file = open(self.path, "a", encoding="utf-8")
+        self.tb = SummaryWriter(os.path.join(out_dir, TB_DIR), purge_step=resume_step + 1 if resume_step else None)
+
+    def write(self, row: dict[str, Any]) -> None:
+        clean = {k: _json_safe(v) for k, v in row.items()}
+        self.file.write(json.dumps(clean, allow_nan=False) + "\n")
+        self.file.flush()
+        step = int(row["env_steps"])
+        for key, value in clean.items():
+            if isinstance(value, (int, float)) and not isinstance(value, bool) and key not in ("iteration", "env_steps"):
+                self.tb.add_scalar(f"train/{key}", value, step)
+
+    def close(self) -> None:
+        self.file.close()
+        self.tb.close()
+
+
+def check_metrics_reach(run: str, iteration: int, log_every: int) -> list[dict[str, Any]]:
+    """The log's rows before ``iteration`` (a checkpoint's); refuse a log that lost rows the
+    checkpoint covers, since a resume would leave that gap in it for good."""
+    file = path(run, METRICS_FILE)
+    rows = read_metrics(file) if os.path.exists(file) else []
+    kept = [r for r in rows if r["iteration"] < iteration]
+    last = max((r["iteration"] for r in kept), default=-1)
+    if iteration > 0 and last < iteration - log_every:
+        state = "is missing" if not os.path.exists(file) else f"ends at iteration {last}"
+        raise RunDirError(
+            f"{file} {state}, but the checkpoint is at iteration {iteration}: rows are missing (was it truncated, "
+            "emptied or deleted?); resuming would leave that gap in the log. Restore the file, or start a new run")
+    return kept
+
+
+# ---------------------------------------------------------------------- checkpoint and policy
+
+def load_checkpoint(run: str, cfg: Config | None = None) -> checkpoint.Checkpoint:
+    """The run's checkpoint, verified (and checked against ``cfg`` when given)."""
+    ckpt = checkpoint.load(path(run, CHECKPOINT_FILE))
+    if cfg is not None:
+        checkpoint.check_config(ckpt, cfg)
+    return ckpt
+
+
+def checkpoint_counters(ckpt: checkpoint.Checkpoint) -> dict[str, Any]:
+    counters = ckpt.host.get("counters", {}) if isinstance(ckpt.host, dict) else {}
+    if not isinstance(counters, dict) or type(counters.get("iteration")) is not int:
+        raise checkpoint.CheckpointError(f"{ckpt.path}: incompatible checkpoint host state (no iteration counter)")
+    return counters
+
+
+def restore_policy(cfg: Config, ckpt: checkpoint.Checkpoint, obs_size: int,
+                   action_size: int) -> tuple[ppo.Params, ppo.Normaliser]:
+    """Params and normaliser from a loaded checkpoint (structure, shapes and dtypes checked)."""
+    networks = ppo.make_networks(cfg.ppo.network, obs_size, action_size, cfg.ppo.obs_clip)
+    optimizer = ppo.make_optimizer(cfg.ppo, cfg.sa.lr0)
+    template = ppo.init_training_state(jax.random.PRNGKey(0), networks, optimizer, obs_size)
+    ts = checkpoint.restore_tree(template, ckpt.trees.get("train_state", {}), "train_state", ckpt.path)
+    return ts.params, ts.normaliser
+
+
+def load_policy_state(run: str, obs_size: int | None = None, action_size: int = ACTION_SIZE
+                      ) -> tuple[Config, ppo.Params, ppo.Normaliser, dict[str, Any]]:
+    """Config, params and normaliser of the run's latest checkpoint (and its counters); the
+    observation size defaults to that of the run's observation layout."""
+    cfg = load_config(run)
+    ckpt = load_checkpoint(run, cfg)
+    obs_size = len(observation.layout_of(cfg.env)) if obs_size is None else obs_size
+    params, normaliser = restore_policy(cfg, ckpt, obs_size, action_size)
+    return cfg, params, normaliser, checkpoint_counters(ckpt)
+
+
+def export_policy(file: str, cfg: Config, params: ppo.Params, normaliser: ppo.Normaliser, obs_size: int) -> str:
+    """Write the deterministic policy (weights + normaliser) as ``runtime``'s ``policy.npz``."""
+    layers = jax.device_get(params.policy["params"])
+    weights = [(np.asarray(layers[f"hidden_{i}"]["kernel"]), np.asarray(layers[f"hidden_{i}"]["bias"]))
+               for i in range(len(layers))]
+    names = observation.layout_of(cfg.env)
+    layout = names if obs_size == len(names) else tuple(f"obs_{i}" for i in range(obs_size))  # (toy envs)
+    return runtime.save_policy_npz(file, weights=weights, activation=cfg.ppo.network.activation,
+                                   obs_mean=np.asarray(normaliser.mean), obs_std=np.asarray(normaliser.std),
+                                   config=cfg, obs_layout=layout)
+
+
+# ---------------------------------------------------------------------- starting a training
+
+def prepare_training(out: str, cfg: Config, resume: bool) -> str:
+    """Check the (locked) run folder for a training with ``cfg`` and say how it starts:
+    ``"fresh"``, ``"resume"`` (from the checkpoint) or ``"restart"`` (a run killed before its first
+    checkpoint, from the beginning).  Refusals raise RunDirError / CheckpointError and change
+    nothing; once all checks pass, stale temp files (and a restarted run's partial logs) go."""
+    temps = set(fileio.temp_files(out))
+    entries = sorted(n for n in os.listdir(out) if path(out, n) not in temps)
+    has_config = os.path.isfile(path(out, CONFIG_FILE))
+    has_ckpt = os.path.isfile(path(out, CHECKPOINT_FILE))
+    if not resume:
+        if has_config and not has_ckpt and set(entries) <= {CONFIG_FILE, METRICS_FILE, TB_DIR}:
+            raise RunDirError(f"{out} holds a run that stopped before its first checkpoint; pass --resume to restart "
+                              "it from the beginning with its config.json, or choose a new --out")
+        if entries:
+            raise RunDirError(f"{out} exists and is not empty; choose a new --out or pass --resume")
+        mode = "fresh"
+    else:
+        ckpt = load_checkpoint(out, cfg) if has_ckpt else None
+        if has_config:
+            saved = load_config(out)
+            diffs = checkpoint.config_differences(config_to_dict(saved), config_to_dict(cfg))
+            if diffs:
+                raise RunDirError(f"{path(out, CONFIG_FILE)}: the run was started with another config ("
+                                  + "; ".join(d.replace("checkpoint", "run") for d in diffs[:8])
+                                  + "); resume it without config options, or with the same ones")
+        if ckpt is not None:
+            check_metrics_reach(out, checkpoint_counters(ckpt)["iteration"], cfg.train.log_every)
+            mode = "resume"
+        elif not entries or (has_config and set(entries) <= {CONFIG_FILE, METRICS_FILE, TB_DIR}):
+            mode = "restart"
+        elif not has_config:
+            raise RunDirError(f"{out}: cannot resume, no {CHECKPOINT_FILE} and no {CONFIG_FILE} (not a run folder?)")
+        else:
+            others = ", ".join(e for e in entries if e not in (CONFIG_FILE, METRICS_FILE, TB_DIR))
+            raise RunDirError(f"{path(out, CHECKPOINT_FILE)}: cannot resume, no checkpoint found, but the folder also "
+                              f"holds {others}: the checkpoint was moved or deleted? Restore it or start a new run")
+    check_writable(out, "run folder")
+    remove_temp_files(out)
+    if mode == "restart":
+        if os.path.exists(path(out, METRICS_FILE)):
+            os.unlink(path(out, METRICS_FILE))
+        shutil.rmtree(path(out, TB_DIR), ignore_errors=True)
+    return mode
+
+
+# ---------------------------------------------------------------------- evaluation outputs
+
+def evaluation_file(episodes: int, seed: int, max_steps: int | None = None, scenes: str = "mix") -> str:
+    """File name of an evaluation in the run folder: by scene set (if not the evaluation mix), episodes
+    and seed (and a non-default step cap)."""
+    kind = "" if scenes == "mix" else f"{scenes}-"
+    return f"{EVALUATION_PREFIX}{kind}{episodes}ep-seed{seed}" + (f"-{max_steps}steps" if max_steps else "") + ".json"
+
+
+def check_replace(file: str, identity: dict[str, Any], force: bool = False) -> None:
+    """Refuse to replace ``file`` unless it holds the same evaluation (every ``identity`` entry
+    equal: re-running it gives the same numbers) or ``force`` is set."""
+    if os.path.isdir(file):
+        raise RunDirError(f"{file} is a folder; the output must be a file")
+    if not os.path.exists(file) or force:
+        return
+    try:
+        with open(file, encoding="utf-8") as f:
+            old = json.load(f)
+        if not isinstance(old, dict):
+            raise ValueError("not a JSON object")
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:
+        raise RunDirError(f"{file} exists and is not a readable result ({exc}); pass --force to replace it") from None
+    diffs = [f"{key} {old.get(key)!r} -> {value!r}" for key, value in identity.items() if old.get(key) != value]
+    if diffs:
+        raise RunDirError(f"{file} holds a different result ({'; '.join(diffs)}); pass --force to replace it, "
+                          "or choose another --out")
+
+
+def write_json(file: str, data: Any) -> str:
+    return fileio.atomic_write_json(file, data, sort_keys=True)

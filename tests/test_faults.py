@@ -1,0 +1,577 @@
+"""Fault injection (issue 16): kills, damaged files, concurrent writers, bad numbers, read-only
+outputs and tampered policies.  Each case checks the exit code, the message and that nothing
+changed.  Runs in about a minute on 2 cores: the toy env (tests/toy_env.py) stands in for the
+grasp env wherever the env does not matter, and every refusal happens before an env is built.
+
+The numbered tests map to the defects of issue 16:
+1 ``deploy --json`` with NaN/inf input; 2 concurrent writers; 3 evaluate on a damaged config;
+4 resume on a damaged metrics log; 5 values that validated but crashed later; 6 a run killed
+before its first checkpoint; 7 read-only outputs; 8 safety limits from the robot, not the
+policy; 9 stale checkpoint temp files and evaluations replaced without warning.
+"""
+
+from __future__ import annotations
+
+import sagrasp_jax  # noqa: F401  (sets XLA_FLAGS before jax is imported)
+
+import contextlib
+import hashlib
+import json
+import os
+import random
+import shutil
+import subprocess
+import sys
+import time
+import typing
+from typing import Any, Callable
+
+import numpy as np
+import pytest
+
+from conftest import toy_config, toy_factory
+
+from sagrasp_jax import config as config_mod
+from sagrasp_jax import evaluate, export, fileio, run_dir, runtime, train
+from sagrasp_jax.config import HOME_Q, get_config
+from sagrasp_jax.deploy import __main__ as deploy_cli
+from sagrasp_jax.deploy.calibration import CameraCalibration, ObstacleRejected
+from sagrasp_jax.deploy.loop import Obstacle, run_episode
+from sagrasp_jax.deploy.safety import PolicyMismatch
+
+_GL = os.environ.get("MUJOCO_GL")
+from sagrasp_jax import parity, render  # noqa: E402  (render picks MUJOCO_GL on import: keep the session's)
+
+if _GL is None:
+    os.environ.pop("MUJOCO_GL", None)
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+DRIVER = os.path.join(REPO, "tests", "fault_driver.py")
+TARGET = np.array([0.10, -0.45, 0.025])  # a cube centre in the trained region (world, m)
+BAD_FLOATS = ("nan", "inf", "-inf", "1e30")
+BAD_INTS = ("nan", "inf", "-inf", str(10**30))
+
+
+# ---------------------------------------------------------------------- helpers
+
+def snapshot(folder: str) -> dict[str, tuple[int, str]]:
+    """Every file below ``folder``: (mtime_ns, sha256), to assert that nothing changed."""
+    out = {}
+    for root, _, files in os.walk(folder):
+        for name in files:
+            path = os.path.join(root, name)
+            with open(path, "rb") as f:
+                out[os.path.relpath(path, folder)] = (os.stat(path).st_mtime_ns, hashlib.sha256(f.read()).hexdigest())
+    return out
+
+
+def call(main: Callable[[list[str]], int], argv: list[str], capsys: pytest.CaptureFixture) -> tuple[int, str, str]:
+    """(exit code, stdout, stderr) of an in-process CLI ``main``; argparse's own refusals included."""
+    try:
+        code = main(argv)
+    except SystemExit as exc:
+        code = exc.code if isinstance(exc.code, int) else 1
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def damage(path: str, how: str) -> None:
+    with open(path, "rb") as f:
+        data = f.read()
+    if how == "truncated":
+        data = data[: len(data) // 2]
+    elif how == "garbled":
+        mid = len(data) // 2
+        data = data[:mid] + b"\x00\xff\xfe garbage \x80\x81" * 4 + data[mid + 60:]
+    else:
+        data = b""
+    with open(path, "wb") as f:
+        f.write(data)
+
+
+def rows(run: str) -> list[dict[str, Any]]:
+    return [{k: v for k, v in r.items() if k not in train.TIME_FIELDS}
+            for r in run_dir.read_metrics(run_dir.path(run, run_dir.METRICS_FILE))]
+
+
+def policy_arrays(run: str) -> dict[str, np.ndarray]:
+    with np.load(run_dir.path(run, run_dir.POLICY_FILE)) as data:
+        return {k: data[k] for k in data.files}
+
+
+@pytest.fixture
+def run_copy(toy_run: str, tmp_path) -> str:
+    """A private copy of the finished toy run folder."""
+    return shutil.copytree(toy_run, str(tmp_path / "run"))
+
+
+def write_policy(path: str, cfg: config_mod.Config | None = None) -> str:
+    """A small valid grasp policy file (constant action), no training needed."""
+    weights = [(np.zeros((17, 8), np.float32), np.zeros(8, np.float32)),
+               (np.zeros((8, 12), np.float32), np.zeros(12, np.float32))]
+    return runtime.save_policy_npz(path, weights=weights, activation="tanh", obs_mean=np.zeros(17), obs_std=np.ones(17),
+                                   config=cfg or get_config("cpu-quick"))
+
+
+@pytest.fixture(scope="module")
+def policy_file(tmp_path_factory) -> str:
+    return write_policy(str(tmp_path_factory.mktemp("policy") / "policy.npz"))
+
+
+def cam_mm(world_top: Any) -> list[str]:
+    return [f"{v:.6f}" for v in CameraCalibration.default().base_to_cam(np.asarray(world_top), units="mm")]
+
+
+TARGET_CAM = cam_mm(TARGET + [0, 0, 0.025])  # the detected top face
+
+
+@pytest.fixture
+def no_twin(monkeypatch):
+    """Fail the test if the deploy CLI builds a robot backend (it must refuse before that)."""
+    import sagrasp_jax.deploy.twin as twin
+
+    def refuse(*a, **k):
+        raise AssertionError("a twin was built: the input was not refused before moving")
+
+    monkeypatch.setattr(twin, "PyBulletTwin", refuse)
+
+
+def readonly_location(tmp_path) -> str:
+    """A folder that this process cannot write into: a chmod-ed folder, or (as root, whom chmod
+    does not stop) a folder on sysfs; skips where neither holds."""
+    if os.geteuid() != 0:
+        folder = tmp_path / "readonly"
+        folder.mkdir()
+        folder.chmod(0o555)
+        return str(folder)
+    for folder in ("/sys/kernel", "/sys", "/proc/sys"):
+        try:
+            fileio.check_writable(folder)
+        except OSError:
+            return folder
+    pytest.skip("no read-only location available to this (root) process")
+
+
+class Twinless:
+    """A RobotInterface that records what reaches it (the library path of the deploy loop)."""
+
+    def __init__(self) -> None:
+        self.sent: list[np.ndarray] = []
+
+    def read_joints(self) -> np.ndarray:
+        return np.array(HOME_Q)
+
+    def command_joint_targets(self, q: np.ndarray) -> None:
+        self.sent.append(np.array(q))
+
+    def open_gripper(self) -> None:
+        pass
+
+    def close_gripper(self) -> None:
+        pass
+
+
+# ---------------------------------------------------------------------- 1: deploy --json with NaN / inf
+
+@pytest.mark.parametrize("argv,message", [
+    (["--target-cam", "nan", "-77", "1374"], "--target-cam: camera point [nan, -77.0, 1374.0] must be 3 finite"),
+    (["--target-cam", "-147", "inf", "1374"], "--target-cam: camera point [-147.0, inf, 1374.0] must be 3 finite"),
+    (["--target-yaw", "nan"], "--target-yaw nan must be a finite angle"),
+    (["--target-yaw=-inf"], "--target-yaw -inf must be a finite angle"),
+])
+def test_1_deploy_json_refuses_nan_and_inf_with_exit_2(policy_file, argv, message, capsys, no_twin):
+    argv = ["--policy", policy_file, *(["--target-cam", *TARGET_CAM] if argv[0] != "--target-cam" else []), *argv, "--json"]
+    code, out, err = call(deploy_cli.main, argv, capsys)
+    assert code == 2 and message in err and "Traceback" not in err
+    report = json.loads(out, parse_constant=lambda c: pytest.fail(f"non-strict JSON constant {c}"))
+    assert report["outcome"] == "input_refused" and message in report["message"]
+
+
+# ---------------------------------------------------------------------- 2: concurrent writers
+
+def test_2_a_second_writer_is_refused_and_changes_nothing(run_copy, tmp_path, capsys):
+    before = snapshot(run_copy)
+    with run_dir.FolderLock(run_copy):  # another process writing the run folder
+        code, _, err = call(train.main, ["--out", run_copy, "--resume", "--no-progress"], capsys)
+        assert code == 2 and "is in use by another process" in err
+        code, _, err = call(evaluate.main, ["--run", run_copy, "--episodes", "8"], capsys)
+        assert code == 2 and "is in use by another process" in err
+        code, _, err = call(export.main, ["--run", run_copy, "--out", run_copy, "--no-onnx"], capsys)
+        assert code == 2 and "is in use by another process" in err
+    assert snapshot(run_copy) == before
+    fresh = str(tmp_path / "fresh")
+    with run_dir.FolderLock(fresh, create=True):  # a training that has just created its folder
+        code, _, err = call(train.main, ["--out", fresh, "--no-progress"], capsys)
+        assert code == 2 and "is in use by another process" in err
+    assert not os.path.exists(fresh)  # the lock holder made it and removed it, still empty
+
+
+# ---------------------------------------------------------------------- 3 / 4 / 9: every run-folder file damaged
+
+READERS = {
+    run_dir.CONFIG_FILE: ("resume", "evaluate", "export"),
+    run_dir.METRICS_FILE: ("resume",),
+    run_dir.CHECKPOINT_FILE: ("resume", "evaluate", "export"),
+    run_dir.POLICY_FILE: ("deploy", "render"),
+}
+CASES = [(name, command, how) for name, commands in READERS.items() for command in commands
+         for how in ("truncated", "garbled", "emptied")]
+
+
+def _run_command(command: str, run: str, tmp_path, capsys) -> tuple[int, str]:  # noqa: C901
+    if command == "resume":
+        code, _, err = call(train.main, ["--out", run, "--resume", "--no-progress"], capsys)
+    elif command == "evaluate":
+        code, _, err = call(evaluate.main, ["--run", run, "--episodes", "8"], capsys)
+    elif command == "export":
+        code, _, err = call(export.main, ["--run", run, "--out", str(tmp_path / "export"), "--no-onnx"], capsys)
+        assert not os.path.exists(tmp_path / "export")
+    elif command == "deploy":
+        code, _, err = call(deploy_cli.main, ["--policy", run_dir.path(run, run_dir.POLICY_FILE),
+                                              "--target-cam", *TARGET_CAM], capsys)
+    else:
+        code, _, err = call(render.main, ["--policy", run_dir.path(run, run_dir.POLICY_FILE),
+                                          "--out", str(tmp_path / "video.mp4")], capsys)
+        assert not os.path.exists(tmp_path / "video.mp4")
+    return code, err
+
+
+@pytest.mark.parametrize("name,command,how", CASES, ids=[f"{c}-{n}-{h}" for n, c, h in CASES])
+def test_3_4_each_damaged_run_file_is_refused_by_each_reader(run_copy, tmp_path, capsys, name, command, how, no_twin):
+    path = run_dir.path(run_copy, name)
+    damage(path, how)
+    before = snapshot(run_copy)
+    code, err = _run_command(command, run_copy, tmp_path, capsys)
+    assert code == 2, err
+    assert path in err, err  # the message names the damaged file
+    assert "Traceback" not in err
+    assert snapshot(run_copy) == before
+
+
+@pytest.mark.parametrize("how", ["truncated", "garbled", "emptied"])
+def test_9_a_damaged_earlier_evaluation_is_not_replaced_without_force(run_copy, how, capsys, monkeypatch):
+    monkeypatch.setattr(evaluate, "evaluate_run", lambda *a, **k: pytest.fail("evaluated before refusing"))
+    cfg = run_dir.load_config(run_copy)
+    path = run_dir.path(run_copy, run_dir.evaluation_file(8, cfg.sa.eval_seed + 1))
+    run_dir.write_json(path, {"episodes": 8, "overall": {"success_rate": 0.5}})
+    damage(path, how)
+    before = snapshot(run_copy)
+    code, _, err = call(evaluate.main, ["--run", run_copy, "--episodes", "8"], capsys)
+    assert code == 2 and path in err and "--force" in err
+    assert snapshot(run_copy) == before
+
+
+def test_4_resume_names_the_line_of_a_damaged_metrics_log(run_copy, capsys):
+    path = run_dir.path(run_copy, run_dir.METRICS_FILE)
+    with open(path, "rb") as f:
+        lines = f.read().split(b"\n")
+    lines[3] = b'{"iteration": 3, "loss": \x00\x01\xfe}'
+    with open(path, "wb") as f:
+        f.write(b"\n".join(lines))
+    before = snapshot(run_copy)
+    code, _, err = call(train.main, ["--out", run_copy, "--resume", "--no-progress"], capsys)
+    assert code == 2 and f"{path}: damaged metrics log at line 4" in err
+    assert snapshot(run_copy) == before
+
+
+# ---------------------------------------------------------------------- 5: NaN / inf / huge / crash-later values
+
+def _numeric_keys() -> list[str]:
+    def numeric(annotation: Any) -> bool:
+        if typing.get_origin(annotation) is tuple:
+            return all(a in (int, float) for a in typing.get_args(annotation) if a is not Ellipsis)
+        return annotation in (int, float)
+
+    keys = []
+    for key in config_mod.valid_keys():
+        *path, leaf = key.split(".")
+        obj: Any = config_mod.Config()
+        for name in path:
+            obj = getattr(obj, name)
+        if numeric(typing.get_type_hints(type(obj))[leaf]):
+            keys.append(key)
+    return keys
+
+
+NUMERIC_KEYS = _numeric_keys()
+
+
+def test_5_every_numeric_key_has_a_range():
+    """A new numeric config key must get a range in config._RANGES (NaN/inf/huge are refused by it)."""
+    assert sorted(set(NUMERIC_KEYS) - set(config_mod._RANGES)) == []
+
+
+@pytest.mark.parametrize("key", NUMERIC_KEYS)
+def test_5_nan_inf_and_huge_set_values_are_refused(key, tmp_path, capsys):
+    current = config_mod.get_key(config_mod.Config(), key)
+    out = tmp_path / "run"
+    for bad in BAD_FLOATS:
+        if isinstance(current, tuple):
+            value = "[" + ", ".join([bad] * len(current) if current else [bad]) + "]"
+        else:
+            value = bad
+        code, _, err = call(train.main, ["--out", str(out), "--no-progress", "--set", f"{key}={value}"], capsys)
+        assert code == 2 and key in err, (key, value, err)
+        assert not out.exists()
+
+
+@pytest.mark.parametrize("argv,message", [
+    (["--set", "train.checkpoint_every_cycles=0"], "train.checkpoint_every_cycles: 0"),
+    (["--set", "train.log_every=0"], "train.log_every: 0"),
+    (["--seed", "-1"], "--seed=-1 is outside the allowed range"),
+    (["--seed", str(2**32)], "--seed=4294967296 is outside the allowed range"),
+    (["--total-steps", "0"], "--total-steps=0"),
+    (["--stop-after-cycles", "0"], "--stop-after-cycles=0"),
+])
+def test_5_values_that_used_to_crash_later_are_refused_up_front(argv, message, tmp_path, capsys):
+    out = tmp_path / "run"
+    code, _, err = call(train.main, ["--out", str(out), "--no-progress", *argv], capsys)
+    assert code == 2 and message in err and not out.exists()
+
+
+@pytest.mark.parametrize("max_steps", ["0", "-5"])
+def test_5_evaluate_max_steps_below_one_is_refused(run_copy, max_steps, capsys):
+    before = snapshot(run_copy)
+    code, _, err = call(evaluate.main, ["--run", run_copy, "--episodes", "8", "--max-steps", max_steps], capsys)
+    assert code == 2 and f"--max-steps={max_steps} is outside the allowed range [1, 100000]" in err
+    assert snapshot(run_copy) == before
+
+
+def _cli_cases(policy: str, run: str, tmp: str) -> list[tuple[str, Callable[[list[str]], int], list[str], str, tuple[str, ...]]]:
+    """(name, main, base argv, flag, bad values) for every numeric option of every command."""
+    out = os.path.join(tmp, "out")
+    deploy_base = ["--policy", policy, "--target-cam", *TARGET_CAM, "--json"]
+    cases = [("train", train.main, ["--out", out, "--no-progress"], flag, BAD_INTS)
+             for flag in ("--seed", "--total-steps", "--stop-after-cycles")]
+    cases += [("evaluate", evaluate.main, ["--run", run, "--out", os.path.join(out, "e.json")], flag, BAD_INTS)
+              for flag in ("--episodes", "--seed", "--max-steps")]
+    cases += [("export", export.main, ["--run", run, "--out", out], "--opset", BAD_INTS)]
+    cases += [("deploy", deploy_cli.main, deploy_base, flag, BAD_FLOATS)
+              for flag in ("--target-yaw", "--base-z-offset", "--base-yaw")]
+    cases += [("deploy", deploy_cli.main, deploy_base, "--max-steps", BAD_INTS)]
+    cases += [("render", render.main, ["--policy", policy, "--out", os.path.join(out, "v.mp4")], flag, BAD_INTS)
+              for flag in ("--episodes", "--seed", "--width", "--height", "--fps", "--max-steps")]
+    cases += [("parity", parity.main, ["--out", os.path.join(out, "p.json"), "--quiet"], flag, BAD_INTS)
+              for flag in ("--episodes", "--seed", "--max-steps", "--batch")]
+    return cases
+
+
+def test_5_nan_inf_and_huge_numeric_options_of_every_command_are_refused(policy_file, run_copy, tmp_path, capsys,
+                                                                          no_twin):
+    before = snapshot(run_copy)
+    for name, main, base, flag, values in _cli_cases(policy_file, run_copy, str(tmp_path)):
+        for value in values:
+            code, out, err = call(main, [*base, f"{flag}={value}"], capsys)
+            assert code == 2 and flag in err and "Traceback" not in err, (name, flag, value, err)
+            if name == "deploy":
+                assert json.loads(out)["outcome"] == "input_refused"
+            assert not os.path.exists(tmp_path / "out"), (name, flag, value)
+    # the detections: every number of --target-cam and of an --obstacle ("-inf" cannot be passed to an
+    # option taking several values: argparse reads it as an option name)
+    obstacle = [*cam_mm([0.25, -0.30, 0.16]), "30"]
+    several = [v for v in BAD_FLOATS if not v.startswith("-")]
+    for i in range(3):
+        for value in several:
+            cam = list(TARGET_CAM)
+            cam[i] = value
+            code, out, err = call(deploy_cli.main, ["--policy", policy_file, "--target-cam", *cam, "--json"], capsys)
+            assert code == 2 and "--target-cam" in err and json.loads(out)["outcome"] == "input_refused"
+    for i in range(4):
+        for value in several:
+            ob = list(obstacle)
+            ob[i] = value
+            code, out, err = call(deploy_cli.main, ["--policy", policy_file, "--target-cam", *TARGET_CAM,
+                                                    "--obstacle", "sphere", *ob, "--json"], capsys)
+            assert code == 2 and "--obstacle #1" in err and json.loads(out)["outcome"] == "input_refused", err
+    for value in several:  # a box's yaw
+        code, out, err = call(deploy_cli.main, ["--policy", policy_file, "--target-cam", *TARGET_CAM, "--obstacle",
+                                                "box", *cam_mm([0.25, -0.30, 0.08]), "40", "40", "80", value], capsys)
+        assert code == 2 and "--obstacle #1: box yaw" in err
+    assert snapshot(run_copy) == before
+
+
+# ---------------------------------------------------------------------- 6: killed before the first checkpoint
+
+def test_6_a_run_killed_before_its_first_checkpoint_restarts_with_resume(toy_run, tmp_path, capsys):
+    out = str(tmp_path / "run")
+    os.makedirs(os.path.join(out, run_dir.TB_DIR))
+    run_dir.write_config(out, toy_config())
+    shutil.copy(run_dir.path(toy_run, run_dir.METRICS_FILE), run_dir.path(out, run_dir.METRICS_FILE))  # rows, no ckpt
+    before = snapshot(out)
+    code, _, err = call(train.main, ["--out", out, "--no-progress"], capsys)
+    assert code == 2 and "stopped before its first checkpoint; pass --resume to restart it" in err
+    assert snapshot(out) == before
+    train.run(toy_config(), out, resume=True, env_factory=toy_factory(), progress=False)
+    assert "restarting it from the beginning" in capsys.readouterr().err
+    assert rows(out) == rows(toy_run)
+    assert {k: v.tolist() for k, v in policy_arrays(out).items()} == {k: v.tolist() for k, v in policy_arrays(toy_run).items()}
+
+
+# ---------------------------------------------------------------------- 7: read-only outputs
+
+def test_7_read_only_outputs_are_refused_before_any_work(policy_file, run_copy, tmp_path, capsys, monkeypatch):
+    readonly = readonly_location(tmp_path)
+    monkeypatch.setattr(train, "Trainer", lambda *a, **k: pytest.fail("the env was built before refusing"))
+    monkeypatch.setattr(evaluate, "evaluate_run", lambda *a, **k: pytest.fail("evaluated before refusing"))
+    before = snapshot(run_copy)
+    target = os.path.join(readonly, "sagrasp-fault-test")
+    code, _, err = call(train.main, ["--out", target, "--no-progress"], capsys)
+    assert code == 2 and "cannot create run folder" in err and not os.path.exists(target)
+    code, _, err = call(evaluate.main, ["--run", run_copy, "--episodes", "8", "--out", target + ".json"], capsys)
+    assert code == 2 and "cannot write into output folder" in err
+    code, _, err = call(export.main, ["--run", run_copy, "--out", target, "--no-onnx"], capsys)
+    assert code == 2 and "cannot create output folder" in err
+    code, _, err = call(render.main, ["--policy", policy_file, "--out", target + ".mp4"], capsys)
+    assert code == 2 and "cannot write into output folder" in err
+    code, _, err = call(parity.main, ["--out", target + ".json", "--quiet"], capsys)
+    assert code == 2 and "cannot write into output folder" in err
+    assert snapshot(run_copy) == before
+
+
+# ---------------------------------------------------------------------- 8: safety from the robot; tampered policies
+
+def _tampered(path: str, edit: Callable[[dict[str, Any]], None], rehash: bool) -> str:
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files}
+    cfg = json.loads(str(arrays["config_json"]))
+    edit(cfg)
+    arrays["config_json"] = np.asarray(json.dumps(cfg, sort_keys=True))
+    if rehash:
+        arrays["config_hash"] = np.asarray(config_mod.config_hash(config_mod.config_from_dict(cfg)))
+        arrays["action_scale"] = np.asarray(cfg["env"]["control"]["q_max"], np.float64)
+    with open(path, "wb") as f:
+        np.savez(f, **arrays)
+    return path
+
+
+@pytest.mark.parametrize("edit,rehash,message", [
+    (lambda c: c["env"]["control"].update(q_max=0.5), True,
+     "control constants this robot does not use: env.control.q_max (rad per step): policy 0.5, deployment 0.05"),
+    (lambda c: c["env"]["control"].update(control_dt=0.5), True, "env.control.control_dt (s): policy 0.5"),
+    (lambda c: c["env"]["control"].update(q_limit=3.14), True, "env.control.q_limit (rad): policy 3.14, URDF"),
+    (lambda c: c["env"]["control"].update(q_max=0.5), False, "file edited?"),
+])
+def test_8_a_tampered_policy_file_is_refused_before_moving(policy_file, tmp_path, edit, rehash, message, capsys, no_twin):
+    path = _tampered(shutil.copy(policy_file, str(tmp_path / "policy.npz")), edit, rehash)
+    before = snapshot(str(tmp_path))
+    code, out, err = call(deploy_cli.main, ["--policy", path, "--target-cam", *TARGET_CAM, "--json"], capsys)
+    assert code == 2 and message in err and json.loads(out)["outcome"] == "input_refused"
+    assert snapshot(str(tmp_path)) == before
+    if rehash:  # the library path refuses it too, and nothing reaches the robot
+        robot = Twinless()
+        with pytest.raises(PolicyMismatch, match="control constants"):
+            run_episode(robot, runtime.load_policy(path), TARGET)
+        assert robot.sent == []
+
+
+def test_8_obstacle_inside_the_training_clearance_is_refused_before_moving(policy_file, capsys, no_twin):
+    cfg = get_config("cpu-quick").env
+    # a cylinder 0.06 m from the cube centre, surface 0.03 m away: under target_clearance = 0.10 m
+    top = cam_mm(TARGET + [0.06, 0.0, 0.1])
+    code, out, err = call(deploy_cli.main, ["--policy", policy_file, "--target-cam", *TARGET_CAM, "--obstacle",
+                                            "cylinder", *top, "30", "200", "--json"], capsys)
+    assert code == 2 and "obstacle too close to the cube: obstacle 1 (cylinder) is 0.0300 m from it" in err
+    assert f"target_clearance = {cfg.sampling.target_clearance:g} m" in err
+    robot = Twinless()
+    near = Obstacle("box", tuple(TARGET + [0.0, 0.08, 0.0]), (0.04, 0.04, 0.05))
+    with pytest.raises(ObstacleRejected, match=r"obstacle 1 \(box\) is 0.0400 m"):
+        run_episode(robot, runtime.load_policy(policy_file), TARGET, obstacles=[near])
+    assert robot.sent == []
+    far = Obstacle("sphere", tuple(TARGET + [0.16, 0.0, 0.125]), (0.05, 0.0, 0.0))  # surface 0.11 m: allowed
+    report = run_episode(robot, runtime.load_policy(policy_file), TARGET, obstacles=[far], max_steps=2, grasp=False)
+    assert report.steps == 2 and len(robot.sent) == 2
+
+
+# ---------------------------------------------------------------------- 9: evaluation outputs
+
+def test_9_evaluate_names_its_output_and_refuses_to_replace_another_evaluation(run_copy, capsys, monkeypatch):
+    monkeypatch.setattr(evaluate, "default_eval_env", lambda cfg: toy_factory()(cfg)[1])
+    cfg = run_dir.load_config(run_copy)
+    seed = cfg.sa.eval_seed + 1
+    assert call(evaluate.main, ["--run", run_copy, "--episodes", "16"], capsys)[0] == 0
+    first = run_dir.path(run_copy, f"evaluation-16ep-seed{seed}.json")
+    assert json.load(open(first))["episodes"] == 16
+    assert call(evaluate.main, ["--run", run_copy, "--episodes", "32", "--seed", "7"], capsys)[0] == 0
+    assert json.load(open(run_dir.path(run_copy, "evaluation-32ep-seed7.json")))["episodes"] == 32
+    assert json.load(open(first))["episodes"] == 16  # untouched
+    assert call(evaluate.main, ["--run", run_copy, "--episodes", "16"], capsys)[0] == 0  # the same evaluation again
+    # the file now claims an older checkpoint: a different evaluation, kept unless --force
+    old = json.load(open(first))
+    old["checkpoint_iteration"] = 3
+    run_dir.write_json(first, old)
+    before = snapshot(run_copy)
+    code, _, err = call(evaluate.main, ["--run", run_copy, "--episodes", "16"], capsys)
+    assert code == 2 and f"{first} holds a different result (checkpoint_iteration 3 -> " in err and "--force" in err
+    assert snapshot(run_copy) == before
+    assert call(evaluate.main, ["--run", run_copy, "--episodes", "16", "--force"], capsys)[0] == 0
+    assert json.load(open(first))["checkpoint_iteration"] != 3
+
+
+# ---------------------------------------------------------------------- 2 / 6 / 9: real kills
+
+class Driver:
+    """tests/fault_driver.py in a subprocess (the toy training through train.run)."""
+
+    def __init__(self, out: str, *extra: str) -> None:
+        # Cache even the trainer's many sub-second compiles: each driver starts in ≈ 6 s, not 10.
+        env = dict(os.environ, JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0")
+        self.proc = subprocess.Popen([sys.executable, DRIVER, out, *extra], stdout=subprocess.PIPE,
+                                     stderr=subprocess.STDOUT, text=True, cwd=REPO, env=env)
+
+    def wait_for(self, marker: str, timeout: float = 240.0) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            line = self.proc.stdout.readline()
+            if not line:
+                return False  # exited
+            if line.strip() == marker:
+                return True
+        raise AssertionError(f"driver did not print {marker} in {timeout} s")
+
+    def kill(self) -> int:
+        with contextlib.suppress(ProcessLookupError):
+            self.proc.kill()
+        return self.finish()
+
+    def finish(self) -> int:
+        rest, _ = self.proc.communicate(timeout=240)
+        assert self.proc.returncode in (0, -9), rest[-3000:]
+        return self.proc.returncode
+
+
+def test_2_6_9_kills_at_random_points_then_resume_equals_the_uninterrupted_run(toy_run, tmp_path, capsys):
+    out = str(tmp_path / "run")
+    rng = random.Random(16)
+    # A kill in the middle of the first checkpoint write: before the first checkpoint, with a temp file left.
+    assert Driver(out, "--die-in-checkpoint-write", "1").finish() == -9
+    temps = fileio.temp_files(out)
+    assert len(temps) == 1 and os.path.basename(temps[0]).startswith(".checkpoint.ckpt.")
+    assert not os.path.exists(run_dir.path(out, run_dir.CHECKPOINT_FILE))
+    before = snapshot(out)
+    code, _, err = call(train.main, ["--out", out, "--no-progress"], capsys)  # a fresh start is refused, and says why
+    assert code == 2 and "stopped before its first checkpoint" in err and snapshot(out) == before
+    for round_ in range(2):
+        driver = Driver(out, "--slow", "0.1")  # resume (or restart): the temp file goes first
+        if driver.wait_for("COMPILED"):
+            assert fileio.temp_files(out) == []
+            if round_ == 0:  # a second writer meanwhile is refused, naming the one at work
+                before = snapshot(out)
+                code, _, err = call(train.main, ["--out", out, "--resume", "--no-progress"], capsys)
+                assert code == 2 and f"is in use by another process (pid {driver.proc.pid}" in err
+                assert snapshot(out) == before
+            time.sleep(rng.uniform(0.0, 1.5))
+        driver.kill()
+    # And a kill during a later checkpoint write, if the run has one left to write.
+    if Driver(out, "--die-in-checkpoint-write", "1").finish() == -9:
+        assert [os.path.basename(t).startswith(".checkpoint.ckpt.") for t in fileio.temp_files(out)] == [True]
+    train.run(toy_config(), out, resume=True, env_factory=toy_factory(), progress=False)
+    assert fileio.temp_files(out) == []
+    assert rows(out) == rows(toy_run)
+    assert {k: v.tolist() for k, v in policy_arrays(out).items()} == {k: v.tolist() for k, v in policy_arrays(toy_run).items()}
+    ckpt, ref = run_dir.load_checkpoint(out), run_dir.load_checkpoint(toy_run)
+    assert ckpt.host == ref.host
+    for name in ref.trees:
+        assert ckpt.trees[name].keys() == ref.trees[name].keys()
+        for leaf in ckpt.trees[name]:
+            np.testing.assert_array_equal(ckpt.trees[name][leaf], ref.trees[name][leaf], err_msg=f"{name}{leaf}")
+
