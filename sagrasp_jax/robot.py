@@ -29,7 +29,7 @@ ARM_JOINTS = (
 )
 FINGER_JOINTS = ("left_finger_joint", "right_finger_joint")
 
-# Primitive kinds shared with geometry.py.
+# Primitive kinds (sizes in MuJoCo's convention), shared with geometry.py and shapes.py.
 SPHERE, CAPSULE, BOX, CYLINDER = 0, 1, 2, 3
 
 

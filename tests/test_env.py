@@ -12,7 +12,8 @@ import sagrasp_jax  # noqa: F401
 import jax
 import jax.numpy as jnp
 
-from sagrasp_jax import collision, config, geometry, robot, sampling
+from sagrasp_jax import collision, config, robot, sampling
+from sagrasp_jax.reference import exact_geometry as geometry
 from sagrasp_jax.env import GraspEnv, OBS_SIZE
 from sagrasp_jax.scene import SCENE
 from sagrasp_jax.wrappers import AutoReset

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 import sagrasp_jax  # noqa: F401
-from sagrasp_jax import collision, config, geometry, observation, robot, sampling
+from sagrasp_jax import collision, config, observation, robot, sampling
+from sagrasp_jax.reference import exact_geometry as geometry
 
 ROBOT = robot.load_robot()
 HOME = np.array(config.HOME_Q)

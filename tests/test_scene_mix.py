@@ -19,7 +19,8 @@ import sagrasp_jax  # noqa: F401
 import jax
 import jax.numpy as jnp
 
-from sagrasp_jax import collision, config, geometry, robot, sampling, train
+from sagrasp_jax import collision, config, robot, sampling, train
+from sagrasp_jax.reference import exact_geometry as geometry
 
 ROBOT = robot.load_robot()
 HOME = np.array(config.HOME_Q)

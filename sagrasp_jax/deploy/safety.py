@@ -24,8 +24,8 @@ Rules (all NumPy):
    flange, gripper body, fingers) stays above the table top z = 0 (+ ``table_clearance``).
    The base and shoulder are excluded: their height never changes (joint 1 turns about z)
    and the shoulder capsule of the URDF dips 1 cm into the table by construction;
-5. optionally, a caller-supplied ``collision_check(q) -> message | None`` (self-collision
-   and static-cell checks from ``sagrasp_jax.geometry`` once the deployment loop wires them).
+5. optionally, a caller-supplied ``collision_check(q) -> message | None``: the deployment loop
+   wires ``collision.check`` (self-collision, the cell, the obstacles and the cube) here.
 
 Default workspace box (world = URDF base frame, metres), derived from SPEC §1:
 
