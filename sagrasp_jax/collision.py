@@ -261,12 +261,6 @@ def cover_centres(xp: Any, robot: RobotModel, kin: Kinematics, cover: SphereCove
     return xp.concatenate(parts, axis=-2)
 
 
-def yaw_rotation(xp: Any, yaw: Any) -> Any:
-    c, s = xp.cos(yaw), xp.sin(yaw)
-    zero, one = xp.zeros_like(yaw), xp.ones_like(yaw)
-    return xp.stack([xp.stack([c, -s, zero], -1), xp.stack([s, c, zero], -1), xp.stack([zero, zero, one], -1)], -2)
-
-
 def lowest_z(part: Any) -> float:
     """Height of a static part's lowest point."""
     return float(part.pos[2] - np.abs(np.asarray(part.rot)[2]) @ np.asarray(part.size))
@@ -357,11 +351,17 @@ def check(xp: Any, robot: RobotModel, kin: Kinematics, reset: Any, cfg: EnvConfi
         o_centres, o_radius = centres[moving], radius[moving]
     active = xp.asarray(reset.obstacle_active)
     kind = xp.asarray(reset.obstacle_kind)
+    kinds = shapes.kind_ids(cfg.sampling.obstacle_kinds)  # only the configured shapes are computed
+    if isinstance(kind, np.ndarray):  # NumPy callers (PyBullet env, deployment) get a check, not a wrong shape
+        unknown = sorted(set(np.asarray(kind)[np.asarray(active, bool)].tolist()) - set(kinds))
+        if unknown:
+            raise ValueError(f"obstacle kind(s) {unknown} are not in env.sampling.obstacle_kinds "
+                             f"{cfg.sampling.obstacle_kinds} (ids {kinds})")
     o_pos = xp.asarray(reset.obstacle_pos, dtype=dtype)
     o_yaw = xp.asarray(reset.obstacle_yaw, dtype=dtype)
     o_size = xp.asarray(reset.obstacle_size, dtype=dtype)
     sdf = shapes.sdf(
-        xp, kind[:, None], o_pos[:, None, :], o_yaw[:, None], o_size[:, None, :], o_centres[None, :, :]
+        xp, kind[:, None], o_pos[:, None, :], o_yaw[:, None], o_size[:, None, :], o_centres[None, :, :], kinds
     ) - o_radius[None, :]  # (slots, S)
     slot_min = xp.min(sdf, axis=-1)
     per_slot = xp.where(active, slot_min, xp.inf)
@@ -375,13 +375,13 @@ def check(xp: Any, robot: RobotModel, kin: Kinematics, reset: Any, cfg: EnvConfi
     # nearest-point vectors: from the slot's closest sphere, and from the gripper centre
     closest = (xp.arange(sdf.shape[-1])[None, :] == xp.argmin(sdf, axis=-1)[:, None])[..., None]  # (slots, S, 1)
     star = xp.sum(xp.where(closest, o_centres[None, :, :], 0.0), axis=1)  # (slots, 3)
-    to_surface = shapes.surface_point(xp, kind, o_pos, o_yaw, o_size, star) - star
+    to_surface = shapes.surface_point(xp, kind, o_pos, o_yaw, o_size, star, kinds) - star
     length = xp.sqrt(xp.sum(to_surface**2, axis=-1, keepdims=True))
-    outside = shapes.sdf(xp, kind, o_pos, o_yaw, o_size, star)[:, None] >= 0.0
+    outside = shapes.sdf(xp, kind, o_pos, o_yaw, o_size, star, kinds)[:, None] >= 0.0
     toward = xp.where(outside, 1.0, -1.0) * to_surface / xp.maximum(length, 1e-9)
     robot_to_obstacle = xp.where(active[:, None], slot_min[:, None] * toward, 0.0)
     centre = xp.broadcast_to(kin.gripper_centre.astype(dtype), o_pos.shape)
-    gripper_vec = shapes.surface_point(xp, kind, o_pos, o_yaw, o_size, centre) - centre
+    gripper_vec = shapes.surface_point(xp, kind, o_pos, o_yaw, o_size, centre, kinds) - centre
     gripper_to_obstacle = xp.where(active[:, None], gripper_vec, 0.0)
 
     # gantry posts (camera, bracket and beam are out of reach)
@@ -414,7 +414,7 @@ def check(xp: Any, robot: RobotModel, kin: Kinematics, reset: Any, cfg: EnvConfi
     # target cuboid: exact
     t_half = xp.asarray([s / 2 for s in cfg.sampling.target_size], dtype=dtype)
     t_pos = xp.asarray(reset.target_pos, dtype=dtype)
-    t_rot = yaw_rotation(xp, xp.asarray(reset.target_yaw, dtype=dtype))
+    t_rot = shapes.yaw_rotation(xp, xp.asarray(reset.target_yaw, dtype=dtype))
     arm = _link_slice(cover, REACH_LINK, last - 1)
     rel = centres[arm] - t_pos
     local = rel @ t_rot

@@ -17,6 +17,8 @@ import typing
 from dataclasses import dataclass, field
 from typing import Any
 
+from sagrasp_jax import shapes
+
 Q_LIMIT = 3.0543  # ±175° on every AUBO-i5 joint (SPEC §1); the URDF holds the same value.
 
 # Home pose: damped-least-squares IK seeded from SPEC §2's vector, solved once by
@@ -127,11 +129,16 @@ class SamplingConfig:
     cylinder_radius: tuple[float, float] = (0.02, 0.05)
     cylinder_height: tuple[float, float] = (0.10, 0.30)
     box_half: tuple[float, float] = (0.02, 0.06)
+    capsule_radius: tuple[float, float] = (0.02, 0.05)  # m, capsules lying on the table (not in the paper's mix)
+    capsule_length: tuple[float, float] = (0.10, 0.30)  # m, capsule axis between the cap centres (tip to tip: + 2 r)
+    # Obstacle shapes drawn, names of shapes.SHAPES (sphere, cylinder, box, capsule); each slot's candidates are
+    # split evenly among them.  The default is the paper's mix (SPEC §1).
+    obstacle_kinds: tuple[str, ...] = shapes.PAPER_KINDS
     obstacle_disc_radius: float = 0.15
     home_xy: tuple[float, float] = (0.0, -0.30)
     target_clearance: float = 0.10  # m, obstacle surface to target centre, horizontal
     robot_clearance: float = 0.10  # m, obstacle to every robot geometry at the start pose
-    obstacle_candidates: int = 9  # per slot, a third of each kind (a remainder is unused); first feasible wins
+    obstacle_candidates: int = 9  # per slot, split evenly among obstacle_kinds (a remainder is unused); first feasible wins
     scene_redraws: int = 2  # whole-scene re-draws before falling back to "no obstacle"
     # Fraction of obstacle scenes whose obstacles are placed on the straight approach path (sampling.py,
     # "blocking" placement) instead of the SPEC's disc around the path's midpoint.  0 = the SPEC mix.
@@ -301,9 +308,11 @@ def _parse_value(text: str, annotation: Any, key: str) -> Any:
         if annotation is str:
             return text
         if origin is tuple:
-            parsed = json.loads(text if text.strip().startswith("[") else f"[{text}]")
             args = typing.get_args(annotation)
             elem = args[0]
+            if elem is str and not text.strip().startswith("["):  # a,b,c: bare words
+                return tuple(t.strip() for t in text.split(",") if t.strip())
+            parsed = json.loads(text if text.strip().startswith("[") else f"[{text}]")
             return tuple(_parse_value(json.dumps(v), elem, key) if not isinstance(v, str) else v for v in parsed)
     except (ValueError, json.JSONDecodeError) as exc:
         raise ConfigError(f"bad value {text!r} for {key} ({annotation}): {exc}") from None
@@ -316,6 +325,7 @@ _CHOICES = {
     "env.reward.near_miss_mode": ("change", "per_step"),
     "env.task.obs_layout": ("paper", "relative"),
     "env.task.obstacle_geometry": ("fine", "cover"),
+    "env.sampling.obstacle_kinds": shapes.NAMES,  # a tuple key: each entry
     "sa.metric": ("return", "success"),
     "ppo.network.activation": ("tanh", "relu", "silu", "elu"),
 }
@@ -379,6 +389,8 @@ _RANGES: dict[str, tuple[float | str, float]] = {
     "env.sampling.cylinder_radius": (">0", 0.5),
     "env.sampling.cylinder_height": (">0", 2.0),
     "env.sampling.box_half": (">0", 0.5),
+    "env.sampling.capsule_radius": (">0", 0.5),
+    "env.sampling.capsule_length": (">0", 2.0),
     "env.sampling.obstacle_disc_radius": (0.0, 2.0),
     "env.sampling.home_xy": (-2.0, 2.0),
     "env.sampling.target_clearance": (0.0, 1.0),
@@ -423,6 +435,8 @@ _RANGES: dict[str, tuple[float | str, float]] = {
     "train.log_every": (1, 10**9),
     "train.checkpoint_every_cycles": (1, 10**9),
     "train.metrics_window": (1, 10**7),
+    "train.obstacle_prob": (-1.0, 1.0),  # −1 = env.sampling's; validate also refuses (−1, 0)
+    "train.blocking_prob": (-1.0, 1.0),
 }
 
 
@@ -550,8 +564,9 @@ def validate(cfg: Config) -> None:
     _check_ranges(cfg)
     for key, choices in _CHOICES.items():
         value = get_key(cfg, key)
-        if value not in choices:
-            raise ConfigError(f"{key}={value!r} is not one of {', '.join(choices)}")
+        for v in value if isinstance(value, tuple) else (value,):
+            if v not in choices:
+                raise ConfigError(f"{key}={value!r}: {v!r} is not one of {', '.join(choices)}")
     checks = [
         ("ppo.num_envs", cfg.ppo.num_envs >= 1),
         ("ppo.unroll_length", cfg.ppo.unroll_length >= 1),
@@ -577,7 +592,9 @@ def validate(cfg: Config) -> None:
         ("env.control.substeps", cfg.env.control.substeps >= 1),
         ("env.task.home_q", len(cfg.env.task.home_q) == 6),
         ("env.sampling.max_obstacles", cfg.env.sampling.max_obstacles == 2),  # the MJCF has two slots
-        ("env.sampling.obstacle_candidates", cfg.env.sampling.obstacle_candidates >= 3),  # ≥ one of each kind
+        ("env.sampling.obstacle_kinds", 0 < len(cfg.env.sampling.obstacle_kinds) == len(set(cfg.env.sampling.obstacle_kinds))),
+        # at least one candidate of each kind
+        ("env.sampling.obstacle_candidates", cfg.env.sampling.obstacle_candidates >= len(cfg.env.sampling.obstacle_kinds)),
         ("env.sampling.obstacle_prob", 0 <= cfg.env.sampling.obstacle_prob <= 1),
         ("env.sampling.blocking_prob", 0 <= cfg.env.sampling.blocking_prob <= 1),
         ("env.sampling.blocking_margin", cfg.env.sampling.blocking_margin > 0),

@@ -45,7 +45,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from sagrasp_jax import fileio, robot, sampling, scripted
+from sagrasp_jax import fileio, robot, sampling, scripted, shapes
 from sagrasp_jax.config import Config, ConfigError, EnvConfig, apply_overrides, check_range, get_config
 
 SOURCES = ("random", "scripted", "policy")
@@ -96,6 +96,15 @@ def draw_resets(cfg: EnvConfig, n: int, rng: np.random.Generator) -> list[sampli
     model = robot.load_robot()
     u = rng.random((n, sampling.uniforms_needed(cfg.sampling)))
     return [sampling.sample_reset(np, model, cfg.sampling, cfg.task, u[i]) for i in range(n)]
+
+
+def obstacles_per_kind(specs: list[sampling.ResetSpec]) -> dict[str, int]:
+    """How many active obstacles of each kind the episodes hold."""
+    counts = {shape.name: 0 for shape in shapes.SHAPES}
+    for spec in specs:
+        for i in np.nonzero(np.asarray(spec.obstacle_active))[0]:
+            counts[shapes.BY_ID[int(spec.obstacle_kind[i])].name] += 1
+    return {name: n for name, n in counts.items() if n}
 
 
 def _stack_specs(specs: list[sampling.ResetSpec]) -> sampling.ResetSpec:
@@ -463,6 +472,8 @@ def run_parity(
         "obs_layout": jax_cfg.task.obs_layout,
         "obstacle_geometry": jax_cfg.task.obstacle_geometry,
         "obstacle_episodes": int(sum(bool(np.any(s.obstacle_active)) for s in specs)),
+        "obstacle_kinds": list(jax_cfg.sampling.obstacle_kinds),
+        "obstacles_per_kind": obstacles_per_kind(specs),
         "tolerances": dataclasses.asdict(tol),
         "sources": {},
     }
@@ -493,7 +504,8 @@ def _fmt(value: Any) -> str:
 
 def format_report(report: dict[str, Any]) -> str:
     lines = [f"parity {report['mode']}: {report['episodes_per_source']} episodes per source, seed {report['seed']}, "
-             f"max {report['max_steps']} steps, {report['obstacle_episodes']} episodes with obstacles, "
+             f"max {report['max_steps']} steps, {report['obstacle_episodes']} episodes with obstacles "
+             f"({', '.join(f'{n} {k}' for k, n in report.get('obstacles_per_kind', {}).items()) or 'none'}), "
              f"observation layout {report.get('obs_layout', 'paper')}"]
     tol = report["tolerances"]
     limits = {"gripper_centre": tol["gripper_centre"], "obs": tol["obs"], **{k: tol["reward"] for k in REWARD_KEYS}}

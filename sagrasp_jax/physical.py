@@ -29,7 +29,8 @@ import mujoco
 import numpy as np
 
 from sagrasp_jax import robot as robot_mod
-from sagrasp_jax.robot import BOX, CYLINDER, SPHERE, lift_pose
+from sagrasp_jax import shapes
+from sagrasp_jax.robot import lift_pose
 from sagrasp_jax.sampling import ResetSpec
 
 SCENE_XML = os.path.normpath(os.path.join(os.path.dirname(robot_mod.URDF_PATH), "..", "mjcf", "scene.xml"))
@@ -41,7 +42,6 @@ HOLD_S = 0.5  # s holding the lifted pose before measuring
 LIFT_HEIGHT = 0.05  # m, SPEC §2
 HOLD_TOLERANCE = 0.01  # m the cube may lag behind the gripper's rise (soft contacts slip a few mm)
 ARM_DOF = 6
-KIND_NAMES = {SPHERE: "sphere", CYLINDER: "cylinder", BOX: "box"}
 FrameCallback = Callable[["GraspScene"], None]
 
 
@@ -101,14 +101,14 @@ class GraspScene:
                 raise PhysicalCheckError(f"{xml_path} has no obstacle slot {slot}")
             active = bool(spec.obstacle_active[slot])
             kind = int(spec.obstacle_kind[slot])
-            if active and kind not in KIND_NAMES:
+            if active and kind not in shapes.BY_ID:
                 raise PhysicalCheckError(f"obstacle slot {slot}: unknown kind {kind}")
             if active:
                 body.pos = spec.obstacle_pos[slot].tolist()
                 body.quat = _yaw_quat(float(spec.obstacle_yaw[slot])).tolist()
-            for kid, name in KIND_NAMES.items():
-                geom = mj.geom(f"obstacle_{slot}_{name}")
-                chosen = active and kid == kind
+            for shape in shapes.SHAPES:  # the slot has one geom per kind (its tilt is the geom's own)
+                geom = mj.geom(f"obstacle_{slot}_{shape.name}")
+                chosen = active and shape.id == kind
                 size = spec.obstacle_size[slot]
                 if chosen:
                     geom.size = [float(size[0]), float(size[1]), float(size[2])]

@@ -7,7 +7,9 @@ the same reset in both.  Everything is fixed-size (no rejection loops): every
 candidate of every attempt is evaluated and the first feasible one is selected, so it
 jits, vmaps and costs the same for every env.
 
-Feasibility of an obstacle (SPEC §1): (a) horizontal clearance from its surface to the
+Obstacle kinds are ``cfg.obstacle_kinds`` (entries of ``shapes.SHAPES``: each says how its size,
+height and yaw are drawn and holds its SDF, footprint and bounding radius); a slot's candidates are
+split evenly among them.  Feasibility of an obstacle (SPEC §1): (a) horizontal clearance from its surface to the
 target centre ≥ ``target_clearance``; (b) every robot primitive at the (noisy) start
 pose ≥ ``robot_clearance`` from the obstacle — measured between the obstacle's exact shape
 and the robot's sphere cover (``collision.py``) less the cover's capsule dip, so never optimistic; (c) the two
@@ -24,10 +26,10 @@ from sagrasp_jax.config import SamplingConfig, TaskConfig
 import numpy as np
 
 from sagrasp_jax import collision, shapes
-from sagrasp_jax.robot import BOX, CYLINDER, SPHERE, RobotModel, forward_kinematics
+from sagrasp_jax.robot import Kinematics, RobotModel, forward_kinematics
+from sagrasp_jax.shapes import ObstacleShape
 
-OBSTACLE_KINDS = (SPHERE, CYLINDER, BOX)
-_PER_CANDIDATE = 8  # kind, 3 sizes, disc radius, disc angle, height, yaw
+_PER_CANDIDATE = 8  # kind order offset, 3 sizes, disc radius, disc angle, height, yaw (shapes.draw)
 _PER_TARGET = 3  # x, y, yaw
 
 
@@ -38,10 +40,10 @@ class ResetSpec(NamedTuple):
     target_pos: Any  # (3,) cube centre
     target_yaw: Any  # () rad
     obstacle_active: Any  # (max_obstacles,) bool
-    obstacle_kind: Any  # (max_obstacles,) int: SPHERE | CYLINDER | BOX
+    obstacle_kind: Any  # (max_obstacles,) int: a shapes.SHAPES id (env.sampling.obstacle_kinds)
     obstacle_pos: Any  # (max_obstacles, 3) centre
-    obstacle_yaw: Any  # (max_obstacles,) rad (boxes; cylinders are upright, spheres round)
-    obstacle_size: Any  # (max_obstacles, 3) MuJoCo size convention
+    obstacle_yaw: Any  # (max_obstacles,) rad about world z (0 for shapes round about z)
+    obstacle_size: Any  # (max_obstacles, 3) MuJoCo size convention of the shape's primitive
     redraws: Any  # () whole-scene re-draws used
     fallback: Any  # () 1 if obstacles were wanted but none was feasible
 
@@ -64,7 +66,7 @@ def grasp_point(xp: Any, task: TaskConfig, target_pos: Any) -> Any:
 
 
 def path_clearance(xp: Any, robot: RobotModel, task: TaskConfig, reset: "ResetSpec", samples: int = 32,
-                   levels: int = 3) -> Any:
+                   levels: int = 3, kinds: tuple[int, ...] | None = None) -> Any:
     """Distance (slots,) from the straight segment (gripper centre at the start pose → grasp point)
     to each obstacle's surface; +inf for empty slots.  The obstacle's SDF along the segment is convex,
     so a grid of ``samples`` points finds the cell holding the minimum and each further level grids
@@ -79,7 +81,7 @@ def path_clearance(xp: Any, robot: RobotModel, task: TaskConfig, reset: "ResetSp
 
     def f(t: Any) -> Any:  # (slots, n) SDF at start + t·(end − start)
         points = start + t[..., None] * (end - start)
-        return shapes.sdf(xp, kind[:, None], pos[:, None], yaw[:, None], size[:, None], points)
+        return shapes.sdf(xp, kind[:, None], pos[:, None], yaw[:, None], size[:, None], points, kinds)
 
     grid = xp.linspace(-1.0, 1.0, samples, dtype=dtype)
     t = xp.broadcast_to(xp.linspace(0.0, 1.0, samples, dtype=dtype), kind.shape + (samples,))
@@ -97,7 +99,7 @@ def path_clearance(xp: Any, robot: RobotModel, task: TaskConfig, reset: "ResetSp
 
 def is_blocking(xp: Any, robot: RobotModel, cfg: SamplingConfig, task: TaskConfig, reset: "ResetSpec") -> Any:
     """An obstacle scene whose straight approach path passes within ``cfg.blocking_margin`` of an obstacle."""
-    return xp.any(path_clearance(xp, robot, task, reset) < cfg.blocking_margin)
+    return xp.any(path_clearance(xp, robot, task, reset, kinds=shapes.kind_ids(cfg.obstacle_kinds)) < cfg.blocking_margin)
 
 
 def _lerp(lo_hi: tuple[float, float], u: Any) -> Any:
@@ -123,40 +125,131 @@ def _select(xp: Any, values: Any, index: Any, axis: int) -> Any:
     return xp.sum(xp.where(onehot, values, 0), axis=axis)
 
 
-def bounding_radius(xp: Any, kind: Any, size: Any) -> Any:
-    sphere = size[..., 0]
-    cylinder = xp.sqrt(size[..., 0] ** 2 + size[..., 1] ** 2)
-    box = xp.sqrt(xp.sum(size**2, axis=-1))
-    return xp.where(kind == SPHERE, sphere, xp.where(kind == CYLINDER, cylinder, box))
+class _KindGroups(NamedTuple):
+    """The candidates of a slot grouped by kind: ``per_kind`` consecutive candidates of each shape of
+    ``env.sampling.obstacle_kinds``, in that order.  Every per-kind computation runs on its group's
+    static slice, so a candidate's shape maths is its own kind's only."""
+
+    shapes: tuple[ObstacleShape, ...]
+    per_kind: int
+
+    @property
+    def count(self) -> int:
+        return self.per_kind * len(self.shapes)
+
+    def items(self) -> list[tuple[ObstacleShape, slice]]:
+        return [(shape, slice(g * self.per_kind, (g + 1) * self.per_kind)) for g, shape in enumerate(self.shapes)]
+
+    def map(self, xp: Any, fn: Any, axis: int) -> Any:
+        """``fn(shape, slice)`` for every group, concatenated along the candidate ``axis``."""
+        return xp.concatenate([fn(shape, sl) for shape, sl in self.items()], axis=axis)
 
 
-def horizontal_clearance(xp: Any, kind: Any, pos: Any, yaw: Any, size: Any, point_xy: Any) -> Any:
-    """Horizontal distance from the obstacle's surface (its footprint) to a point (SPEC §1 (a))."""
-    d = point_xy - pos[..., :2]
-    round_gap = xp.sqrt(xp.sum(d**2, axis=-1)) - size[..., 0]
-    c, s = xp.cos(yaw), xp.sin(yaw)
-    local = xp.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]], axis=-1)
-    q = xp.abs(local) - size[..., :2]
-    box_gap = xp.sqrt(xp.sum(xp.maximum(q, 0.0) ** 2, axis=-1)) + xp.minimum(xp.max(q, axis=-1), 0.0)
-    return xp.where(kind == BOX, box_gap, round_gap)
+def _kind_groups(cfg: SamplingConfig) -> _KindGroups:
+    kinds = shapes.shapes_of(cfg.obstacle_kinds)
+    return _KindGroups(kinds, cfg.obstacle_candidates // len(kinds))  # a remainder goes unused
 
 
-def _obstacle_to_robot(xp: Any, robot: RobotModel, kin: Any, kind: int, pos: Any, yaw: Any, size: Any) -> Any:
-    """Distance (...,) from obstacle candidates of one static kind (exact upright shapes) to the
-    robot's conservative sphere cover (collision.py): the SPEC's "every robot collision geometry"."""
+def _by_kind(xp: Any, kind: Any, branches: list[tuple[tuple[int, ...], Any]], default: Any, trailing: int = 0) -> Any:
+    """Nested ``where`` over candidate kinds: the value of the first branch whose ids hold ``kind``,
+    else ``default``.  The cheap per-kind quantities (size, height, yaw, footprint, bounding radius)
+    are computed for every candidate and selected this way; the SDFs, the costly part, per group."""
+    out = default
+    for ids, value in reversed(branches):
+        mask = kind == ids[0]
+        for k in ids[1:]:
+            mask = mask | (kind == k)
+        out = xp.where(mask[..., None] if trailing else mask, value, out)
+    return out
+
+
+def _per_kind(xp: Any, kind: Any, entries: tuple[ObstacleShape, ...], value: Any, trailing: int = 0) -> Any:
+    """``value(entry)`` of each candidate's own kind; the last entry's is the default."""
+    return _by_kind(xp, kind, [((s.id,), value(s)) for s in entries[:-1]], value(entries[-1]), trailing)
+
+
+class _Candidates(NamedTuple):
+    """Obstacle candidates of every attempt and slot, (attempts, slots, n_o[, 3])."""
+
+    kind: Any
+    size: Any
+    yaw: Any
+    pos: Any  # disc placement (SPEC §1); the blocking placement may move slot 0's
+    rest_z: Any  # centre height of the kinds resting on the table (None if every kind floats)
+    order: Any  # visiting position of each candidate (first feasible in this order wins)
+
+
+def _draw_targets(xp: Any, cfg: SamplingConfig, u_target: Any) -> tuple[Any, Any, Any]:
+    """First candidate of each attempt inside the reachable annulus: xy (attempts, 2), yaw, found."""
+    tx, ty = _lerp(cfg.target_x, u_target[..., 0]), _lerp(cfg.target_y, u_target[..., 1])
+    tyaw = _lerp(cfg.target_yaw, u_target[..., 2])
+    radius = xp.sqrt(tx**2 + ty**2)
+    ok_t = (radius >= cfg.target_radius[0]) & (radius <= cfg.target_radius[1])
+    it, has_t = _first_true(xp, ok_t)  # (attempts,)
+    target_xy = xp.stack([_select(xp, tx, it, 1), _select(xp, ty, it, 1)], axis=-1)  # (attempts, 2)
+    return target_xy, _select(xp, tyaw, it, 1), has_t
+
+
+def _floating_z(xp: Any, kind: Any, entries: tuple[ObstacleShape, ...], rest_z: Any, height: Any) -> Any:
+    """Centre heights: ``height(entry)`` for floating kinds, ``rest_z`` for those resting on the table."""
+    floating = tuple(s for s in entries if s.float_z is not None)
+    if rest_z is None:
+        return _per_kind(xp, kind, floating, height)
+    return _by_kind(xp, kind, [((s.id,), height(s)) for s in floating], rest_z)
+
+
+def _draw_obstacles(xp: Any, cfg: SamplingConfig, groups: _KindGroups, u_obs: Any, target_xy: Any) -> _Candidates:
+    """Candidates for every attempt and slot: ``per_kind`` of each kind (static, so the robot
+    clearance needs one shape's SDF per candidate), visited in the interleaved order kind (off),
+    kind (off+1), ... with a uniform random offset per slot, so the first candidate's kind is uniform.
+    Each kind draws its size from the candidate's uniforms 1-3 (``ObstacleShape.sample_size``), its
+    centre height from uniform 6 if it floats, else it rests on the table, and its yaw from uniform 7
+    if it has one; the horizontal position is uniform in the disc around the midpoint between the
+    home gripper centre and the target (uniforms 4, 5)."""
+    entries, n_o = groups.shapes, groups.count
+    n_kinds = len(entries)
+    kind_pattern = np.repeat(np.asarray([s.id for s in entries]), groups.per_kind)  # (n_o,)
+    kind = xp.broadcast_to(xp.asarray(kind_pattern), u_obs.shape[:-1])
+    offset = xp.minimum((u_obs[..., 0, 0] * n_kinds).astype(xp.int32), n_kinds - 1)  # (attempts, slots)
+    group, within = np.arange(n_o) // groups.per_kind, np.arange(n_o) % groups.per_kind
+    order = n_kinds * within + (group - offset[..., None]) % n_kinds
+    s1, s2, s3 = u_obs[..., 1], u_obs[..., 2], u_obs[..., 3]
+    sizes = {s.id: s.sample_size(xp, cfg, s1, s2, s3) for s in entries}
+    size = _per_kind(xp, kind, entries, lambda s: sizes[s.id], trailing=1)
+    mid = 0.5 * (xp.asarray(cfg.home_xy) + target_xy)  # (attempts, 2)
+    rho = cfg.obstacle_disc_radius * xp.sqrt(u_obs[..., 4])
+    phi = 2 * xp.pi * u_obs[..., 5]
+    ox = mid[:, None, None, 0] + rho * xp.cos(phi)
+    oy = mid[:, None, None, 1] + rho * xp.sin(phi)
+    resting = tuple(s for s in entries if s.float_z is None)
+    rest_z = _per_kind(xp, kind, resting, lambda s: s.half_height(size)) if resting else None
+    oz = _floating_z(xp, kind, entries, rest_z, lambda s: _lerp(getattr(cfg, s.float_z), u_obs[..., 6]))
+    yawed = tuple(s.id for s in entries if s.yawed)
+    drawn_yaw = 2 * xp.pi * u_obs[..., 7] - xp.pi
+    if len(yawed) == n_kinds:
+        oyaw = drawn_yaw
+    else:
+        oyaw = _by_kind(xp, kind, [(yawed, drawn_yaw)], 0.0) if yawed else xp.zeros_like(drawn_yaw)
+    return _Candidates(kind, size, oyaw, xp.stack([ox, oy, oz], axis=-1), rest_z, order)
+
+
+def _obstacle_to_robot(xp: Any, robot: RobotModel, kin: Kinematics, kind: int, pos: Any, yaw: Any, size: Any) -> Any:
+    """Distance (...,) from obstacle candidates of one static kind (exact shapes) to the robot's
+    conservative sphere cover (collision.py): the SPEC's "every robot collision geometry"."""
     cover = collision.sphere_cover(robot)
     spheres = collision.cover_centres(xp, robot, kin)  # (S, 3)
     sdf = shapes.sdf(xp, kind, pos[..., None, :], yaw[..., None], size[..., None, :], spheres)
     return xp.min(sdf - xp.asarray(cover.radius, dtype=spheres.dtype), axis=-1)
 
 
-def _blocking_placement(xp: Any, cfg: SamplingConfig, task: TaskConfig, kin: Any, u_obs: Any, kind: Any, size: Any,
-                        oyaw: Any, standing_z: Any, disc_pos: Any, target_xy: Any, block: Any) -> tuple[Any, Any]:
-    """Candidate positions (attempts, slots, n_o, 3) with slot 0 on the approach path when ``block``,
-    and the mask of candidates that satisfy the blocking requirement."""
-    attempts, slots, n_o = kind.shape
-    per_kind = n_o // len(OBSTACLE_KINDS)
-    groups = [slice(g * per_kind, (g + 1) * per_kind) for g in range(len(OBSTACLE_KINDS))]
+def _blocking_placement(xp: Any, cfg: SamplingConfig, task: TaskConfig, groups: _KindGroups, kin: Kinematics,
+                        u_obs: Any, cand: _Candidates, target_xy: Any, block: Any) -> tuple[Any, Any]:
+    """"Blocking" scenes (probability blocking_prob among obstacle scenes): slot 0's candidates sit on
+    the straight segment from the start gripper centre to the grasp point (same shapes and sizes, a
+    horizontal offset of ≤ BLOCKING_OFFSET, floating shapes at the segment's height) and must pass
+    within blocking_margin of it; slot 1 keeps the disc placement.  Returns the candidate positions
+    (attempts, slots, n_o, 3) and the mask of candidates that satisfy the blocking requirement."""
+    attempts, slots, n_o = cand.kind.shape
     start = kin.gripper_centre  # (3,)
     dtype = start.dtype
     t_grasp = xp.concatenate([target_xy, xp.full((attempts, 1), cfg.target_size[2] / 2, dtype=dtype)], axis=-1)
@@ -166,104 +259,56 @@ def _blocking_placement(xp: Any, cfg: SamplingConfig, task: TaskConfig, kin: Any
     heading = (end - start)[:, :2]
     perp = xp.stack([-heading[:, 1], heading[:, 0]], axis=-1) / xp.sqrt(xp.sum(heading**2, axis=-1, keepdims=True))
     lateral = BLOCKING_OFFSET * (2 * u_obs[:, 0, :, 5] - 1)
-    bz = xp.where(kind[:, 0] == SPHERE,
-                  xp.clip(along[..., 2] + BLOCKING_OFFSET * (2 * u_obs[:, 0, :, 6] - 1), *cfg.sphere_z), standing_z[:, 0])
+
+    # floating kinds at the segment's height, jittered; the others rest on the table
+    bz = _floating_z(xp, cand.kind[:, 0], groups.shapes, None if cand.rest_z is None else cand.rest_z[:, 0],
+                     lambda s: xp.clip(along[..., 2] + BLOCKING_OFFSET * (2 * u_obs[:, 0, :, 6] - 1), *getattr(cfg, s.float_z)))
     path_pos = xp.stack([along[..., 0] + lateral * perp[:, None, 0], along[..., 1] + lateral * perp[:, None, 1], bz], -1)
-    pos = xp.concatenate([xp.where(block, path_pos, disc_pos[:, 0])[:, None], disc_pos[:, 1:]], axis=1)
+    pos = xp.concatenate([xp.where(block, path_pos, cand.pos[:, 0])[:, None], cand.pos[:, 1:]], axis=1)
     frac = xp.linspace(0.0, 1.0, PATH_SAMPLES, dtype=dtype)
     path = start + frac[:, None] * (end - start)[:, None, :]  # (attempts, PATH_SAMPLES, 3)
-    near_path = xp.concatenate(
-        [xp.min(shapes.sdf(xp, k, pos[:, 0, sl, None, :], oyaw[:, 0, sl, None], size[:, 0, sl, None, :], path[:, None]), axis=-1)
-         for k, sl in zip(OBSTACLE_KINDS, groups)],
+    near_path = groups.map(
+        xp,
+        lambda shape, sl: xp.min(shapes.sdf(xp, shape.id, pos[:, 0, sl, None, :], cand.yaw[:, 0, sl, None],
+                                            cand.size[:, 0, sl, None, :], path[:, None]), axis=-1),
         axis=-1,
     ) < cfg.blocking_margin  # (attempts, n_o): an upper bound of the true clearance is below the margin
     blocking_ok = xp.concatenate([(near_path | ~block)[:, None], xp.ones((attempts, slots - 1, n_o), bool)], axis=1)
     return pos, blocking_ok
 
 
-def sample_reset(xp: Any, robot: RobotModel, cfg: SamplingConfig, task: TaskConfig, u: Any) -> ResetSpec:
-    """Turn ``uniforms_needed(cfg)`` uniforms into a feasible episode start."""
-    attempts = cfg.scene_redraws + 1
-    n_t, n_o, slots = cfg.target_candidates, cfg.obstacle_candidates, cfg.max_obstacles
-    u_present, u_count = u[0], u[1]
-    noise = _lerp((-task.start_noise, task.start_noise), u[2:8])
-    q0 = xp.asarray(task.home_q) + noise
-    body = u[8:-1].reshape(attempts, -1)
-    u_target = body[:, : n_t * _PER_TARGET].reshape(attempts, n_t, _PER_TARGET)
-    u_obs = body[:, n_t * _PER_TARGET :].reshape(attempts, slots, n_o, _PER_CANDIDATE)
-
-    # Targets: first candidate of each attempt inside the reachable annulus.
-    tx, ty = _lerp(cfg.target_x, u_target[..., 0]), _lerp(cfg.target_y, u_target[..., 1])
-    tyaw = _lerp(cfg.target_yaw, u_target[..., 2])
-    radius = xp.sqrt(tx**2 + ty**2)
-    ok_t = (radius >= cfg.target_radius[0]) & (radius <= cfg.target_radius[1])
-    it, has_t = _first_true(xp, ok_t)  # (attempts,)
-    target_xy = xp.stack([_select(xp, tx, it, 1), _select(xp, ty, it, 1)], axis=-1)  # (attempts, 2)
-    target_yaw = _select(xp, tyaw, it, 1)
-
-    # Obstacle candidates for every attempt and slot: n_o/3 of each kind (static, so the robot
-    # clearance needs one shape's SDF per candidate), visited in the interleaved order
-    # kind (off), kind (off+1), kind (off+2), ... with a uniform random offset per slot, so the
-    # first candidate's kind is uniform.
-    per_kind = n_o // len(OBSTACLE_KINDS)  # a remainder (configs before this scheme) goes unused
-    n_o = per_kind * len(OBSTACLE_KINDS)
-    u_obs = u_obs[..., :n_o, :]
-    kind_pattern = np.repeat(np.asarray(OBSTACLE_KINDS), per_kind)  # (n_o,)
-    kind = xp.broadcast_to(xp.asarray(kind_pattern), u_obs.shape[:-1])
-    offset = xp.minimum((u_obs[..., 0, 0] * 3).astype(xp.int32), 2)  # (attempts, slots)
-    group, within = np.arange(n_o) // per_kind, np.arange(n_o) % per_kind
-    order = 3 * within + (group - offset[..., None]) % 3  # visiting position of each candidate
-    s1, s2, s3 = u_obs[..., 1], u_obs[..., 2], u_obs[..., 3]
-    zero = xp.zeros_like(s1)
-    sph_r = _lerp(cfg.sphere_radius, s1)
-    cyl_r, cyl_h = _lerp(cfg.cylinder_radius, s1), _lerp(cfg.cylinder_height, s2)
-    box_h = xp.stack([_lerp(cfg.box_half, s1), _lerp(cfg.box_half, s2), _lerp(cfg.box_half, s3)], axis=-1)
-    size = xp.where(
-        (kind == SPHERE)[..., None],
-        xp.stack([sph_r, zero, zero], axis=-1),
-        xp.where((kind == CYLINDER)[..., None], xp.stack([cyl_r, cyl_h / 2, zero], axis=-1), box_h),
-    )
-    mid = 0.5 * (xp.asarray(cfg.home_xy) + target_xy)  # (attempts, 2)
-    rho = cfg.obstacle_disc_radius * xp.sqrt(u_obs[..., 4])
-    phi = 2 * xp.pi * u_obs[..., 5]
-    ox = mid[:, None, None, 0] + rho * xp.cos(phi)
-    oy = mid[:, None, None, 1] + rho * xp.sin(phi)
-    # spheres float; cylinders and boxes stand on the table (centre at their half height)
-    standing_z = xp.where(kind == CYLINDER, size[..., 1], size[..., 2])
-    oz = xp.where(kind == SPHERE, _lerp(cfg.sphere_z, u_obs[..., 6]), standing_z)
-    oyaw = xp.where(kind == BOX, 2 * xp.pi * u_obs[..., 7] - xp.pi, 0.0)
-    kin = forward_kinematics(xp, robot, q0)
-
-    # "Blocking" scenes (probability blocking_prob among obstacle scenes): slot 0's candidates sit on
-    # the straight segment from the start gripper centre to the grasp point (same shapes and sizes,
-    # a horizontal offset of ≤ BLOCKING_OFFSET, spheres at the segment's height) and must pass within
-    # blocking_margin of it; slot 1 keeps the disc placement.
-    disc_pos = xp.stack([ox, oy, oz], axis=-1)  # (attempts, slots, n_o, 3)
-    if cfg.blocking_prob > 0:
-        pos, blocking_ok = _blocking_placement(xp, cfg, task, kin, u_obs, kind, size, oyaw, standing_z, disc_pos,
-                                               target_xy, u[-1] < cfg.blocking_prob)
-    else:
-        pos, blocking_ok = disc_pos, True
-
-    clear_target = horizontal_clearance(xp, kind, pos, oyaw, size, target_xy[:, None, None, :]) >= cfg.target_clearance
-    bound = bounding_radius(xp, kind, size)
-    groups = [slice(g * per_kind, (g + 1) * per_kind) for g in range(len(OBSTACLE_KINDS))]
-    robot_gap = xp.concatenate(
-        [_obstacle_to_robot(xp, robot, kin, k, pos[..., sl, :], oyaw[..., sl], size[..., sl, :]) for k, sl in zip(OBSTACLE_KINDS, groups)],
-        axis=-1,
-    )
+def _feasible(xp: Any, robot: RobotModel, cfg: SamplingConfig, groups: _KindGroups, kin: Kinematics,
+              cand: _Candidates, pos: Any, target_xy: Any) -> Any:
+    """SPEC §1 (a) and (b) per candidate (attempts, slots, n_o): footprint clear of the target,
+    exact shape clear of the robot's cover at the start pose."""
+    d = target_xy[:, None, None, :] - pos[..., :2]
+    footprints: dict[Any, list[int]] = {}  # kinds sharing a footprint function share its value
+    for shape in groups.shapes:
+        footprints.setdefault(shape.footprint, []).append(shape.id)
+    (first, *others) = [(tuple(ids), fn(xp, d, cand.yaw, cand.size)) for fn, ids in footprints.items()]
+    clear_target = _by_kind(xp, cand.kind, others, first[1]) >= cfg.target_clearance
+    robot_gap = groups.map(xp, lambda shape, sl: _obstacle_to_robot(
+        xp, robot, kin, shape.id, pos[..., sl, :], cand.yaw[..., sl], cand.size[..., sl, :]), axis=-1)
     # the cover over-reaches boxes and cylinders but dips ≤ CAPSULE_DIP between a capsule's spheres
-    clear_robot = robot_gap >= cfg.robot_clearance + collision.CAPSULE_DIP
-    ok_single = clear_target & clear_robot & blocking_ok  # (attempts, slots, n_o)
+    return clear_target & (robot_gap >= cfg.robot_clearance + collision.CAPSULE_DIP)
+
+
+def _choose(xp: Any, cfg: SamplingConfig, u_present: Any, u_count: Any, has_t: Any, ok: Any, order: Any, pos: Any,
+            bound: Any) -> tuple[Any, Any, Any, Any, Any]:
+    """The first feasible candidate of each slot in visiting order (slot 1 must also keep clear of
+    slot 0's, bounding spheres apart, SPEC §1 (c)), then the first attempt whose scene is feasible.
+    Returns (attempt index, chosen candidate per slot (slots,), whether any attempt worked, the
+    fallback flag, the wanted obstacle count)."""
+    n_o = ok.shape[-1]
 
     def first_in_order(mask: Any, slot: int) -> tuple[Any, Any]:
         rank = xp.where(mask, order[:, slot], n_o + 1)
         return xp.argmin(rank, axis=-1), xp.any(mask, axis=-1)
 
-    i0, has0 = first_in_order(ok_single[:, 0], 0)
+    i0, has0 = first_in_order(ok[:, 0], 0)
     pos0, r0 = _select(xp, pos[:, 0], i0, 1), _select(xp, bound[:, 0], i0, 1)
     apart = xp.sqrt(xp.sum((pos[:, 1] - pos0[:, None, :]) ** 2, axis=-1)) > bound[:, 1] + r0[:, None]
-    i1, has1 = first_in_order(ok_single[:, 1] & apart, 1)
+    i1, has1 = first_in_order(ok[:, 1] & apart, 1)
 
     want = u_present < cfg.obstacle_prob
     count = xp.where(u_count < 0.5, 1, 2)
@@ -272,28 +317,47 @@ def sample_reset(xp: Any, robot: RobotModel, cfg: SamplingConfig, task: TaskConf
     ia, any_ok = _first_true(xp, attempt_ok)
     ia = xp.where(any_ok, ia, 0)
     fallback = want & ~(any_ok & _select(xp, feasible, ia, 0))
-
     chosen = xp.stack([_select(xp, i0, ia, 0), _select(xp, i1, ia, 0)])  # (slots,)
+    active = xp.stack([want & ~fallback, want & ~fallback & (count >= 2)])
+    return ia, chosen, any_ok, fallback, active
+
+
+def sample_reset(xp: Any, robot: RobotModel, cfg: SamplingConfig, task: TaskConfig, u: Any) -> ResetSpec:
+    """Turn ``uniforms_needed(cfg)`` uniforms into a feasible episode start."""
+    attempts = cfg.scene_redraws + 1
+    n_t, slots = cfg.target_candidates, cfg.max_obstacles
+    groups = _kind_groups(cfg)
+    u_present, u_count = u[0], u[1]
+    q0 = xp.asarray(task.home_q) + _lerp((-task.start_noise, task.start_noise), u[2:8])
+    body = u[8:-1].reshape(attempts, -1)
+    u_target = body[:, : n_t * _PER_TARGET].reshape(attempts, n_t, _PER_TARGET)
+    u_obs = body[:, n_t * _PER_TARGET :].reshape(attempts, slots, cfg.obstacle_candidates, _PER_CANDIDATE)
+    u_obs = u_obs[..., : groups.count, :]
+
+    target_xy, target_yaw, has_t = _draw_targets(xp, cfg, u_target)
+    cand = _draw_obstacles(xp, cfg, groups, u_obs, target_xy)
+    kin = forward_kinematics(xp, robot, q0)
+    if cfg.blocking_prob > 0:
+        pos, blocking_ok = _blocking_placement(xp, cfg, task, groups, kin, u_obs, cand, target_xy, u[-1] < cfg.blocking_prob)
+    else:
+        pos, blocking_ok = cand.pos, True
+    ok = _feasible(xp, robot, cfg, groups, kin, cand, pos, target_xy) & blocking_ok
+    bound = _per_kind(xp, cand.kind, groups.shapes, lambda s: s.bounding_radius(xp, cand.size))
+    ia, chosen, any_ok, fallback, active = _choose(xp, cfg, u_present, u_count, has_t, ok, cand.order, pos, bound)
 
     def pick(values: Any) -> Any:  # (attempts, slots, n_o, ...) -> (slots, ...)
         per_slot = _select(xp, values, ia, 0)
         return xp.stack([_select(xp, per_slot[s], chosen[s], 0) for s in range(slots)])
 
-    obstacle_kind = pick(kind)
-    obstacle_pos = pick(pos)
-    obstacle_yaw = pick(oyaw)
-    obstacle_size = pick(size)
-    active = xp.stack([want & ~fallback, want & ~fallback & (count >= 2)])
-    target_pos = xp.concatenate([_select(xp, target_xy, ia, 0), xp.asarray([cfg.target_size[2] / 2])])
     return ResetSpec(
         q0=q0,
-        target_pos=target_pos,
+        target_pos=xp.concatenate([_select(xp, target_xy, ia, 0), xp.asarray([cfg.target_size[2] / 2])]),
         target_yaw=_select(xp, target_yaw, ia, 0),
         obstacle_active=active,
-        obstacle_kind=obstacle_kind,
-        obstacle_pos=obstacle_pos,
-        obstacle_yaw=obstacle_yaw,
-        obstacle_size=obstacle_size,
+        obstacle_kind=pick(cand.kind),
+        obstacle_pos=pick(pos),
+        obstacle_yaw=pick(cand.yaw),
+        obstacle_size=pick(cand.size),
         redraws=xp.where(any_ok, ia, cfg.scene_redraws),
         fallback=fallback,
     )

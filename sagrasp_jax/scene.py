@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sagrasp_jax.robot import BOX, CYLINDER, SPHERE
+from sagrasp_jax.robot import BOX
 
 # Hand-eye calibration camera -> robot base, millimetres (paper Eq. 13, SPEC §5).
 T_CAM_BASE_MM = np.array(
@@ -37,11 +37,6 @@ def orthonormalise(rot: np.ndarray) -> np.ndarray:
 
 CAMERA_ROT = orthonormalise(T_CAM_BASE_MM[:3, :3])
 CAMERA_POS = T_CAM_BASE_MM[:3, 3] / 1000.0
-
-
-def yaw_matrix(yaw: float) -> np.ndarray:
-    c, s = np.cos(yaw), np.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 @dataclass(frozen=True)
@@ -86,10 +81,9 @@ class CameraSpec:
 
 @dataclass(frozen=True)
 class ObstacleSlots:
-    """Dynamic obstacles: up to ``count`` slots, each sphere, cylinder or box (SPEC §1)."""
+    """Dynamic obstacles: up to ``count`` slots, each holding one shape of ``shapes.SHAPES`` (SPEC §1)."""
 
     count: int = 2
-    kinds: tuple[int, int, int] = (SPHERE, CYLINDER, BOX)
     rgba: tuple[float, float, float, float] = (0.95, 0.95, 0.95, 1.0)
 
 

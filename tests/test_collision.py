@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 import sagrasp_jax  # noqa: F401
-from sagrasp_jax import collision, config, robot, sampling
+from sagrasp_jax import collision, config, robot, sampling, shapes
 from sagrasp_jax.reference import exact_geometry as geometry
 
 ROBOT = robot.load_robot()
@@ -69,7 +69,10 @@ def test_fine_cover_is_within_its_bound_of_every_primitive():
     assert len(cover.radius) < 350  # the per-step cost stays bounded
 
 
-def _placements(n: int, seed: int):
+PAPER_KINDS = (robot.SPHERE, robot.CYLINDER, robot.BOX)
+
+
+def _placements(n: int, seed: int, kinds: tuple[int, ...] = PAPER_KINDS):
     """Random arm poses with an obstacle placed near a random moving primitive (within ~10 cm)."""
     rng = np.random.default_rng(seed)
     q = np.array(config.HOME_Q) + rng.uniform(-1.2, 1.2, (n, 6))
@@ -79,11 +82,11 @@ def _placements(n: int, seed: int):
         pos, _ = robot.primitive_poses(np, ROBOT, kin)
         anchors.append(pos[rng.choice(MOVING)])
     anchor = np.array(anchors) + rng.normal(0, 0.07, (n, 3))
-    kind = rng.choice([robot.SPHERE, robot.CYLINDER, robot.BOX], n)
+    kind = rng.choice(list(kinds), n)
     size = np.stack([rng.uniform(0.02, 0.06, n), rng.uniform(0.02, 0.15, n), rng.uniform(0.02, 0.06, n)], -1)
     size[kind == robot.SPHERE, 1:] = 0.0
-    size[kind == robot.CYLINDER, 2] = 0.0
-    yaw = np.where(kind == robot.BOX, rng.uniform(-np.pi, np.pi, n), 0.0)
+    size[(kind == robot.CYLINDER) | (kind == robot.CAPSULE), 2] = 0.0
+    yaw = np.where(np.isin(kind, [s.id for s in shapes.SHAPES if s.yawed]), rng.uniform(-np.pi, np.pi, n), 0.0)
     return q, kind, anchor, yaw, size
 
 
@@ -91,10 +94,11 @@ def _exact(q, kind, pos, yaw, size) -> np.ndarray:
     """Exact robot-obstacle distances, NumPy batched over the placements (one call per primitive)."""
     kin = robot.forward_kinematics(np, ROBOT, q)
     pp, pr = robot.primitive_poses(np, ROBOT, kin)
-    rot = collision.yaw_rotation(np, yaw)
+    rot = shapes.primitive_rotations(np, kind, yaw)  # the obstacle's primitive: yaw ∘ tilt (capsules lie)
+    prim = np.array([shapes.BY_ID[int(k)].primitive for k in kind])
     per_prim = [
         geometry.distance_to_obstacle(np, int(ROBOT.prim_kind[g]), pp[:, g], pr[:, g], np.broadcast_to(ROBOT.prim_size[g], size.shape),
-                                      kind, pos, rot, size, sides=64)
+                                      prim, pos, rot, size, obstacle_kinds=sorted(set(prim.tolist())), sides=64)
         for g in MOVING
     ]
     return np.min(np.stack(per_prim), axis=0)
@@ -115,12 +119,13 @@ def placements():
     return (q, kind, pos, yaw, size), _exact(q, kind, pos, yaw, size)
 
 
-def _checked(geometry_kind: str, data):
+def _checked(geometry_kind: str, data, kinds: tuple[str, ...] = shapes.PAPER_KINDS):
     import jax
     import jax.numpy as jnp
 
     cfg = config.get_config("paper").env
-    cfg = dataclasses.replace(cfg, task=dataclasses.replace(cfg.task, obstacle_geometry=geometry_kind, obstacle_dist_clip=10.0))
+    cfg = dataclasses.replace(cfg, task=dataclasses.replace(cfg.task, obstacle_geometry=geometry_kind, obstacle_dist_clip=10.0),
+                              sampling=dataclasses.replace(cfg.sampling, obstacle_kinds=kinds))
 
     def one(q, kind, pos, yaw, size):
         kin = robot.forward_kinematics(jnp, ROBOT, q)
@@ -140,6 +145,17 @@ def test_fine_obstacle_distance_within_5mm_of_exact(x64, placements):
     assert np.abs(err).max() <= 0.005, np.abs(err).max()
     assert not np.any(hit & (exact > 0.005))  # no collision flagged at an exact gap above 5 mm
     assert np.all(hit[exact < -0.005])  # every overlap deeper than 5 mm is caught
+
+
+def test_fine_distance_to_capsules_within_5mm_of_exact(x64):
+    """The same bound for the fourth kind, a capsule lying on the table (yawed), checked alone."""
+    data = _placements(500, seed=4, kinds=(robot.CAPSULE,))
+    exact = _exact(*data)
+    dist, hit = _checked("fine", data, ("capsule",))
+    apart = exact > 0
+    assert apart.sum() > 100 and (exact < 0).sum() > 100  # gaps and overlaps both exercised
+    assert np.abs(dist[apart] - exact[apart]).max() <= 0.005
+    assert not np.any(hit & (exact > 0.005)) and np.all(hit[exact < -0.005])
 
 
 def test_old_cover_over_reported_contacts(x64, placements):

@@ -28,6 +28,7 @@ from sagrasp_jax.deploy import (  # noqa: E402
     scene_spec,
     send_checked,
 )
+from sagrasp_jax.deploy.__main__ import camera_yaw_to_world  # noqa: E402
 from sagrasp_jax.deploy.loop import collision_hook  # noqa: E402
 from sagrasp_jax.deploy.twin import PyBulletTwin  # noqa: E402
 from sagrasp_jax.robot import forward_kinematics, load_robot, solve_home_pose  # noqa: E402
@@ -208,14 +209,21 @@ def _cam_mm(world_top) -> list[str]:
 def test_cli_json_report_on_twin(run_dir: str) -> None:
     top = _cam_mm(TARGET + [0, 0, 0.025])
     ob = _cam_mm([0.25, -0.30, 0.16])
+    cap = _cam_mm([-0.20, -0.45, 0.06])  # a capsule lying on the table (the policy's config has the paper's kinds only)
     res = _deploy("--policy", os.path.join(run_dir, "policy.npz"), "--target-cam", *top, "--target-yaw", "30",
-                  "--obstacle", "cylinder", *ob, "30", "160", "--max-steps", "20", "--json")
+                  "--obstacle", "cylinder", *ob, "30", "160", "--obstacle", "capsule", *cap, "30", "200", "45",
+                  "--max-steps", "20", "--json")
     assert res.returncode in (0, 1, 3), res.stderr[-2000:]
     report = json.loads(res.stdout)  # stdout is the JSON alone (PyBullet's banners go to stderr)
     assert report["outcome"] in ("success", "timeout", "collision", "refused")
     np.testing.assert_allclose(report["target"], TARGET, atol=1e-8)
     np.testing.assert_allclose(report["input"]["obstacles_world"][0]["centre"], [0.25, -0.30, 0.08], atol=1e-8)
     np.testing.assert_allclose(report["input"]["obstacles_world"][0]["size"], [0.03, 0.08, 0.0], atol=1e-12)
+    capsule = report["input"]["obstacles_world"][1]
+    assert capsule["kind"] == "capsule" and report["obstacles"] == 2
+    np.testing.assert_allclose(capsule["centre"], [-0.20, -0.45, 0.03], atol=1e-8)  # top − radius
+    np.testing.assert_allclose(capsule["size"], [0.03, 0.07, 0.0], atol=1e-12)  # (r, half axis = 0.2 / 2 − r)
+    assert capsule["yaw"] == pytest.approx(camera_yaw_to_world(CameraCalibration.default(), math.radians(45), math.pi))
     assert abs(report["target_yaw"]) <= math.pi / 4 + 1e-9
     assert report["steps"] <= 20 and report["min_obstacle_clearance"] is not None
 
@@ -227,9 +235,11 @@ def test_cli_json_report_on_twin(run_dir: str) -> None:
         (["--target-cam", "-0.147", "-0.077", "1.374"], "wrong units? (given --units mm; try --units m)"),
         (["--target-cam", "500", "-77", "1374"], "x = -0.5445 m is outside"),
         (["--target-cam", "nan", "-77", "1374"], "must be 3 finite numbers"),
-        (["--target-cam", "-147", "-77", "1374", "--obstacle", "cone", "0", "0", "1300", "30"], "one of sphere, cylinder, box"),
+        (["--target-cam", "-147", "-77", "1374", "--obstacle", "cone", "0", "0", "1300", "30"], "one of sphere, cylinder, box, capsule"),
         (["--target-cam", "-147", "-77", "1374", "--obstacle", "box", "0", "0", "1300", "30"], "box takes X Y Z LX LY LZ"),
         (["--target-cam", "-147", "-77", "1374", "--obstacle", "sphere", "0", "0", "1300", "900"], "outside [0.005, 0.5] m"),
+        (["--target-cam", "-147", "-77", "1374", "--obstacle", "capsule", "0", "0", "1300", "30", "50"],
+         "must exceed twice its radius"),
     ],
 )
 def test_cli_refuses_bad_input_before_moving(run_dir: str, args: list[str], message: str) -> None:

@@ -12,7 +12,7 @@ import sagrasp_jax  # noqa: F401
 import jax
 import jax.numpy as jnp
 
-from sagrasp_jax import collision, config, robot, sampling
+from sagrasp_jax import collision, config, robot, sampling, shapes
 from sagrasp_jax.reference import exact_geometry as geometry
 from sagrasp_jax.env import GraspEnv, OBS_SIZE
 from sagrasp_jax.scene import SCENE
@@ -68,19 +68,19 @@ def test_accepted_obstacles_are_feasible(resets_10k):
     assert len(rows) > 1500
     for i, j in zip(rows[:600], slots[:600]):
         kind, pos, yaw, size = spec.obstacle_kind[i, j], spec.obstacle_pos[i, j], spec.obstacle_yaw[i, j], spec.obstacle_size[i, j]
-        gap = sampling.horizontal_clearance(np, kind, pos, yaw, size, spec.target_pos[i, :2])
+        gap = shapes.footprint_gap(np, kind, pos, yaw, size, spec.target_pos[i, :2])
         assert gap >= cfg.sampling.target_clearance - 1e-5
         kin = robot.forward_kinematics(np, ROBOT, spec.q0[i].astype(float))
         prim_pos, prim_rot = robot.primitive_poses(np, ROBOT, kin)
         d = geometry.obstacle_distance_matrix(
             np, ROBOT.prim_kind, prim_pos, prim_rot, ROBOT.prim_size,
-            np.array([kind]), pos[None].astype(float), collision.yaw_rotation(np, np.array([float(yaw)])), size[None].astype(float),
+            np.array([kind]), pos[None].astype(float), shapes.yaw_rotation(np, np.array([float(yaw)])), size[None].astype(float),
         )
         assert d.min() >= cfg.sampling.robot_clearance - 1e-5
     # two obstacles never overlap
     both = np.nonzero(spec.obstacle_active[:, 1])[0]
     for i in both[:300]:
-        r = sampling.bounding_radius(np, spec.obstacle_kind[i], spec.obstacle_size[i])
+        r = shapes.bounding_radius(np, spec.obstacle_kind[i], spec.obstacle_size[i])
         assert np.linalg.norm(spec.obstacle_pos[i, 0] - spec.obstacle_pos[i, 1]) > r.sum() - 1e-6
     # standing obstacles stand on the table, spheres float in their band
     for i, j in zip(rows, slots):

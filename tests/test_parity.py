@@ -50,6 +50,23 @@ def test_quick_kinematic_parity_passes(tmp_path):
     assert "PASSED" in text
 
 
+def test_kinematic_parity_passes_with_capsules_switched_on(tmp_path):
+    """The fourth obstacle kind (a capsule lying on the table) built by both envs from the registry:
+    same distances, observations and verdicts step by step.  Mixed with boxes (the other yawed kind)
+    so that most episodes hold a capsule; ``--set env.sampling.obstacle_kinds=sphere,cylinder,box,capsule
+    --set env.sampling.obstacle_candidates=12 --quick`` passes too (docs/design.md)."""
+    rc, report, text = run_cli("--episodes", "16", "--max-steps", "40", "--seed", "1",
+                               "--set", "env.sampling.obstacle_kinds=box,capsule",
+                               "--set", "env.sampling.obstacle_candidates=6", "--set", "env.sampling.obstacle_prob=1.0",
+                               tmp_path=tmp_path)
+    assert rc == 0, text
+    assert report["passed"] and report["obstacle_kinds"] == ["box", "capsule"]
+    assert report["obstacles_per_kind"].get("capsule", 0) >= 3, report["obstacles_per_kind"]
+    for name in ("random", "scripted"):
+        assert report["sources"][name]["flag_agreement"] == 1.0
+        assert report["sources"][name]["trajectory"]["obs"]["max"] < 1e-5
+
+
 def test_a_perturbed_reward_constant_makes_the_harness_fail(tmp_path):
     """ratio 10 → 10.5 in the reference env's config only: the distance term no longer matches."""
     rc, report, text = run_cli("--episodes", "4", "--max-steps", "10", "--actions", "random",

@@ -19,7 +19,7 @@ import sagrasp_jax  # noqa: F401
 import jax
 import jax.numpy as jnp
 
-from sagrasp_jax import collision, config, robot, sampling, train
+from sagrasp_jax import collision, config, robot, sampling, shapes, train
 from sagrasp_jax.reference import exact_geometry as geometry
 
 ROBOT = robot.load_robot()
@@ -43,7 +43,7 @@ def brute_clearance(spec: sampling.ResetSpec) -> float:
     """Independent oracle: the obstacle's exact point distance at 20,001 points along the segment."""
     t = np.linspace(0.0, 1.0, 20_001)[:, None]
     pts = START + t * (GRASP - START)
-    rot = collision.yaw_rotation(np, float(spec.obstacle_yaw[0]))
+    rot = shapes.yaw_rotation(np, float(spec.obstacle_yaw[0]))
     return float(geometry.point_distance(np, int(spec.obstacle_kind[0]), pts, spec.obstacle_pos[0], rot,
                                          spec.obstacle_size[0]).min())
 
@@ -96,11 +96,11 @@ def test_blocking_generator_obeys_feasibility_and_blocks():
     assert np.all(np.asarray(clear)[present, 0] < cfg.blocking_margin)
     for i in np.nonzero(present)[0][:300]:  # SPEC §1 (a) and (b), against the exact robot geometry
         kind, pos, yaw, size = spec.obstacle_kind[i, 0], spec.obstacle_pos[i, 0], spec.obstacle_yaw[i, 0], spec.obstacle_size[i, 0]
-        assert sampling.horizontal_clearance(np, kind, pos, yaw, size, spec.target_pos[i, :2]) >= cfg.target_clearance - 1e-5
+        assert shapes.footprint_gap(np, kind, pos, yaw, size, spec.target_pos[i, :2]) >= cfg.target_clearance - 1e-5
         kin = robot.forward_kinematics(np, ROBOT, spec.q0[i].astype(float))
         pp, pr = robot.primitive_poses(np, ROBOT, kin)
         d = geometry.obstacle_distance_matrix(np, ROBOT.prim_kind, pp, pr, ROBOT.prim_size, np.array([kind]), pos[None],
-                                              collision.yaw_rotation(np, np.array([float(yaw)])), size[None])
+                                              shapes.yaw_rotation(np, np.array([float(yaw)])), size[None])
         assert d.min() >= cfg.robot_clearance - 1e-5
 
 

@@ -27,6 +27,7 @@ sys.path.insert(0, ROOT)
 from sagrasp_jax.fileio import atomic_write_text  # noqa: E402
 from sagrasp_jax.robot import ARM_JOINTS, FINGER_JOINTS, URDF_PATH, URDFError, parse_urdf  # noqa: E402
 from sagrasp_jax.scene import SCENE  # noqa: E402
+from sagrasp_jax.shapes import SHAPES  # noqa: E402
 
 # Position servo gains per arm joint (N·m/rad) and velocity feedback (N·m·s/rad). With gravity
 # compensation on, the servo only fights inertia; these track a 0.05 rad step within one 0.05 s
@@ -159,17 +160,20 @@ def add_scene(spec: mujoco.MjSpec) -> None:
     )
     for slot in range(SCENE.obstacles.count):
         body = world.add_body(name=f"obstacle_{slot}", mocap=True, pos=[0.0, 0.0, PARK_Z])
-        for kind in SCENE.obstacles.kinds:
-            label = {0: "sphere", 2: "box", 3: "cylinder"}[kind]
+        for shape in SHAPES:  # one geom per registered kind; the body carries the yaw, the geom the tilt
             # Unit sizes; the renderer and the physical check set sizes per episode.
-            body.add_geom(
-                name=f"obstacle_{slot}_{label}",
-                type=kind_to_geom[kind],
+            geom = body.add_geom(
+                name=f"obstacle_{slot}_{shape.name}",
+                type=kind_to_geom[shape.primitive],
                 size=[0.05, 0.05, 0.05],
                 rgba=list(SCENE.obstacles.rgba),
                 contype=0,
                 conaffinity=0,
             )
+            if not np.allclose(shape.tilt_matrix, np.eye(3)):
+                quat = np.zeros(4)
+                mujoco.mju_mat2Quat(quat, shape.tilt_matrix.flatten())
+                geom.quat = quat.tolist()
 
 
 def generate(urdf_path: str) -> dict[str, str]:

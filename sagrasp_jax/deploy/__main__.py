@@ -12,9 +12,10 @@ outside the training clearance of the cube (``env.sampling.target_clearance``), 
 policy's control constants must be this robot's — all checked before the robot moves; bad
 input exits with status 2 and says what is wrong (with ``--json``, as a JSON refusal).
 
-Obstacles: ``--obstacle sphere X Y Z R``, ``--obstacle cylinder X Y Z R H``,
+Obstacles (``shapes.SHAPES``): ``--obstacle sphere X Y Z R``, ``--obstacle cylinder X Y Z R H``,
 ``--obstacle box X Y Z LX LY LZ [YAW_DEG]`` (full lengths; LX along the camera's x axis
-turned by YAW_DEG about its optical axis), at most two.
+turned by YAW_DEG about its optical axis), ``--obstacle capsule X Y Z R L [YAW_DEG]`` (lying on
+the table, L tip to tip along the camera's x axis turned by YAW_DEG), at most two.
 
 Exit status: 0 grasp pose reached (and lifted, unless --no-grasp), 1 timeout or collision,
 2 input refused before anything moved, 3 the safety layer stopped the robot.
@@ -39,7 +40,8 @@ from sagrasp_jax.deploy.calibration import (
     detected_top_to_cube_centre,
     validate_target,
 )
-from sagrasp_jax.deploy.loop import OBSTACLE_KINDS, DeployError, Obstacle, format_report, run_episode, scene_spec
+from sagrasp_jax import shapes
+from sagrasp_jax.deploy.loop import DeployError, Obstacle, format_report, run_episode, scene_spec, with_obstacle_kinds
 from sagrasp_jax.deploy.safety import SafetyViolation, check_policy_constants
 from sagrasp_jax.runtime import PolicyFormatError, load_policy
 
@@ -48,7 +50,6 @@ UNITS = ("mm", "m")
 DETECTION_RANGE = (0.3, 3.0)  # m from the camera: where a depth camera over the table can see anything
 OBSTACLE_SIZE_RANGE = (0.005, 0.5)  # m, any obstacle dimension
 CELL_BOX = ((-1.0, -1.2, -0.05), (1.0, 0.6, 1.5))  # m, world box an obstacle centre must lie in
-SIZE_COUNTS = {"sphere": (1,), "cylinder": (2,), "box": (3, 4)}
 MAX_YAW_DEG = 360.0
 MAX_BASE_Z_OFFSET = 0.5  # m; the controller base is within half a metre of the URDF's
 MAX_STEPS = 100_000
@@ -85,40 +86,37 @@ def camera_yaw_to_world(cal: CameraCalibration, yaw_cam: float, symmetry: float 
 def parse_obstacle(tokens: Sequence[str], cal: CameraCalibration, units: str, index: int) -> Obstacle:
     """``KIND X Y Z SIZE...`` (camera frame, top point) -> a world-frame ``Obstacle``."""
     what = f"--obstacle #{index + 1}"
-    if not tokens or tokens[0] not in OBSTACLE_KINDS:
-        raise InputRefused(f"{what}: first value must be one of {', '.join(OBSTACLE_KINDS)}, got {list(tokens)[:1]}")
+    if not tokens or tokens[0] not in shapes.BY_NAME:
+        raise InputRefused(f"{what}: first value must be one of {', '.join(shapes.NAMES)}, got {list(tokens)[:1]}")
     kind = tokens[0]
+    shape = shapes.BY_NAME[kind]
     try:
         numbers = [float(t) for t in tokens[1:]]
     except ValueError:
         raise InputRefused(f"{what}: {' '.join(tokens)}: every value after the kind must be a number") from None
-    if len(numbers) - 3 not in SIZE_COUNTS[kind]:
-        usage = {"sphere": "X Y Z R", "cylinder": "X Y Z R H", "box": "X Y Z LX LY LZ [YAW_DEG]"}[kind]
-        raise InputRefused(f"{what}: {kind} takes {usage}, got {len(numbers)} numbers")
+    n_lengths = len(shape.cli_lengths)
+    if len(numbers) - 3 not in ((n_lengths, n_lengths + 1) if shape.yawed else (n_lengths,)):
+        raise InputRefused(f"{what}: {kind} takes {shape.cli_usage}, got {len(numbers)} numbers")
     top = cal.cam_to_base(_camera_point(numbers[:3], units, what))
     scale = _unit_scale(units)
-    lengths = [v * scale for v in numbers[3:6]]
-    yaw = 0.0
-    if kind == "sphere":
-        size = (lengths[0], 0.0, 0.0)
-        half_height = lengths[0]
-    elif kind == "cylinder":
-        size = (lengths[0], lengths[1] / 2, 0.0)
-        half_height = lengths[1] / 2
-    else:
-        size = (lengths[0] / 2, lengths[1] / 2, lengths[2] / 2)
-        half_height = lengths[2] / 2
-        yaw_deg = numbers[6] if len(numbers) == 7 else 0.0
-        if not (math.isfinite(yaw_deg) and abs(yaw_deg) <= MAX_YAW_DEG):
-            raise InputRefused(f"{what}: box yaw {yaw_deg} deg must be a finite angle within ±{MAX_YAW_DEG:g} deg")
-        yaw = camera_yaw_to_world(cal, math.radians(yaw_deg), math.pi)
+    lengths = [v * scale for v in numbers[3 : 3 + n_lengths]]
     for v in lengths:
         if not (math.isfinite(v) and OBSTACLE_SIZE_RANGE[0] <= v <= OBSTACLE_SIZE_RANGE[1]):
             raise InputRefused(
                 f"{what}: {kind} dimension {v:.4g} m is outside [{OBSTACLE_SIZE_RANGE[0]}, {OBSTACLE_SIZE_RANGE[1]}] m "
                 f"(given in {units})"
             )
-    centre = top - np.array([0.0, 0.0, half_height])
+    try:
+        size = tuple(float(v) for v in shape.from_lengths(lengths))
+    except ValueError as exc:
+        raise InputRefused(f"{what}: {kind}: {exc}") from None
+    yaw = 0.0
+    if shape.yawed:
+        yaw_deg = numbers[3 + n_lengths] if len(numbers) == 4 + n_lengths else 0.0
+        if not (math.isfinite(yaw_deg) and abs(yaw_deg) <= MAX_YAW_DEG):
+            raise InputRefused(f"{what}: {kind} yaw {yaw_deg} deg must be a finite angle within ±{MAX_YAW_DEG:g} deg")
+        yaw = camera_yaw_to_world(cal, math.radians(yaw_deg), shapes.yaw_symmetry(shape))
+    centre = top - np.array([0.0, 0.0, float(shape.half_height(np.asarray(size)))])
     lo, hi = CELL_BOX
     if not all(lo[i] <= centre[i] <= hi[i] for i in range(3)):
         raise InputRefused(
@@ -151,7 +149,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--target-yaw", type=float, default=0.0, metavar="DEG", help="cube yaw about the optical axis (default 0)")
     p.add_argument("--units", choices=UNITS, default="mm", help="units of the detections (default mm)")
     p.add_argument("--obstacle", nargs="+", action="append", default=[], metavar="KIND_X_Y_Z_SIZE",
-                   help="detected obstacle: sphere X Y Z R | cylinder X Y Z R H | box X Y Z LX LY LZ [YAW_DEG]")
+                   help="detected obstacle: " + " | ".join(f"{s.name} {s.cli_usage}" for s in shapes.SHAPES))
     p.add_argument("--calibration", default=None, help="4×4 camera->base matrix (.json/.npy/.txt; default SPEC §5)")
     p.add_argument("--calibration-units", choices=UNITS, default="mm", help="translation units of --calibration")
     p.add_argument("--base-z-offset", type=float, default=0.0, help="controller base height in the URDF frame, m")
@@ -215,6 +213,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         yaw = camera_yaw_to_world(cal, math.radians(args.target_yaw), math.pi / 2 if square else 2 * math.pi)
         obstacles = [parse_obstacle(tokens, cal, args.units, i) for i, tokens in enumerate(args.obstacle)]
         q_home = np.asarray(env_cfg.task.home_q, dtype=float)
+        env_cfg = with_obstacle_kinds(env_cfg, obstacles)
         spec = scene_spec(q_home, centre, yaw, obstacles, env_cfg)
     except (InputRefused, TargetRejected, CalibrationError, PolicyFormatError, ValueError) as exc:
         _emit(args, {"outcome": "input_refused", "message": str(exc), "input": given},

@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from sagrasp_jax.config import SamplingConfig
-from sagrasp_jax.sampling import horizontal_clearance
+from sagrasp_jax.shapes import footprint_gap
 
 # The paper's printed hand-eye matrix (mm) lives once, in the cell description; re-exported here.
 from sagrasp_jax.scene import T_CAM_BASE_MM
@@ -278,7 +278,7 @@ def validate_obstacle_clearance(target: Any, kind: Any, pos: Any, yaw: Any, size
     kind = np.asarray(kind).reshape(-1)
     if kind.size == 0:
         return
-    gap = horizontal_clearance(np, kind, np.asarray(pos, float).reshape(-1, 3), np.asarray(yaw, float).reshape(-1),
+    gap = footprint_gap(np, kind, np.asarray(pos, float).reshape(-1, 3), np.asarray(yaw, float).reshape(-1),
                                np.asarray(size, float).reshape(-1, 3), np.asarray(target, float)[:2])
     names = list(names) if names is not None else [f"obstacle {i + 1}" for i in range(kind.size)]
     close = [f"{names[i]} is {float(gap[i]):.4f} m from it" for i in range(kind.size)

@@ -23,6 +23,7 @@ After a success the gripper closes and the arm lifts the gripper centre by ``lif
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import asdict, dataclass, field
@@ -30,15 +31,14 @@ from typing import Any, Callable, NamedTuple, Protocol, Sequence, runtime_checka
 
 import numpy as np
 
-from sagrasp_jax import collision, control, observation, reward
+from sagrasp_jax import collision, control, observation, reward, shapes
 from sagrasp_jax.config import EnvConfig
 from sagrasp_jax.deploy.calibration import validate_obstacle_clearance, validate_target
 from sagrasp_jax.deploy.safety import SafetyLayer, SafetyViolation, check_policy_constants
-from sagrasp_jax.robot import BOX, CYLINDER, SPHERE, IKError, RobotModel, forward_kinematics, lift_pose, load_robot
+from sagrasp_jax.robot import IKError, RobotModel, forward_kinematics, lift_pose, load_robot
 from sagrasp_jax.runtime import NumpyPolicy
 from sagrasp_jax.sampling import ResetSpec
 
-OBSTACLE_KINDS = {"sphere": SPHERE, "cylinder": CYLINDER, "box": BOX}
 LIFT_HEIGHT = 0.05  # m, SPEC §2/§5: lift after closing the gripper
 LIFT_MIN_STEPS = 10  # control periods the lift takes at least (0.5 s: ≤ 0.1 m/s)
 
@@ -71,10 +71,21 @@ class RobotInterface(Protocol):
 class Obstacle:
     """A detected obstacle in the world (robot base) frame, MuJoCo size convention."""
 
-    kind: str  # sphere | cylinder | box
+    kind: str  # a shapes.SHAPES name: sphere | cylinder | box | capsule
     centre: tuple[float, float, float]
-    size: tuple[float, float, float]  # sphere (r, 0, 0); cylinder (r, half-height, 0); box half-extents
-    yaw: float = 0.0  # rad about world z (boxes)
+    size: tuple[float, float, float]  # sphere (r, 0, 0); cylinder (r, half-height, 0); box half-extents; capsule (r, half axis, 0)
+    yaw: float = 0.0  # rad about world z (boxes, capsules)
+
+
+def with_obstacle_kinds(env_cfg: EnvConfig, obstacles: Sequence[Obstacle]) -> EnvConfig:
+    """``env_cfg`` whose ``sampling.obstacle_kinds`` also holds the kinds of ``obstacles``: the shared
+    collision rules compute the configured kinds only, and a detected shape the policy never trained
+    with (a capsule for a paper-mix policy) is still an obstacle to observe and avoid."""
+    kinds = env_cfg.sampling.obstacle_kinds
+    extra = tuple(dict.fromkeys(ob.kind for ob in obstacles if ob.kind not in kinds))
+    if not extra:
+        return env_cfg
+    return dataclasses.replace(env_cfg, sampling=dataclasses.replace(env_cfg.sampling, obstacle_kinds=kinds + extra))
 
 
 def scene_spec(q0: Any, target_pos: Any, target_yaw: float, obstacles: Sequence[Obstacle], env_cfg: EnvConfig) -> ResetSpec:
@@ -83,18 +94,18 @@ def scene_spec(q0: Any, target_pos: Any, target_yaw: float, obstacles: Sequence[
     if len(obstacles) > slots:
         raise ValueError(f"{len(obstacles)} obstacles given; the policy was trained with at most {slots}")
     active = np.zeros(slots, bool)
-    kind = np.full(slots, SPHERE, np.int32)
+    kind = np.full(slots, shapes.BY_NAME[env_cfg.sampling.obstacle_kinds[0]].id, np.int32)  # empty slots
     pos = np.zeros((slots, 3))
     pos[:, 2] = -5.0  # parked like the MJCF's unused slots
     yaw = np.zeros(slots)
     size = np.full((slots, 3), 0.01)
     for i, ob in enumerate(obstacles):
-        if ob.kind not in OBSTACLE_KINDS:
-            raise ValueError(f"obstacle {i}: kind {ob.kind!r} is not one of {', '.join(OBSTACLE_KINDS)}")
+        if ob.kind not in shapes.BY_NAME:
+            raise ValueError(f"obstacle {i}: kind {ob.kind!r} is not one of {', '.join(shapes.NAMES)}")
         values = np.array([*ob.centre, *ob.size, ob.yaw], dtype=float)
         if not np.isfinite(values).all():
             raise ValueError(f"obstacle {i} ({ob.kind}) has NaN/inf in its position, size or yaw")
-        active[i], kind[i], pos[i], yaw[i], size[i] = True, OBSTACLE_KINDS[ob.kind], ob.centre, ob.yaw, ob.size
+        active[i], kind[i], pos[i], yaw[i], size[i] = True, shapes.BY_NAME[ob.kind].id, ob.centre, ob.yaw, ob.size
     n = len(obstacles)
     validate_obstacle_clearance(target_pos, kind[:n], pos[:n], yaw[:n], size[:n], env_cfg.sampling,
                                 [f"obstacle {i + 1} ({ob.kind})" for i, ob in enumerate(obstacles)])
@@ -114,9 +125,8 @@ def scene_spec(q0: Any, target_pos: Any, target_yaw: float, obstacles: Sequence[
 
 def obstacles_from_spec(spec: ResetSpec) -> list[Obstacle]:
     """The active obstacles of a sampled ``ResetSpec`` (simulated deployments of training scenes)."""
-    names = {v: k for k, v in OBSTACLE_KINDS.items()}
     return [
-        Obstacle(names[int(spec.obstacle_kind[i])], tuple(float(v) for v in spec.obstacle_pos[i]),
+        Obstacle(shapes.BY_ID[int(spec.obstacle_kind[i])].name, tuple(float(v) for v in spec.obstacle_pos[i]),
                  tuple(float(v) for v in spec.obstacle_size[i]), float(spec.obstacle_yaw[i]))
         for i in np.nonzero(np.asarray(spec.obstacle_active))[0]
     ]
@@ -213,7 +223,7 @@ def run_episode(
     this scene; its limits never come from the policy.
     """
     t0 = time.perf_counter()
-    env_cfg = policy.env_config()
+    env_cfg = with_obstacle_kinds(policy.env_config(), obstacles)
     model = load_robot()
     check_policy_constants(env_cfg, safety.settings if safety is not None else None, model, policy.path)
     target = validate_target(target_pos, env_cfg.sampling)

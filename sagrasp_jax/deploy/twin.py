@@ -44,7 +44,7 @@ except ImportError as exc:  # pragma: no cover - exercised only without the extr
     raise ImportError("the PyBullet twin needs pybullet: pip install -e .[reference]") from exc
 
 from sagrasp_jax import robot as robot_mod
-from sagrasp_jax.collision import yaw_rotation
+from sagrasp_jax import shapes
 from sagrasp_jax.config import HOME_Q, EnvConfig
 from sagrasp_jax.reference.pybullet_env import _shape_kwargs, disconnect, rotation_to_quaternion
 from sagrasp_jax.robot import BOX
@@ -61,7 +61,7 @@ ARM_VELOCITY_GAIN = 1.0
 
 
 def _yaw_xyzw(yaw: float) -> tuple[float, float, float, float]:
-    return rotation_to_quaternion(yaw_rotation(np, float(yaw)))
+    return rotation_to_quaternion(shapes.yaw_rotation(np, float(yaw)))
 
 
 class PyBulletTwin:
@@ -125,8 +125,9 @@ class PyBulletTwin:
         self.target_body = self._body(BOX, half, target_pos, _yaw_xyzw(float(spec.target_yaw)), SCENE.target_rgba, TARGET_MASS)
         self._pb(pb.changeDynamics, self.target_body, -1, lateralFriction=PAD_FRICTION)
         self.obstacle_bodies = [
-            self._body(int(spec.obstacle_kind[i]), spec.obstacle_size[i], spec.obstacle_pos[i],
-                       _yaw_xyzw(float(spec.obstacle_yaw[i])), SCENE.obstacles.rgba)
+            self._body(shapes.BY_ID[int(spec.obstacle_kind[i])].primitive, spec.obstacle_size[i], spec.obstacle_pos[i],
+                       rotation_to_quaternion(shapes.world_rotation(int(spec.obstacle_kind[i]), spec.obstacle_yaw[i])),
+                       SCENE.obstacles.rgba)
             for i in np.nonzero(np.asarray(spec.obstacle_active))[0]
         ]
 

@@ -54,7 +54,7 @@ except ImportError as exc:  # pragma: no cover - exercised only without the extr
         "the PyBullet reference env needs pybullet and gymnasium: pip install -e .[reference]"
     ) from exc
 
-from sagrasp_jax import collision, config, control, episode, observation, robot, sampling
+from sagrasp_jax import collision, config, control, episode, observation, robot, sampling, shapes
 from sagrasp_jax.config import EnvConfig
 from sagrasp_jax.robot import BOX, CAPSULE, CYLINDER, SPHERE, Kinematics
 from sagrasp_jax.scene import SCENE
@@ -304,15 +304,16 @@ class PyBulletGraspEnv(gym.Env):
     def _place_episode_bodies(self, spec: sampling.ResetSpec) -> None:
         """Target as a static multibody at its sampled pose; a fresh body per active obstacle slot."""
         self._pb(pb.resetBasePositionAndOrientation, self.target_body, spec.target_pos.tolist(),
-                 rotation_to_quaternion(collision.yaw_rotation(np, spec.target_yaw)))
+                 rotation_to_quaternion(shapes.yaw_rotation(np, spec.target_yaw)))
         for body in self._obstacle_bodies:
             self._pb(pb.removeBody, body)
         # (PyBullet cannot free a collision shape once a body used it: a few hundred bytes per obstacle.)
         self._obstacle_bodies = []
         for slot in np.nonzero(spec.obstacle_active)[0]:
+            kind = int(spec.obstacle_kind[slot])
             body, _ = self._static_body(
-                int(spec.obstacle_kind[slot]), spec.obstacle_size[slot], spec.obstacle_pos[slot],
-                collision.yaw_rotation(np, spec.obstacle_yaw[slot]), SCENE.obstacles.rgba,
+                shapes.BY_ID[kind].primitive, spec.obstacle_size[slot], spec.obstacle_pos[slot],
+                shapes.world_rotation(kind, spec.obstacle_yaw[slot]), SCENE.obstacles.rgba,
             )
             self._obstacle_bodies.append(body)
 
