@@ -9,10 +9,15 @@ through JSON (run folders and checkpoints store it).  Values come from
 
 from __future__ import annotations
 
+import ast
 import dataclasses
+import functools
 import hashlib
+import io
 import json
 import math
+import textwrap
+import tokenize
 import typing
 from dataclasses import dataclass, field
 from typing import Any
@@ -39,72 +44,74 @@ HOME_GRIPPER_CENTRE = (0.0, -0.30, 0.35)
 class ControlConfig:
     """One control step (SPEC §2 steps 1-5)."""
 
-    q_max: float = 0.05  # rad per step at |a| = 1
-    slowdown_enabled: bool = True
-    d_slow: float = 0.08  # m
-    slow_factor: float = 0.3
-    finetune_enabled: bool = True
-    d_fine: float = 0.10  # m
-    fine_tilt_deg: float = 10.0
-    fine_gain: float = 1.0  # k
-    fine_damping: float = 0.05  # λ
-    fine_clip: float = 0.015  # c = 0.3·q_max, rad
-    q_limit: float = Q_LIMIT
-    mode: str = "kinematic"  # "kinematic" | "dynamic"
-    control_dt: float = 0.05  # s (20 Hz)
-    physics_dt: float = 0.01  # s, dynamic mode
-    substeps: int = 5  # physics steps per control step, dynamic mode
+    q_max: float = 0.05  # rad: joint change per step at |action| = 1 (SPEC §2 step 1)
+    slowdown_enabled: bool = True  # proximity slow-down on (step 2)
+    d_slow: float = 0.08  # m: slow down when the gripper centre is this close to the target centre
+    slow_factor: float = 0.3  # Δq is multiplied by this inside d_slow
+    finetune_enabled: bool = True  # vertical-alignment fine-tuning of joints 4, 5 on (step 3)
+    d_fine: float = 0.10  # m: fine-tune within this distance of the target centre
+    fine_tilt_deg: float = 10.0  # deg: fine-tune only when the gripper tilt θgz exceeds this
+    fine_gain: float = 1.0  # k: gain of the damped least-squares wrist correction
+    fine_damping: float = 0.05  # λ: damping of that least-squares step
+    fine_clip: float = 0.015  # rad: the correction is clipped to ±this (c = 0.3·q_max)
+    q_limit: float = Q_LIMIT  # rad: joint targets are clipped to ±this (the URDF limit, ±175°)
+    mode: str = "kinematic"  # "kinematic": qpos = q_target, no physics; "dynamic": MuJoCo servos track q_target
+    control_dt: float = 0.05  # s: control period (20 Hz)
+    physics_dt: float = 0.01  # s: physics step of the dynamic mode
+    substeps: int = 5  # physics steps per control step in the dynamic mode
 
 
 @dataclass(frozen=True)
 class RewardConfig:
     """R = F_d·R_distance + F_s·R_success + F_o·R_obstacle (SPEC §2)."""
 
-    ratio: float = 10.0  # per metre of approach
-    rc: float = 0.05  # grab-zone bonus
-    d_grab: float = 0.05  # m
-    rc_mode: str = "entry"  # "entry" (potential-based, default) | "per_step" (paper, ablation)
-    success_reward: float = 1.0
-    failure_reward: float = -1.0  # collision or timeout
-    collision_penalty: float = -1.0
-    near_miss_distance: float = 0.05  # m
-    near_miss_scale: float = 0.5
+    ratio: float = 10.0  # R_distance per metre of approach to the target
+    rc: float = 0.05  # grab-zone bonus RC
+    d_grab: float = 0.05  # m: radius of the grab zone around the target centre
+    # "entry": RC paid on entering the grab zone and taken back on leaving (potential-based); "per_step": the
+    # paper's RC on every step inside it (kept for the ablation: PPO learns to hover, SPEC §2)
+    rc_mode: str = "entry"
+    success_reward: float = 1.0  # R_success on success
+    failure_reward: float = -1.0  # R_success on a collision or a timeout
+    collision_penalty: float = -1.0  # R_obstacle on any collision
+    near_miss_distance: float = 0.05  # m: Δpo under this is a near miss
+    near_miss_scale: float = 0.5  # weight of the near-miss term (see near_miss_mode)
     # "change" (default): on every step without a collision pay −scale·(c_t − c_{t−1}), c = clip(1 −
     # Δpo/near_miss_distance, 0, 1), c_0 from the start state — a potential, so lingering near an
     # obstacle costs nothing extra and moving away repays it.  "per_step": the paper's literal
     # −scale·c_t on every step, which accumulates without bound against a bounded collision penalty
     # and teaches crashing early (SPEC §2; kept for the ablation).
     near_miss_mode: str = "change"
-    clean_success_bonus: float = 1.0  # success with an obstacle never nearer than near_miss_distance
-    f_d0: float = 2.0  # F_d = f_d0 + f_d1·p
-    f_d1: float = -1.0
+    clean_success_bonus: float = 1.0  # R_obstacle at a success in an obstacle episode whose Δpo stayed ≥ near_miss_distance
+    f_d0: float = 2.0  # F_d = f_d0 + f_d1·p (p = training progress in [0, 1])
+    f_d1: float = -1.0  # slope of F_d in p
     f_s0: float = 0.5  # F_s = f_s0 + f_s1·p
-    f_s1: float = 1.0
-    f_o: float = 0.5
+    f_s1: float = 1.0  # slope of F_s in p
+    f_o: float = 0.5  # F_o, the weight of R_obstacle
 
 
 @dataclass(frozen=True)
 class TaskConfig:
     """Start state, observation, success and episode length (SPEC §2)."""
 
-    home_q: tuple[float, ...] = HOME_Q
-    start_noise: float = 0.05  # rad, uniform per joint
-    obs_noise_std: float = 0.005  # rad on the joint entries
-    obs_noise_growth: float = 0.0  # std multiplier grows by this × progress (0 = fixed)
-    max_steps: int = 200
-    success_xy: float = 0.010  # m
-    success_dz_min: float = 0.005  # m above the target centre
-    success_dz_max: float = 0.020
-    success_tilt_deg: float = 10.0
-    obstacle_dist_clip: float = 1.0  # m, Δpo clip
-    no_obstacle_pos: tuple[float, float, float] = (0.0, 0.0, -1.0)  # layout "paper": obstacle xyz when absent
+    home_q: tuple[float, ...] = HOME_Q  # rad: start pose, gripper centre at (0, −0.30, 0.35) pointing down
+    start_noise: float = 0.05  # rad: uniform noise added to every start joint
+    obs_noise_std: float = 0.005  # rad: Gaussian noise on the observed joints
+    obs_noise_growth: float = 0.0  # the noise std is multiplied by 1 + this × progress (0 = fixed)
+    max_steps: int = 200  # steps before a timeout (terminal, R_success = failure_reward)
+    success_xy: float = 0.010  # m: success needs the gripper centre this close to the target centre horizontally
+    success_dz_min: float = 0.005  # m: ... and at least this high above it
+    success_dz_max: float = 0.020  # m: ... and at most this high above it
+    success_tilt_deg: float = 10.0  # deg: ... with the gripper tilt θgz at most this
+    obstacle_dist_clip: float = 1.0  # m: Δpo is clipped to this (its value with no obstacle)
+    no_obstacle_pos: tuple[float, float, float] = (0.0, 0.0, -1.0)  # layout "paper": the obstacle xyz seen when there is none
     # Observation layout (observation.LAYOUTS): "paper" = the paper's 17 numbers (absolute obstacle
     # centre, sentinel when absent); "relative" = per obstacle slot, nearest first, a presence flag,
     # the vectors gripper centre → obstacle surface and closest robot point → obstacle surface, and a
     # closeness that is 0 when absent, all hand-scaled (docs/design.md, "Observation layouts").
     obs_layout: str = "paper"
     obs_vector_scale: float = 0.25  # m: "relative" obstacle vectors are divided by this (clipped to ±obs_vector_clip)
-    obs_vector_clip: float = 3.0
+    obs_vector_clip: float = 3.0  # "relative" obstacle vectors, after scaling, are clipped to ±this
     obs_closeness_range: float = 0.15  # m: "relative" closeness = max(0, 1 − distance / this)
     # Robot-obstacle distance (Δpo, obstacle collisions): "fine" = a sphere set within ±4 mm of the
     # robot's URDF primitives (collision.py); "cover" = the first landing's conservative cover, which
@@ -116,29 +123,29 @@ class TaskConfig:
 class SamplingConfig:
     """Target and dynamic-obstacle sampling (SPEC §1)."""
 
-    target_size: tuple[float, float, float] = (0.02, 0.02, 0.05)
-    target_x: tuple[float, float] = (-0.35, 0.35)
-    target_y: tuple[float, float] = (-0.60, -0.25)
-    target_yaw: tuple[float, float] = (-math.pi / 4, math.pi / 4)
-    target_radius: tuple[float, float] = (0.25, 0.65)
-    target_candidates: int = 16
-    obstacle_prob: float = 0.2
-    max_obstacles: int = 2
-    sphere_radius: tuple[float, float] = (0.03, 0.06)
-    sphere_z: tuple[float, float] = (0.12, 0.30)
-    cylinder_radius: tuple[float, float] = (0.02, 0.05)
-    cylinder_height: tuple[float, float] = (0.10, 0.30)
-    box_half: tuple[float, float] = (0.02, 0.06)
-    capsule_radius: tuple[float, float] = (0.02, 0.05)  # m, capsules lying on the table (not in the paper's mix)
-    capsule_length: tuple[float, float] = (0.10, 0.30)  # m, capsule axis between the cap centres (tip to tip: + 2 r)
+    target_size: tuple[float, float, float] = (0.02, 0.02, 0.05)  # m: full extents of the target cuboid
+    target_x: tuple[float, float] = (-0.35, 0.35)  # m: range of the target centre x
+    target_y: tuple[float, float] = (-0.60, -0.25)  # m: range of the target centre y
+    target_yaw: tuple[float, float] = (-math.pi / 4, math.pi / 4)  # rad: range of the target yaw
+    target_radius: tuple[float, float] = (0.25, 0.65)  # m: a target centre farther from / nearer to the base is redrawn
+    target_candidates: int = 16  # target draws per scene attempt; the first inside target_radius wins
+    obstacle_prob: float = 0.2  # probability of an episode with dynamic obstacles (SPEC §1; the evaluation mix)
+    max_obstacles: int = 2  # obstacle slots; an obstacle episode has 1 or 2, equally likely (the MJCF has 2)
+    sphere_radius: tuple[float, float] = (0.03, 0.06)  # m: range of a sphere's radius
+    sphere_z: tuple[float, float] = (0.12, 0.30)  # m: range of a (floating) sphere's centre height
+    cylinder_radius: tuple[float, float] = (0.02, 0.05)  # m: range of an upright cylinder's radius
+    cylinder_height: tuple[float, float] = (0.10, 0.30)  # m: range of its full height (it stands on the table)
+    box_half: tuple[float, float] = (0.02, 0.06)  # m: range of each half-extent of a box (on the table, yaw uniform)
+    capsule_radius: tuple[float, float] = (0.02, 0.05)  # m: range of a capsule's radius (lying on the table, yawed)
+    capsule_length: tuple[float, float] = (0.10, 0.30)  # m: range of its axis between the cap centres (tip to tip + 2 r)
     # Obstacle shapes drawn, names of shapes.SHAPES (sphere, cylinder, box, capsule); each slot's candidates are
     # split evenly among them.  The default is the paper's mix (SPEC §1).
     obstacle_kinds: tuple[str, ...] = shapes.PAPER_KINDS
-    obstacle_disc_radius: float = 0.15
-    home_xy: tuple[float, float] = (0.0, -0.30)
-    target_clearance: float = 0.10  # m, obstacle surface to target centre, horizontal
-    robot_clearance: float = 0.10  # m, obstacle to every robot geometry at the start pose
-    obstacle_candidates: int = 9  # per slot, split evenly among obstacle_kinds (a remainder is unused); first feasible wins
+    obstacle_disc_radius: float = 0.15  # m: obstacles are placed uniformly in a disc this wide around the approach midpoint
+    home_xy: tuple[float, float] = (0.0, -0.30)  # m: the start gripper centre's xy, one end of that midpoint
+    target_clearance: float = 0.10  # m: an obstacle's footprint keeps this far from the target centre (SPEC §1 (a))
+    robot_clearance: float = 0.10  # m: an obstacle keeps this far from every robot geometry at the start pose
+    obstacle_candidates: int = 9  # draws per slot and attempt, split evenly among obstacle_kinds; the first feasible wins
     scene_redraws: int = 2  # whole-scene re-draws before falling back to "no obstacle"
     # Fraction of obstacle scenes whose obstacles are placed on the straight approach path (sampling.py,
     # "blocking" placement) instead of the SPEC's disc around the path's midpoint.  0 = the SPEC mix.
@@ -156,27 +163,27 @@ class EnvConfig:
 
 @dataclass(frozen=True)
 class NetworkConfig:
-    policy_hidden: tuple[int, ...] = (64, 64)
-    value_hidden: tuple[int, ...] = (64, 64)
-    activation: str = "tanh"
+    policy_hidden: tuple[int, ...] = (64, 64)  # hidden layer widths of the policy MLP
+    value_hidden: tuple[int, ...] = (64, 64)  # hidden layer widths of the value MLP
+    activation: str = "tanh"  # hidden-layer activation of both networks
 
 
 @dataclass(frozen=True)
 class PPOConfig:
-    num_envs: int = 16
-    unroll_length: int = 128
-    num_minibatches: int = 8
-    num_epochs: int = 10
-    clip_eps: float = 0.2
-    gamma: float = 0.99
-    gae_lambda: float = 0.95
-    entropy_coef: float = 0.0
-    value_coef: float = 0.5
-    max_grad_norm: float = 0.5
-    learning_rate: float = 3e-4
-    normalize_advantages: bool = True
-    obs_std_floor: float = 0.01
-    obs_clip: float = 5.0
+    num_envs: int = 16  # parallel envs stepped in one batch
+    unroll_length: int = 128  # steps per env per PPO iteration (rollout length)
+    num_minibatches: int = 8  # minibatches per epoch; must divide num_envs × unroll_length
+    num_epochs: int = 10  # passes over each rollout
+    clip_eps: float = 0.2  # PPO ratio clip ε
+    gamma: float = 0.99  # discount factor γ of the returns
+    gae_lambda: float = 0.95  # λ of the generalised advantage estimate
+    entropy_coef: float = 0.0  # weight of the entropy bonus in the loss
+    value_coef: float = 0.5  # weight of the value loss
+    max_grad_norm: float = 0.5  # global gradient-norm clip
+    learning_rate: float = 3e-4  # Adam learning rate of plain PPO (--algo ppo); SA-PPO starts at sa.lr0
+    normalize_advantages: bool = True  # advantages to zero mean, unit std per minibatch
+    obs_std_floor: float = 0.01  # the observation normaliser's std is floored at this (SPEC §2)
+    obs_clip: float = 5.0  # normalised observations are clipped to ±this
     network: NetworkConfig = field(default_factory=NetworkConfig)
 
 
@@ -184,33 +191,33 @@ class PPOConfig:
 class SAConfig:
     """Simulated-annealing learning-rate plateau schedule (SPEC §3)."""
 
-    enabled: bool = True  # False = the paper's PPO baseline (--algo ppo)
+    enabled: bool = True  # the SA learning-rate schedule; false = the paper's PPO baseline (--algo ppo)
     cycle_steps: int = 0  # env steps per cycle; 0 = total_steps / num_cycles
-    num_cycles: int = 200
-    metric: str = "return"  # "return" (p = 1 weights) | "success"
-    eval_episodes: int = 128
-    eval_seed: int = 12345
-    lr0: float = 3e-4
-    decay: float = 0.98
-    lr_min: float = 1e-6
-    tol: float = 0.05
-    min_delta: float = 0.02
-    patience: int = 5
-    max_rollbacks: int = 3
-    t0: float = 0.1
-    kappa: float = 1.0
+    num_cycles: int = 200  # SA cycles over the run when cycle_steps = 0
+    metric: str = "return"  # cycle metric M: "return" (mean return with the p = 1 reward weights) | "success" (rate)
+    eval_episodes: int = 128  # episodes of the fixed evaluation set that measures M each cycle
+    eval_seed: int = 12345  # seed of that evaluation set (the same episodes every cycle)
+    lr0: float = 3e-4  # SA-PPO's initial learning rate
+    decay: float = 0.98  # lr ← max(lr·decay, lr_min) at a plateau
+    lr_min: float = 1e-6  # the learning rate's floor
+    tol: float = 0.05  # a cycle within this of the accepted metric is accepted outright
+    min_delta: float = 0.02  # a gain over the best metric by more than this resets the stall counter
+    patience: int = 5  # stalled cycles before the learning rate decays
+    max_rollbacks: int = 3  # rejections in a row before the learning rate decays
+    t0: float = 0.1  # temperature scale T_0 of the Metropolis acceptance of a worse cycle
+    kappa: float = 1.0  # κ: T = T_0·exp(κ·(H − H_0)/n_actions), H the policy entropy
 
 
 @dataclass(frozen=True)
 class TrainConfig:
-    total_steps: int = 20_000_000
-    seed: int = 0
+    total_steps: int = 20_000_000  # env steps of the whole run
+    seed: int = 0  # seed of the parameters, the envs and the sampling
     # Training scene mix (the evaluation mix is env.sampling's, SPEC §1: 0.2 and no blocking placement).
     # −1 = the same as env.sampling.obstacle_prob / blocking_prob.
     obstacle_prob: float = -1.0
-    blocking_prob: float = -1.0
+    blocking_prob: float = -1.0  # fraction of training obstacle scenes with the blocking placement; −1 = env.sampling's
     log_every: int = 1  # iterations between JSONL rows
-    checkpoint_every_cycles: int = 10
+    checkpoint_every_cycles: int = 10  # SA cycles between checkpoints
     metrics_window: int = 256  # finished episodes in the training-episode window
 
 
@@ -511,6 +518,89 @@ def _check_ranges(cfg: "Config") -> None:
                 raise ConfigError(f"invalid value for {key}: {value!r} ({each}must be in {_range_text(lo, hi)})")
 
 
+@functools.lru_cache(maxsize=1)
+def _declared_comments() -> dict[str, dict[str, str]]:
+    """{class name: {field: description}} read from this file: the comment on a field's declaration
+    (its line or, for a declaration over several lines, any of them), else the block of comment lines
+    right above it.  One place documents a key: where it is declared."""
+    try:
+        with open(__file__, encoding="utf-8") as f:
+            source = f.read()
+    except OSError:  # pragma: no cover - an install without sources: no descriptions
+        return {}
+    comments: dict[int, str] = {}
+    for tok in tokenize.generate_tokens(io.StringIO(source).readline):
+        if tok.type == tokenize.COMMENT:
+            comments[tok.start[0]] = tok.string.lstrip("#").strip()
+    lines = source.splitlines()
+    out: dict[str, dict[str, str]] = {}
+    for node in ast.parse(source).body:
+        if not isinstance(node, ast.ClassDef):
+            continue
+        fields = out.setdefault(node.name, {})
+        for item in node.body:
+            if not (isinstance(item, ast.AnnAssign) and isinstance(item.target, ast.Name)):
+                continue
+            own = [comments[n] for n in range(item.lineno, (item.end_lineno or item.lineno) + 1) if n in comments]
+            above, n = [], item.lineno - 1
+            while n in comments and lines[n - 1].lstrip().startswith("#"):
+                above.insert(0, comments[n])
+                n -= 1
+            fields[item.target.id] = " ".join(own or above)
+    return out
+
+
+def key_descriptions(cfg: Config | None = None) -> dict[str, str]:
+    """Every dotted key's description, from the comments where its field is declared ('' if none)."""
+    docs = _declared_comments()
+    out: dict[str, str] = {}
+
+    def walk(obj: Any, prefix: str) -> None:
+        for f in dataclasses.fields(obj):
+            value = getattr(obj, f.name)
+            if dataclasses.is_dataclass(value):
+                walk(value, f"{prefix}{f.name}.")
+            else:
+                out[f"{prefix}{f.name}"] = docs.get(type(obj).__name__, {}).get(f.name, "")
+
+    walk(cfg or Config(), "")
+    return out
+
+
+def _shown(value: Any) -> str:
+    if isinstance(value, tuple):
+        return ",".join(_shown(v) for v in value)
+    return _num(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else str(value).lower() \
+        if isinstance(value, bool) else str(value)
+
+
+def describe_keys(preset: str = "cpu-quick") -> str:
+    """``--list-keys``: every key with its type, its value in ``preset``, its valid values (range or
+    choices), the other presets' values where they differ, and its description."""
+    cfg = get_config(preset)
+    others = {name: get_config(name) for name in PRESETS if name != preset}
+    lines = [f"config keys (values of preset {preset!r}; set with --set KEY=VALUE, a list as a,b,c):", ""]
+    for key, text in key_descriptions(cfg).items():
+        *path, leaf = key.split(".")
+        section: Any = cfg
+        for name in path:
+            section = getattr(section, name)
+        annotation = _field_types(type(section))[leaf]
+        kind = getattr(annotation, "__name__", None) if typing.get_origin(annotation) is not tuple else \
+            "list of " + getattr(typing.get_args(annotation)[0], "__name__", "value")
+        value = get_key(cfg, key)
+        valid = ""
+        if key in _RANGES:
+            valid = ("each in " if isinstance(value, tuple) else "in ") + _range_text(*_RANGES[key])
+        elif key in _CHOICES:
+            valid = ("each one of " if isinstance(value, tuple) else "one of ") + ", ".join(_CHOICES[key])
+        differ = [f"{name} {_shown(get_key(c, key))}" for name, c in others.items() if get_key(c, key) != value]
+        head = f"{key} = {_shown(value)}  ({kind}{'; ' + valid if valid else ''})"
+        lines.append(head + (f"  [{'; '.join(differ)}]" if differ else ""))
+        lines += textwrap.wrap(text, 100, initial_indent="    ", subsequent_indent="    ") or ["    (no description)"]
+    return "\n".join(lines)
+
+
 def valid_keys(cfg: Config | None = None) -> list[str]:
     """All dotted keys that ``apply_overrides`` accepts."""
     cfg = cfg or Config()
@@ -567,48 +657,23 @@ def validate(cfg: Config) -> None:
         for v in value if isinstance(value, tuple) else (value,):
             if v not in choices:
                 raise ConfigError(f"{key}={value!r}: {v!r} is not one of {', '.join(choices)}")
+    # What the ranges above cannot say: rules across keys and lengths (single values are in _RANGES)
+    kinds = cfg.env.sampling.obstacle_kinds
     checks = [
-        ("ppo.num_envs", cfg.ppo.num_envs >= 1),
-        ("ppo.unroll_length", cfg.ppo.unroll_length >= 1),
-        ("ppo.num_minibatches", cfg.ppo.num_minibatches >= 1
-         and (cfg.ppo.num_envs * cfg.ppo.unroll_length) % cfg.ppo.num_minibatches == 0),
-        ("ppo.num_epochs", cfg.ppo.num_epochs >= 1),
-        ("ppo.learning_rate", cfg.ppo.learning_rate > 0),
-        ("ppo.gamma", 0 < cfg.ppo.gamma <= 1),
-        ("ppo.gae_lambda", 0 <= cfg.ppo.gae_lambda <= 1),
-        ("ppo.clip_eps", cfg.ppo.clip_eps > 0),
-        ("ppo.obs_std_floor", cfg.ppo.obs_std_floor > 0),
-        ("sa.lr0", cfg.sa.lr0 > 0),
-        ("sa.lr_min", 0 < cfg.sa.lr_min <= cfg.sa.lr0),
-        ("sa.decay", 0 < cfg.sa.decay <= 1),
-        ("sa.num_cycles", cfg.sa.num_cycles >= 1),
-        ("sa.eval_episodes", cfg.sa.eval_episodes >= 1),
-        ("sa.patience", cfg.sa.patience >= 1),
-        ("sa.max_rollbacks", cfg.sa.max_rollbacks >= 1),
-        ("sa.t0", cfg.sa.t0 > 0),
-        ("train.total_steps", cfg.train.total_steps >= 1),
-        ("env.task.max_steps", cfg.env.task.max_steps >= 1),
-        ("env.control.q_max", cfg.env.control.q_max > 0),
-        ("env.control.substeps", cfg.env.control.substeps >= 1),
+        ("sa.lr_min", cfg.sa.lr_min <= cfg.sa.lr0),
         ("env.task.home_q", len(cfg.env.task.home_q) == 6),
         ("env.sampling.max_obstacles", cfg.env.sampling.max_obstacles == 2),  # the MJCF has two slots
-        ("env.sampling.obstacle_kinds", 0 < len(cfg.env.sampling.obstacle_kinds) == len(set(cfg.env.sampling.obstacle_kinds))),
-        # at least one candidate of each kind
-        ("env.sampling.obstacle_candidates", cfg.env.sampling.obstacle_candidates >= len(cfg.env.sampling.obstacle_kinds)),
-        ("env.sampling.obstacle_prob", 0 <= cfg.env.sampling.obstacle_prob <= 1),
-        ("env.sampling.blocking_prob", 0 <= cfg.env.sampling.blocking_prob <= 1),
-        ("env.sampling.blocking_margin", cfg.env.sampling.blocking_margin > 0),
-        ("env.task.obs_vector_scale", cfg.env.task.obs_vector_scale > 0),
-        ("env.task.obs_vector_clip", cfg.env.task.obs_vector_clip > 0),
-        ("env.task.obs_closeness_range", cfg.env.task.obs_closeness_range > 0),
+        ("env.sampling.obstacle_kinds", 0 < len(set(kinds)) == len(kinds)),  # some, none twice
+        ("env.sampling.obstacle_candidates", cfg.env.sampling.obstacle_candidates >= len(kinds)),  # ≥ one of each kind
         ("train.obstacle_prob", cfg.train.obstacle_prob == -1 or 0 <= cfg.train.obstacle_prob <= 1),
         ("train.blocking_prob", cfg.train.blocking_prob == -1 or 0 <= cfg.train.blocking_prob <= 1),
     ]
     for key, ok in checks:
         if not ok:
             raise ConfigError(f"invalid value for {key}: {get_key(cfg, key)!r}")
-    if cfg.ppo.num_minibatches and (cfg.ppo.num_envs * cfg.ppo.unroll_length) % cfg.ppo.num_minibatches:
-        raise ConfigError("ppo.num_envs × ppo.unroll_length must be divisible by ppo.num_minibatches")
+    if (cfg.ppo.num_envs * cfg.ppo.unroll_length) % cfg.ppo.num_minibatches:
+        raise ConfigError(f"ppo.num_minibatches={cfg.ppo.num_minibatches} must divide ppo.num_envs × ppo.unroll_length "
+                          f"= {cfg.ppo.num_envs} × {cfg.ppo.unroll_length}")
 
 
 def get_key(cfg: Config, key: str) -> Any:

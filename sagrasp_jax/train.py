@@ -402,8 +402,23 @@ def _progress_bar(enabled: bool, sched: Schedule, initial: int, stream: TextIO) 
 
 # ---------------------------------------------------------------------- CLI
 
+class _ListKeys(argparse.Action):
+    """``--list-keys``: print every config key (meaning, value, valid values) and exit, like --help."""
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: Any,
+                 option_string: str | None = None) -> None:
+        from sagrasp_jax.config import describe_keys
+
+        preset = namespace.preset or "cpu-quick"
+        if preset not in PRESETS:
+            parser.error(f"unknown preset {preset!r}; valid presets: {', '.join(PRESETS)}")
+        print(describe_keys(preset))
+        parser.exit()
+
+
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m sagrasp_jax.train", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m sagrasp_jax.train", description=__doc__.split("\n\n")[0],
+                                epilog="--list-keys shows every KEY for --set with its meaning, value and valid values.")
     p.add_argument("--preset", default=None, help=f"one of {', '.join(PRESETS)} (default cpu-quick)")
     p.add_argument("--algo", default=None, help=f"one of {', '.join(ALGOS)} (default sa-ppo)")
     p.add_argument("--seed", type=int, default=None)
@@ -416,6 +431,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--stop-after-cycles", type=int, default=None,
                    help="checkpoint and stop after this many SA cycles (simulates a preemption)")
     p.add_argument("--no-progress", action="store_true", help="no live progress bar")
+    p.add_argument("--list-keys", nargs=0, action=_ListKeys,
+                   help="list every config key with its meaning, its value in --preset (given before it) and its valid values; exit")
     return p
 
 
