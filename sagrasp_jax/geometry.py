@@ -291,15 +291,8 @@ def _capsule_segment(pos: Array, rot: Array, size: Array) -> tuple[Vec, Vec]:
     return _sub(_v(pos), axis), _mul(axis, 2.0)
 
 
-def capsule_box_distance(
-    xp: Any,
-    pos_a: Array,
-    rot_a: Array,
-    size_a: Array,
-    pos_b: Array,
-    rot_b: Array,
-    size_b: Array,
-) -> Array:
+def capsule_box_distance(xp: Any, pos_a: Array, rot_a: Array, size_a: Array,
+                         pos_b: Array, rot_b: Array, size_b: Array) -> Array:
     """Capsule A vs box B: exact min over the capsule axis of the box SDF, minus the radius.
 
     Closed form (piecewise-quadratic outside, piecewise-linear inside) rather than a

@@ -337,6 +337,16 @@ def cylinder_error_bound(
     return k * (radius_a + radius_b + r_max) + _INVPHI ** max(iters - 8, 4) * chord
 
 
+def _frames(xp: Any, pos_a: Array, rot_a: Array, pos_b: Array, rot_b: Array,
+            axes_table: tuple[np.ndarray, np.ndarray]) -> tuple[Mat, Vec, Mat, Vec, Vec, Mat]:
+    """For a SAT between A and B: B's pose in A's frame, A's pose in B's frame, the candidate axes
+    (in A's frame, from a ``_tabulate`` table) and B's rotation in A's frame transposed."""
+    ma, mb = _m(rot_a), _m(rot_b)
+    m_ab, t_ab = _rel(ma, _v(pos_a), mb, _v(pos_b))
+    m_ba, t_ba = _rel(mb, _v(pos_b), ma, _v(pos_a))
+    return m_ab, t_ab, m_ba, t_ba, _linear_axes(xp, axes_table, m_ab), _tm(m_ab)
+
+
 def _prism_width(xp: Any, local: Vec, radius: Array, half_height: Array, prism: dict[str, Any]) -> Array:
     """Support half-width of the prism along unit vectors ``local`` given in its own frame
     (trailing axis); ``radius`` and ``half_height`` carry the batch shape."""
@@ -410,15 +420,8 @@ def segment_cylinder_distance(
 # SPHERE < CAPSULE < BOX < CYLINDER.
 
 
-def sphere_sphere_distance(
-    xp: Any,
-    pos_a: Array,
-    rot_a: Array,
-    size_a: Array,
-    pos_b: Array,
-    rot_b: Array,
-    size_b: Array,
-) -> Array:
+def sphere_sphere_distance(xp: Any, pos_a: Array, rot_a: Array, size_a: Array,
+                           pos_b: Array, rot_b: Array, size_b: Array) -> Array:
     """Exact: centre distance minus both radii."""
     pos_a, size_a, pos_b, size_b = _prep(xp, pos_a, size_a, pos_b, size_b)
     return _len(xp, *_sub(_v(pos_a), _v(pos_b))) - size_a[..., 0] - size_b[..., 0]
@@ -427,7 +430,8 @@ def sphere_sphere_distance(
 def _sphere_vs(point_fn: Callable[..., Array], doc: str) -> Callable[..., Array]:
     """Sphere A vs primitive B: B's point SDF at A's centre minus A's radius."""
 
-    def distance(xp: Any, pos_a: Array, rot_a: Array, size_a: Array, pos_b: Array, rot_b: Array, size_b: Array) -> Array:
+    def distance(xp: Any, pos_a: Array, rot_a: Array, size_a: Array,
+             pos_b: Array, rot_b: Array, size_b: Array) -> Array:
         pos_a, size_a = _prep(xp, pos_a, size_a)
         return point_fn(xp, pos_a, pos_b, rot_b, size_b) - size_a[..., 0]
 
@@ -436,35 +440,21 @@ def _sphere_vs(point_fn: Callable[..., Array], doc: str) -> Callable[..., Array]
 
 
 sphere_capsule_distance = _sphere_vs(point_capsule_distance, "Exact: centre to capsule axis, minus both radii.")
-sphere_box_distance = _sphere_vs(point_box_distance, "Exact (also with the centre inside the box): box SDF at the centre minus the radius.")
+sphere_box_distance = _sphere_vs(point_box_distance,
+                                 "Exact (also with the centre inside the box): box SDF at the centre minus the radius.")
 sphere_cylinder_distance = _sphere_vs(point_cylinder_distance, "Exact: cylinder SDF at the centre minus the radius.")
 
 
-def capsule_capsule_distance(
-    xp: Any,
-    pos_a: Array,
-    rot_a: Array,
-    size_a: Array,
-    pos_b: Array,
-    rot_b: Array,
-    size_b: Array,
-) -> Array:
+def capsule_capsule_distance(xp: Any, pos_a: Array, rot_a: Array, size_a: Array,
+                             pos_b: Array, rot_b: Array, size_b: Array) -> Array:
     """Exact: segment-segment distance minus both radii (penetration exact while the axes do not cross)."""
     pos_a, rot_a, size_a, pos_b, rot_b, size_b = _prep(xp, pos_a, rot_a, size_a, pos_b, rot_b, size_b)
     a0, da = _capsule_segment(pos_a, rot_a, size_a)
     b0, db = _capsule_segment(pos_b, rot_b, size_b)
     return _segment_segment(xp, a0, da, b0, db) - size_a[..., 0] - size_b[..., 0]
 
-def capsule_cylinder_distance(
-    xp: Any,
-    pos_a: Array,
-    rot_a: Array,
-    size_a: Array,
-    pos_b: Array,
-    rot_b: Array,
-    size_b: Array,
-    iters: int = GOLDEN_ITERS,
-) -> Array:
+def capsule_cylinder_distance(xp: Any, pos_a: Array, rot_a: Array, size_a: Array,
+                              pos_b: Array, rot_b: Array, size_b: Array, iters: int = GOLDEN_ITERS) -> Array:
     """Capsule A vs cylinder B: golden-section min over the capsule axis of the exact cylinder
     SDF, minus the radius (exact outside to ~1e-9 m, correct sign inside)."""
     pos_a, rot_a, size_a, pos_b, rot_b, size_b = _prep(xp, pos_a, rot_a, size_a, pos_b, rot_b, size_b)
@@ -476,15 +466,8 @@ def capsule_cylinder_distance(
     return inner - size_a[..., 0]
 
 
-def box_box_distance(
-    xp: Any,
-    pos_a: Array,
-    rot_a: Array,
-    size_a: Array,
-    pos_b: Array,
-    rot_b: Array,
-    size_b: Array,
-) -> Array:
+def box_box_distance(xp: Any, pos_a: Array, rot_a: Array, size_a: Array,
+                     pos_b: Array, rot_b: Array, size_b: Array) -> Array:
     """Exact signed distance between two boxes.
 
     The 15-axis SAT decides overlap and, when overlapping, its smallest overlap is the
@@ -493,20 +476,12 @@ def box_box_distance(
     minimum of the 24 closed-form edge-box distances.
     """
     pos_a, rot_a, size_a, pos_b, rot_b, size_b = _prep(xp, pos_a, rot_a, size_a, pos_b, rot_b, size_b)
-    ma, mb, ha, hb = _m(rot_a), _m(rot_b), _v(size_a), _v(size_b)
-    m_ab, t_ab = _rel(ma, _v(pos_a), mb, _v(pos_b))  # B in A's frame
-    m_ba, t_ba = _rel(mb, _v(pos_b), ma, _v(pos_a))  # A in B's frame
-    axes = _linear_axes(xp, _box_box_axes(), m_ab)
-    m_ab_t = _tm(m_ab)
-    gap = _sat(
-        xp,
-        axes,
-        t_ab,
-        [
-            lambda u: _dot(_tv(ha), (xp.abs(u[0]), xp.abs(u[1]), xp.abs(u[2]))),
-            lambda u: _dot(_tv(hb), tuple(xp.abs(c) for c in _mtv(m_ab_t, u))),  # type: ignore[arg-type]
-        ],
-    )
+    ha, hb = _v(size_a), _v(size_b)
+    m_ab, t_ab, m_ba, t_ba, axes, m_ab_t = _frames(xp, pos_a, rot_a, pos_b, rot_b, _box_box_axes())
+    gap = _sat(xp, axes, t_ab, [
+        lambda u: _dot(_tv(ha), (xp.abs(u[0]), xp.abs(u[1]), xp.abs(u[2]))),
+        lambda u: _dot(_tv(hb), tuple(xp.abs(c) for c in _mtv(m_ab_t, u))),  # type: ignore[arg-type]
+    ])
     s_a, d_a = _box_edges(xp, ha, m_ba, t_ba)
     s_b, d_b = _box_edges(xp, hb, m_ab, t_ab)
     sep = xp.minimum(
@@ -516,17 +491,9 @@ def box_box_distance(
     return xp.where(gap > 0, sep, gap)
 
 
-def box_cylinder_distance(
-    xp: Any,
-    pos_a: Array,
-    rot_a: Array,
-    size_a: Array,
-    pos_b: Array,
-    rot_b: Array,
-    size_b: Array,
-    sides: int = CYLINDER_SIDES,
-    iters: int = CYLINDER_GOLDEN_ITERS,
-) -> Array:
+def box_cylinder_distance(xp: Any, pos_a: Array, rot_a: Array, size_a: Array,
+                          pos_b: Array, rot_b: Array, size_b: Array,
+                          sides: int = CYLINDER_SIDES, iters: int = CYLINDER_GOLDEN_ITERS) -> Array:
     """Box A vs cylinder B, within ``cylinder_error_bound(r_B, sides=sides)`` of the exact value.
 
     The cylinder becomes a ``sides``-gon prism.  A SAT over the prism-box axes (box faces,
@@ -536,21 +503,13 @@ def box_cylinder_distance(
     """
     prism = _prism(sides)
     pos_a, rot_a, size_a, pos_b, rot_b, size_b = _prep(xp, pos_a, rot_a, size_a, pos_b, rot_b, size_b)
-    ma, mb, ha = _m(rot_a), _m(rot_b), _v(size_a)
+    ha = _v(size_a)
     radius, half_height = size_b[..., 0], size_b[..., 1]
-    m_ab, t_ab = _rel(ma, _v(pos_a), mb, _v(pos_b))  # cylinder in the box frame
-    m_ba, t_ba = _rel(mb, _v(pos_b), ma, _v(pos_a))  # box in the cylinder frame
-    axes = _linear_axes(xp, prism["box_cyl_axes"], m_ab)
-    m_ab_t = _tm(m_ab)
-    gap = _sat(
-        xp,
-        axes,
-        t_ab,
-        [
-            lambda u: _dot(_tv(ha), (xp.abs(u[0]), xp.abs(u[1]), xp.abs(u[2]))),
-            lambda u: _prism_width(xp, _mtv(m_ab_t, u), radius, half_height, prism),
-        ],
-    )
+    m_ab, t_ab, m_ba, t_ba, axes, m_ab_t = _frames(xp, pos_a, rot_a, pos_b, rot_b, prism["box_cyl_axes"])
+    gap = _sat(xp, axes, t_ab, [
+        lambda u: _dot(_tv(ha), (xp.abs(u[0]), xp.abs(u[1]), xp.abs(u[2]))),
+        lambda u: _prism_width(xp, _mtv(m_ab_t, u), radius, half_height, prism),
+    ])
     p_start, p_step = _prism_edges(xp, radius, half_height, m_ab, t_ab, prism)
     prism_to_box = _min_last(xp, _segment_box_outside(xp, p_start, p_step, _tv(ha)))
     b_start, b_step = _box_edges(xp, ha, m_ba, t_ba)
@@ -558,17 +517,9 @@ def box_cylinder_distance(
     return xp.where(gap > 0, xp.minimum(prism_to_box, _min_last(xp, box_to_cyl, unfused=True)), gap)
 
 
-def cylinder_cylinder_distance(
-    xp: Any,
-    pos_a: Array,
-    rot_a: Array,
-    size_a: Array,
-    pos_b: Array,
-    rot_b: Array,
-    size_b: Array,
-    sides: int = CYLINDER_SIDES,
-    iters: int = CYLINDER_GOLDEN_ITERS,
-) -> Array:
+def cylinder_cylinder_distance(xp: Any, pos_a: Array, rot_a: Array, size_a: Array,
+                               pos_b: Array, rot_b: Array, size_b: Array,
+                               sides: int = CYLINDER_SIDES, iters: int = CYLINDER_GOLDEN_ITERS) -> Array:
     """Two cylinders, within ``cylinder_error_bound(r_A, r_B, sides)`` of the exact value.
 
     Both become ``sides``-gon prisms; a SAT over (K/2+1)² + K + 2 axes decides overlap and
@@ -578,21 +529,12 @@ def cylinder_cylinder_distance(
     """
     prism = _prism(sides)
     pos_a, rot_a, size_a, pos_b, rot_b, size_b = _prep(xp, pos_a, rot_a, size_a, pos_b, rot_b, size_b)
-    ma, mb = _m(rot_a), _m(rot_b)
     ra, ha, rb, hb = size_a[..., 0], size_a[..., 1], size_b[..., 0], size_b[..., 1]
-    m_ab, t_ab = _rel(ma, _v(pos_a), mb, _v(pos_b))  # B in A's frame
-    m_ba, t_ba = _rel(mb, _v(pos_b), ma, _v(pos_a))  # A in B's frame
-    axes = _linear_axes(xp, prism["cyl_cyl_axes"], m_ab)
-    m_ab_t = _tm(m_ab)
-    gap = _sat(
-        xp,
-        axes,
-        t_ab,
-        [
-            lambda u: _prism_width(xp, u, ra, ha, prism),
-            lambda u: _prism_width(xp, _mtv(m_ab_t, u), rb, hb, prism),
-        ],
-    )
+    m_ab, t_ab, m_ba, t_ba, axes, m_ab_t = _frames(xp, pos_a, rot_a, pos_b, rot_b, prism["cyl_cyl_axes"])
+    gap = _sat(xp, axes, t_ab, [
+        lambda u: _prism_width(xp, u, ra, ha, prism),
+        lambda u: _prism_width(xp, _mtv(m_ab_t, u), rb, hb, prism),
+    ])
     n_chords = 2 * sides
 
     def edges_vs_cylinder(start: Vec, step: Vec, radius: Array, half_height: Array) -> Array:
@@ -656,19 +598,9 @@ def pair_distance(
 # --------------------------------------------------------------------- dispatch
 
 
-def distance_to_obstacle(
-    xp: Any,
-    robot_kind: int,
-    robot_pos: Array,
-    robot_rot: Array,
-    robot_size: Array,
-    obs_kind: Array,
-    obs_pos: Array,
-    obs_rot: Array,
-    obs_size: Array,
-    obstacle_kinds: Sequence[int] = (SPHERE, CYLINDER, BOX),
-    sides: int = CYLINDER_SIDES,
-) -> Array:
+def distance_to_obstacle(xp: Any, robot_kind: int, robot_pos: Array, robot_rot: Array, robot_size: Array,
+                         obs_kind: Array, obs_pos: Array, obs_rot: Array, obs_size: Array,
+                         obstacle_kinds: Sequence[int] = (SPHERE, CYLINDER, BOX), sides: int = CYLINDER_SIDES) -> Array:
     """Signed distance (...,) from a robot primitive of static kind to an obstacle whose kind is
     data (``obs_kind``, an integer array broadcasting with the poses).
 
@@ -690,6 +622,11 @@ def _groups(kinds: Sequence[int] | np.ndarray) -> tuple[list[tuple[int, np.ndarr
     groups = [(int(k), np.nonzero(flat == k)[0]) for k in sorted(set(flat.tolist()))]
     order = np.concatenate([idx for _, idx in groups]) if groups else np.zeros(0, dtype=int)
     return groups, np.argsort(order)
+
+
+def _rows_of(ia: np.ndarray, pos: Array, rot: Array, size: Array) -> tuple[Array, Array, Array]:
+    """Primitives ``ia`` of a set, with an axis for the other set's primitives after theirs."""
+    return pos[..., ia, None, :], rot[..., ia, None, :, :], size[..., ia, None, :]
 
 
 def distance_matrix(
@@ -722,67 +659,32 @@ def distance_matrix(
     for ka, ia in groups_a:
         cols = []
         for kb, ib in groups_b:
-            block = pair_distance(
-                xp,
-                ka,
-                pos_a[..., ia, None, :],
-                rot_a[..., ia, None, :, :],
-                size_a[..., ia, None, :],
-                kb,
-                pos_b[..., None, ib, :],
-                rot_b[..., None, ib, :, :],
-                size_b[..., None, ib, :],
-                sides=sides,
-            )
+            b_cols = (pos_b[..., None, ib, :], rot_b[..., None, ib, :, :], size_b[..., None, ib, :])
+            block = pair_distance(xp, ka, *_rows_of(ia, pos_a, rot_a, size_a), kb, *b_cols, sides=sides)
             cols.append(xp.broadcast_to(block, batch + (len(ia), len(ib))))
         rows.append(xp.concatenate(cols, axis=-1))
     full = xp.concatenate(rows, axis=-2)
     return full[..., inv_a, :][..., inv_b]
 
 
-def obstacle_distance_matrix(
-    xp: Any,
-    kinds_a: Sequence[int] | np.ndarray,
-    pos_a: Array,
-    rot_a: Array,
-    size_a: Array,
-    obs_kind: Array,
-    obs_pos: Array,
-    obs_rot: Array,
-    obs_size: Array,
-    obstacle_kinds: Sequence[int] = (SPHERE, CYLINDER, BOX),
-    sides: int = CYLINDER_SIDES,
-) -> Array:
+def obstacle_distance_matrix(xp: Any, kinds_a: Sequence[int] | np.ndarray, pos_a: Array, rot_a: Array, size_a: Array,
+                             obs_kind: Array, obs_pos: Array, obs_rot: Array, obs_size: Array,
+                             obstacle_kinds: Sequence[int] = (SPHERE, CYLINDER, BOX),
+                             sides: int = CYLINDER_SIDES) -> Array:
     """(..., G, N) signed distances between G robot primitives of static kinds and N obstacle
     slots whose kinds are data (``obs_kind`` (..., N); kinds outside ``obstacle_kinds``, e.g.
     -1 for an empty slot, give +inf).  One broadcast call per (robot kind, obstacle kind)."""
     groups_a, inv_a = _groups(kinds_a)
     pos_a, rot_a, size_a, obs_pos, obs_rot, obs_size = _prep(xp, pos_a, rot_a, size_a, obs_pos, obs_rot, obs_size)
     obs_kind = xp.asarray(obs_kind)
-    batch = np.broadcast_shapes(
-        pos_a.shape[:-2],
-        rot_a.shape[:-3],
-        size_a.shape[:-2],
-        obs_kind.shape[:-1],
-        obs_pos.shape[:-2],
-        obs_rot.shape[:-3],
-        obs_size.shape[:-2],
-    )
+    batch = np.broadcast_shapes(pos_a.shape[:-2], rot_a.shape[:-3], size_a.shape[:-2], obs_kind.shape[:-1],
+                                obs_pos.shape[:-2], obs_rot.shape[:-3], obs_size.shape[:-2])
     n = obs_pos.shape[-2]
+    obstacles = (obs_kind[..., None, :], obs_pos[..., None, :, :], obs_rot[..., None, :, :, :],
+                 obs_size[..., None, :, :])
     rows = []
     for ka, ia in groups_a:
-        block = distance_to_obstacle(
-            xp,
-            ka,
-            pos_a[..., ia, None, :],
-            rot_a[..., ia, None, :, :],
-            size_a[..., ia, None, :],
-            obs_kind[..., None, :],
-            obs_pos[..., None, :, :],
-            obs_rot[..., None, :, :, :],
-            obs_size[..., None, :, :],
-            obstacle_kinds=obstacle_kinds,
-            sides=sides,
-        )
+        block = distance_to_obstacle(xp, ka, *_rows_of(ia, pos_a, rot_a, size_a), *obstacles,
+                                     obstacle_kinds=obstacle_kinds, sides=sides)
         rows.append(xp.broadcast_to(block, batch + (len(ia), n)))
     return xp.concatenate(rows, axis=-2)[..., inv_a, :]
