@@ -30,13 +30,12 @@ MJCF_SCENE = os.path.join(os.path.dirname(robot.URDF_PATH), "..", "mjcf", "scene
 EPISODE_KEYS = episode.EPISODE_KEYS
 
 OBS_SIZE = observation.OBS_SIZE  # the paper layout's 17; an env's own size is ``GraspEnv.observation_size``
-ACTION_SIZE = control.ACTION_SIZE
 
 
 class GraspEnv:
     """AUBO-i5 + EG2 gripper reaching a cuboid among random obstacles (SPEC §1-§2)."""
 
-    action_size = ACTION_SIZE
+    action_size = control.ACTION_SIZE
 
     def __init__(self, cfg: EnvConfig):
         if cfg.control.mode not in ("kinematic", "dynamic"):

@@ -46,6 +46,7 @@ from typing import Any, Callable
 import numpy as np
 
 from sagrasp_jax import fileio, robot, sampling, scripted, shapes
+from sagrasp_jax.episode import EPISODE_KEYS
 from sagrasp_jax.config import Config, ConfigError, EnvConfig, apply_overrides, check_range, get_config
 
 SOURCES = ("random", "scripted", "policy")
@@ -260,6 +261,146 @@ def _compare_step(errs: Errors, j_obs: np.ndarray, j: dict[str, float], p_obs: n
 # --------------------------------------------------------------------------------------------
 # the run
 # --------------------------------------------------------------------------------------------
+def _pybullet_row(reward: float, info: dict[str, Any]) -> dict[str, float]:
+    return {"reward": float(reward), "r_distance": info["r_distance"], "r_success": info["r_success"],
+            "r_obstacle": info["r_obstacle"]}
+
+
+class _SourceRun:
+    """One action source's comparison: runs the episodes batch by batch and keeps the tallies."""
+
+    def __init__(self, source: ActionSource, jax_side: JaxSide, pb_envs: list[Any], probes: list[Any] | None,
+                 max_steps: int, seed: int) -> None:
+        self.source, self.jax_side, self.pb_envs, self.probes = source, jax_side, pb_envs, probes
+        self.max_steps, self.seed = max_steps, seed
+        size = jax_side.env.observation_size
+        self.traj, self.single = Errors(size), Errors(size)
+        self.reset_obs_err = 0.0
+        self.agree_count = 0
+        self.disagreements: list[dict[str, Any]] = []
+        self.own: dict[str, dict[str, list[float]]] = {
+            side: {"success": [], "collision": [], "timeout": [], "steps": [], "return": []} for side in ("jax", "pybullet")}
+        self.episode_err: dict[str, float] = {}
+        self.single_flag_agree = [0, 0]
+        self.pb_time, self.pb_steps, self.jax_time, self.jax_calls = 0.0, 0, 0.0, 0
+
+    def run_batch(self, specs: list[sampling.ResetSpec], progress: np.ndarray, ids: np.ndarray) -> None:
+        """Reset both sides to the batch's explicit starts, then step them in lockstep until every episode ended."""
+        n = len(ids)
+        state, jout = self.jax_side.reset([specs[i] for i in ids], progress[ids], self.seed + int(ids[0]))
+        j_obs = jout["obs"][:n]
+        p_obs = np.zeros_like(j_obs)
+        for k, i in enumerate(ids):
+            options = {"reset_spec": specs[i], "progress": float(progress[i])}
+            p_obs[k], _ = self.pb_envs[k].reset(options=options)
+            if self.probes is not None:
+                self.probes[k].reset(options=options)
+        self.reset_obs_err = max(self.reset_obs_err, float(np.abs(j_obs - p_obs).max()))
+        comparing, agree = np.ones(n, bool), np.ones(n, bool)
+        j_alive, p_alive = np.ones(n, bool), np.ones(n, bool)
+        for t in range(self.max_steps):
+            if not (j_alive.any() or p_alive.any()):
+                break
+            a_j = self.source.fn(j_obs, t, ids)
+            a_p = a_j if self.source.open_loop else self.source.fn(p_obs, t, ids)
+            prev = jout
+            t0 = time.perf_counter()
+            state, jout = self.jax_side.step(state, a_j)
+            self.jax_time += time.perf_counter() - t0
+            self.jax_calls += 1
+            j_obs = jout["obs"][:n]
+            for k in range(n):
+                was_alive = bool(j_alive[k])
+                j_row = {key: float(jout[key][k]) for key in REWARD_KEYS}
+                j_flags = _flags_of(jout["done"][k], jout["success"][k], jout["collision"][k], jout["timeout"][k])
+                if p_alive[k]:
+                    p_obs[k], p_alive[k], comparing[k], ok = self._step_pybullet(
+                        k, int(ids[k]), t, a_p[k], j_obs[k], j_row, j_flags, jout, bool(comparing[k]))
+                    agree[k] &= ok
+                if j_alive[k] and j_flags["done"]:
+                    j_alive[k] = False
+                    for key in self.own["jax"]:
+                        self.own["jax"][key].append(float(jout["episode"][key][k]))
+                if self.probes is not None and was_alive:
+                    self._single_step(k, prev, a_j[k], j_obs[k], j_row, j_flags)
+        self.agree_count += int(agree.sum())
+
+    def _step_pybullet(self, k: int, episode_id: int, t: int, action: np.ndarray, j_obs: np.ndarray,
+                       j_row: dict[str, float], j_flags: dict[str, bool], jout: dict[str, np.ndarray],
+                       comparing: bool) -> tuple[np.ndarray, bool, bool, bool]:
+        """Step PyBullet episode ``k`` and compare it with the JAX step while both run; returns
+        (observation, still alive, still comparing, flags agreed)."""
+        t0 = time.perf_counter()
+        obs, rew, term, _, info = self.pb_envs[k].step(action)
+        self.pb_time += time.perf_counter() - t0
+        self.pb_steps += 1
+        p_flags = _flags_of(term, info["success"], info["collision"], info["timeout"])
+        ok = True
+        if comparing:
+            ok = _compare_step(self.traj, j_obs, j_row, obs, _pybullet_row(rew, info), j_flags, p_flags)
+            if not ok and len(self.disagreements) < MAX_LISTED_DISAGREEMENTS:
+                self.disagreements.append({"episode": episode_id, "step": t + 1, "jax": j_flags, "pybullet": p_flags,
+                                           "gripper_gap": float(np.linalg.norm(j_obs[6:9] - obs[6:9]))})
+            elif ok and j_flags["done"]:
+                for key in EPISODE_KEYS:
+                    diff = abs(float(jout["episode"][key][k]) - float(info["episode"][key]))
+                    self.episode_err[key] = max(self.episode_err.get(key, 0.0), diff)
+            comparing = not (j_flags["done"] or p_flags["done"])
+        if term:
+            for key in self.own["pybullet"]:
+                self.own["pybullet"][key].append(float(info["episode"][key]))
+        return obs, not term, comparing, ok
+
+    def _single_step(self, k: int, prev: dict[str, np.ndarray], action: np.ndarray, j_obs: np.ndarray,
+                     j_row: dict[str, float], j_flags: dict[str, bool]) -> None:
+        """Forced single step: the PyBullet probe is put into the JAX state before this step."""
+        probe = self.probes[k]  # type: ignore[index]
+        probe.force_state(prev["q"][k], prev["q_target"][k], prev["qd"][k], steps=int(prev["steps"][k]),
+                          d_prev=float(prev["d_prev"][k]), clean=bool(prev["clean"][k]),
+                          obstacle_dist_prev=float(prev["obstacle_dist_prev"][k]))
+        s_obs, s_rew, s_term, _, s_info = probe.step(action)
+        s_flags = _flags_of(s_term, s_info["success"], s_info["collision"], s_info["timeout"])
+        self.single_flag_agree[0] += int(_compare_step(self.single, j_obs, j_row, s_obs, _pybullet_row(s_rew, s_info),
+                                                       j_flags, s_flags))
+        self.single_flag_agree[1] += 1
+
+    def _rates(self, side: str) -> dict[str, float]:
+        d = self.own[side]
+        succ = np.asarray(d["success"])
+        steps = np.asarray(d["steps"])
+        return {
+            "episodes": len(succ),
+            "success_rate": float(succ.mean()) if len(succ) else math.nan,
+            "collision_rate": float(np.mean(d["collision"])) if len(succ) else math.nan,
+            "timeout_rate": float(np.mean(d["timeout"])) if len(succ) else math.nan,
+            "mean_steps_to_success": float(steps[succ > 0.5].mean()) if (succ > 0.5).any() else math.nan,
+            "mean_return": float(np.mean(d["return"])) if len(succ) else math.nan,
+        }
+
+    def section(self, n_total: int) -> dict[str, Any]:
+        """The source's report section."""
+        out: dict[str, Any] = {
+            "episodes": n_total,
+            "steps_compared": len(self.traj.values.get("gripper_centre", [])),
+            "reset_obs_max_error": self.reset_obs_err,
+            "trajectory": self.traj.summary(),
+            "episode_metrics_max_error": self.episode_err,
+            "flag_agreement": self.agree_count / max(n_total, 1),
+            "flag_disagreements": self.disagreements,
+            "jax": self._rates("jax"),
+            "pybullet": self._rates("pybullet"),
+            "timing": {
+                "pybullet_env_steps": self.pb_steps,
+                "pybullet_env_steps_per_s": self.pb_steps / self.pb_time if self.pb_time > 0 else math.nan,
+                "jax_batch_step_ms": 1000 * self.jax_time / max(self.jax_calls, 1),
+            },
+        }
+        if self.probes is not None:
+            out["single_step"] = self.single.summary()
+            out["single_step"]["flag_agreement_steps"] = self.single_flag_agree[0] / max(self.single_flag_agree[1], 1)
+        return out
+
+
 def run_source(
     source: ActionSource,
     specs: list[sampling.ResetSpec],
@@ -272,124 +413,12 @@ def run_source(
     log: Callable[[str], None] = lambda s: None,
 ) -> dict[str, Any]:
     """Run ``len(specs)`` episodes of one action source in batches; returns its report section."""
-    from sagrasp_jax.reference.pybullet_env import EPISODE_KEYS
-
-    n_total, batch = len(specs), jax_side.batch
-    size = jax_side.env.observation_size
-    traj, single = Errors(size), Errors(size)
-    reset_obs_err = 0.0
-    agree_count = 0
-    disagreements: list[dict[str, Any]] = []
-    own = {side: {"success": [], "collision": [], "timeout": [], "steps": [], "return": []} for side in ("jax", "pybullet")}
-    episode_err: dict[str, float] = {}
-    single_flag_agree = [0, 0]
-    pb_time, pb_steps, jax_time, jax_calls = 0.0, 0, 0.0, 0
-    for start in range(0, n_total, batch):
-        ids = np.arange(start, min(start + batch, n_total))
-        n = len(ids)
-        state, jout = jax_side.reset([specs[i] for i in ids], progress[ids], seed + start)
-        j_obs = jout["obs"][:n]
-        p_obs = np.zeros((n, size))
-        for k, i in enumerate(ids):
-            p_obs[k], _ = pb_envs[k].reset(options={"reset_spec": specs[i], "progress": float(progress[i])})
-            if probes is not None:
-                probes[k].reset(options={"reset_spec": specs[i], "progress": float(progress[i])})
-        reset_obs_err = max(reset_obs_err, float(np.abs(j_obs - p_obs).max()))
-        comparing = np.ones(n, bool)
-        j_alive, p_alive = np.ones(n, bool), np.ones(n, bool)
-        agree = np.ones(n, bool)
-        for t in range(max_steps):
-            if not (j_alive.any() or p_alive.any()):
-                break
-            a_j = source.fn(j_obs, t, ids)
-            a_p = a_j if source.open_loop else source.fn(p_obs, t, ids)
-            prev = jout
-            t0 = time.perf_counter()
-            state, jout = jax_side.step(state, a_j)
-            jax_time += time.perf_counter() - t0
-            jax_calls += 1
-            j_obs = jout["obs"][:n]
-            for k in range(n):
-                was_alive = bool(j_alive[k])
-                j_row = {key: float(jout[key][k]) for key in REWARD_KEYS}
-                j_flags = _flags_of(jout["done"][k], jout["success"][k], jout["collision"][k], jout["timeout"][k])
-                if p_alive[k]:
-                    t0 = time.perf_counter()
-                    obs, rew, term, _, info = pb_envs[k].step(a_p[k])
-                    pb_time += time.perf_counter() - t0
-                    pb_steps += 1
-                    p_obs[k] = obs
-                    p_row = {"reward": float(rew), "r_distance": info["r_distance"], "r_success": info["r_success"], "r_obstacle": info["r_obstacle"]}
-                    p_flags = _flags_of(term, info["success"], info["collision"], info["timeout"])
-                    if comparing[k]:
-                        ok = _compare_step(traj, j_obs[k], j_row, obs, p_row, j_flags, p_flags)
-                        if not ok:
-                            agree[k] = False
-                            if len(disagreements) < MAX_LISTED_DISAGREEMENTS:
-                                disagreements.append({"episode": int(ids[k]), "step": t + 1, "jax": j_flags, "pybullet": p_flags,
-                                                      "gripper_gap": float(np.linalg.norm(j_obs[k, 6:9] - obs[6:9]))})
-                        elif j_flags["done"]:
-                            for key in EPISODE_KEYS:
-                                diff = abs(float(jout["episode"][key][k]) - float(info["episode"][key]))
-                                episode_err[key] = max(episode_err.get(key, 0.0), diff)
-                        if j_flags["done"] or p_flags["done"]:
-                            comparing[k] = False
-                    if term:
-                        p_alive[k] = False
-                        for key in own["pybullet"]:
-                            own["pybullet"][key].append(float(info["episode"][key]))
-                if j_alive[k] and j_flags["done"]:
-                    j_alive[k] = False
-                    for key in own["jax"]:
-                        own["jax"][key].append(float(jout["episode"][key][k]))
-                # Forced single step: the PyBullet probe is put into the JAX state before this step.
-                if probes is not None and was_alive:
-                    probe = probes[k]
-                    probe.force_state(prev["q"][k], prev["q_target"][k], prev["qd"][k], steps=int(prev["steps"][k]),
-                                      d_prev=float(prev["d_prev"][k]), clean=bool(prev["clean"][k]),
-                                      obstacle_dist_prev=float(prev["obstacle_dist_prev"][k]))
-                    s_obs, s_rew, s_term, _, s_info = probe.step(a_j[k])
-                    s_row = {"reward": float(s_rew), "r_distance": s_info["r_distance"], "r_success": s_info["r_success"],
-                             "r_obstacle": s_info["r_obstacle"]}
-                    s_flags = _flags_of(s_term, s_info["success"], s_info["collision"], s_info["timeout"])
-                    single_flag_agree[0] += int(_compare_step(single, j_obs[k], j_row, s_obs, s_row, j_flags, s_flags))
-                    single_flag_agree[1] += 1
-        agree_count += int(agree.sum())
-        log(f"  {source.name}: {min(start + batch, n_total)}/{n_total} episodes")
-
-    def rates(side: str) -> dict[str, float]:
-        d = own[side]
-        succ = np.asarray(d["success"])
-        steps = np.asarray(d["steps"])
-        return {
-            "episodes": len(succ),
-            "success_rate": float(succ.mean()) if len(succ) else math.nan,
-            "collision_rate": float(np.mean(d["collision"])) if len(succ) else math.nan,
-            "timeout_rate": float(np.mean(d["timeout"])) if len(succ) else math.nan,
-            "mean_steps_to_success": float(steps[succ > 0.5].mean()) if (succ > 0.5).any() else math.nan,
-            "mean_return": float(np.mean(d["return"])) if len(succ) else math.nan,
-        }
-
-    section: dict[str, Any] = {
-        "episodes": n_total,
-        "steps_compared": len(traj.values.get("gripper_centre", [])),
-        "reset_obs_max_error": reset_obs_err,
-        "trajectory": traj.summary(),
-        "episode_metrics_max_error": episode_err,
-        "flag_agreement": agree_count / max(n_total, 1),
-        "flag_disagreements": disagreements,
-        "jax": rates("jax"),
-        "pybullet": rates("pybullet"),
-        "timing": {
-            "pybullet_env_steps": pb_steps,
-            "pybullet_env_steps_per_s": pb_steps / pb_time if pb_time > 0 else math.nan,
-            "jax_batch_step_ms": 1000 * jax_time / max(jax_calls, 1),
-        },
-    }
-    if probes is not None:
-        section["single_step"] = single.summary()
-        section["single_step"]["flag_agreement_steps"] = single_flag_agree[0] / max(single_flag_agree[1], 1)
-    return section
+    run = _SourceRun(source, jax_side, pb_envs, probes, max_steps, seed)
+    n_total = len(specs)
+    for start in range(0, n_total, jax_side.batch):
+        run.run_batch(specs, progress, np.arange(start, min(start + jax_side.batch, n_total)))
+        log(f"  {source.name}: {min(start + jax_side.batch, n_total)}/{n_total} episodes")
+    return run.section(n_total)
 
 
 def _checks(report: dict[str, Any], tol: Tolerances) -> list[dict[str, Any]]:

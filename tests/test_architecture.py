@@ -161,6 +161,13 @@ def test_jax_free_modules_stay_jax_free(graph):
     assert bad == []
 
 
+def test_the_exact_geometry_oracle_is_reference_only(graph):
+    """reference.exact_geometry holds the exact pair distances the tests check the per-step rules
+    against; production code uses geometry's few queries and never imports the oracle."""
+    users = sorted(m for m, (deps, _) in graph.items() if "reference.exact_geometry" in deps)
+    assert users == []
+
+
 def test_the_checker_sees_lazy_and_relative_imports(tmp_path):
     """The graph includes imports inside functions (the kind issue 17 found evaluate <-> physical by)."""
     file = tmp_path / "mod.py"

@@ -15,30 +15,15 @@ squeezed between the pads (the only robot parts with contacts), is carried by fr
 
 from __future__ import annotations
 
-import contextlib
-import os
-import sys
 import time
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 
-
-@contextlib.contextmanager
-def _stdout_to_stderr() -> Iterator[None]:
-    """PyBullet's C code prints banners and URDF warnings on fd 1; keep stdout for reports (--json)."""
-    sys.stdout.flush()
-    saved = os.dup(1)
-    try:
-        os.dup2(2, 1)
-        yield
-    finally:
-        os.dup2(saved, 1)
-        os.close(saved)
-
+from sagrasp_jax.fileio import stdout_fd_to
 
 try:
-    with _stdout_to_stderr():
+    with stdout_fd_to("stderr"):  # PyBullet's C code prints banners on fd 1; keep stdout for reports (--json)
         import pybullet as pb
 except ImportError as exc:  # pragma: no cover - exercised only without the extra
     raise ImportError("the PyBullet twin needs pybullet: pip install -e .[reference]") from exc
@@ -76,7 +61,7 @@ class PyBulletTwin:
         self.control_dt = float(self.cfg.control.control_dt)
         self.substeps = max(1, round(self.control_dt * PHYSICS_HZ))
         self.carrying = False  # True once the gripper has closed: commands go through the motors
-        with _stdout_to_stderr():
+        with stdout_fd_to("stderr"):
             self._client = pb.connect(pb.GUI if gui else pb.DIRECT)
             if self._client < 0:
                 raise RuntimeError("could not connect to a PyBullet physics server" + (" (no display for --gui?)" if gui else ""))

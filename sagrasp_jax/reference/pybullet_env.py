@@ -36,12 +36,11 @@ queries (``pybullet_distance``) can cross-check those rules.  A timeout is ``ter
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import math
 import os
 import sys
-from typing import Any, Iterator, SupportsFloat
+from typing import Any, SupportsFloat
 
 import numpy as np
 
@@ -54,13 +53,12 @@ except ImportError as exc:  # pragma: no cover - exercised only without the extr
         "the PyBullet reference env needs pybullet and gymnasium: pip install -e .[reference]"
     ) from exc
 
-from sagrasp_jax import collision, config, control, episode, observation, robot, sampling, shapes
+from sagrasp_jax import collision, config, control, episode, fileio, observation, robot, sampling, shapes
 from sagrasp_jax.config import EnvConfig
 from sagrasp_jax.robot import BOX, CAPSULE, CYLINDER, SPHERE, Kinematics
 from sagrasp_jax.scene import SCENE
 
 ENV_ID = "SAGrasp-PyBullet-v0"
-ACTION_SIZE = control.ACTION_SIZE
 EPISODE_KEYS = episode.EPISODE_KEYS
 
 # POSITION_CONTROL gains of the dynamic mode, per arm joint: positionGain kp and velocityGain kd of
@@ -106,20 +104,6 @@ def quaternions_to_rotations(quats: np.ndarray) -> np.ndarray:
         np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
     ]
     return np.stack(rows, -2)
-
-
-@contextlib.contextmanager
-def _quiet_stdout() -> Iterator[None]:
-    """Silence C-level stdout (PyBullet's importer warnings) for the duration of the block."""
-    sys.stdout.flush()
-    saved = os.dup(1)
-    try:
-        with open(os.devnull, "w") as devnull:
-            os.dup2(devnull.fileno(), 1)
-            yield
-    finally:
-        os.dup2(saved, 1)
-        os.close(saved)
 
 
 def _shape_kwargs(kind: int, size: Any, visual: bool) -> dict[str, Any]:
@@ -200,7 +184,7 @@ class PyBulletGraspEnv(gym.Env):
         self.gravity_compensation = gravity_compensation
         self.progress = 0.0
 
-        self.action_space = spaces.Box(-1.0, 1.0, (ACTION_SIZE,), dtype=np.float32)
+        self.action_space = spaces.Box(-1.0, 1.0, (control.ACTION_SIZE,), dtype=np.float32)
         self.obs_layout = observation.layout_of(cfg)
         self.observation_space = spaces.Box(-np.inf, np.inf, (len(self.obs_layout),), dtype=np.float64)
 
@@ -261,7 +245,7 @@ class PyBulletGraspEnv(gym.Env):
         self.target_body, _ = self._static_body(BOX, half, (0.0, 0.0, -1.0), np.eye(3), SCENE.target_rgba)
 
         flags = pb.URDF_USE_INERTIA_FROM_FILE  # else PyBullet recomputes inertias from the collision shapes
-        with _quiet_stdout():  # PyBullet prints a warning for each link without <inertial>, fixed below
+        with fileio.stdout_fd_to("devnull"):  # PyBullet prints a warning for each link without <inertial>, fixed below
             self.robot_body = self._pb(pb.loadURDF, self.robot.urdf_path, basePosition=[0, 0, 0], useFixedBase=True, flags=flags)
         joints, links = {}, {}
         efforts = {}
@@ -400,7 +384,7 @@ class PyBulletGraspEnv(gym.Env):
         if self._spec is None or self._done:
             raise RuntimeError("call reset() before step() (the episode has ended)")
         cfg, spec = self.cfg, self._spec
-        action = np.asarray(action, dtype=np.float64).reshape(ACTION_SIZE)
+        action = np.asarray(action, dtype=np.float64).reshape(control.ACTION_SIZE)
         ctl = control.control_step(np, self.robot, cfg.control, self._q_target, self._q, spec.target_pos, action)
         self._q_target = np.asarray(ctl.q_target, dtype=float)
         self._apply(self._q_target)
