@@ -656,7 +656,8 @@ def validate(cfg: Config) -> None:
         value = get_key(cfg, key)
         for v in value if isinstance(value, tuple) else (value,):
             if v not in choices:
-                raise ConfigError(f"{key}={value!r}: {v!r} is not one of {', '.join(choices)}")
+                entry = f" (entry {v!r})" if isinstance(value, tuple) else ""
+                raise ConfigError(f"{key}={value!r}{entry} is not one of {', '.join(choices)}")
     # What the ranges above cannot say: rules across keys and lengths (single values are in _RANGES)
     kinds = cfg.env.sampling.obstacle_kinds
     checks = [

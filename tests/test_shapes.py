@@ -167,7 +167,7 @@ def capsule_resets():
 
 
 def test_config_selects_the_kinds():
-    with pytest.raises(config.ConfigError, match="'cone' is not one of sphere, cylinder, box, capsule"):
+    with pytest.raises(config.ConfigError, match="'cone'\\) is not one of sphere, cylinder, box, capsule"):
         _cfg(["env.sampling.obstacle_kinds=sphere,cone"])
     with pytest.raises(config.ConfigError, match="env.sampling.obstacle_kinds"):
         _cfg(["env.sampling.obstacle_kinds=box,box"])
