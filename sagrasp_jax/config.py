@@ -170,6 +170,10 @@ class PPOConfig:
     normalize_advantages: bool = True
     obs_std_floor: float = 0.01
     obs_clip: float = 5.0
+    # Asymmetric actor-critic: the value network also reads privileged inputs (training progress, time
+    # left, every obstacle's kind, size and position; observation.privileged).  The policy, and so the
+    # exported file, never needs them.
+    privileged_critic: bool = False
     network: NetworkConfig = field(default_factory=NetworkConfig)
 
 
