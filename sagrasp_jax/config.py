@@ -184,6 +184,10 @@ class PPOConfig:
     normalize_advantages: bool = True  # advantages to zero mean, unit std per minibatch
     obs_std_floor: float = 0.01  # the observation normaliser's std is floored at this (SPEC §2)
     obs_clip: float = 5.0  # normalised observations are clipped to ±this
+    # Asymmetric actor-critic: the value network also reads privileged inputs (training progress, time
+    # left, every obstacle's kind, size and position; observation.privileged).  The policy, and so the
+    # exported file, never needs them.
+    privileged_critic: bool = False
     network: NetworkConfig = field(default_factory=NetworkConfig)
 
 

@@ -37,7 +37,7 @@ class GraspEnv:
 
     action_size = control.ACTION_SIZE
 
-    def __init__(self, cfg: EnvConfig):
+    def __init__(self, cfg: EnvConfig, privileged: bool = False):
         if cfg.control.mode not in ("kinematic", "dynamic"):
             raise ValueError(f"env.control.mode must be 'kinematic' or 'dynamic', got {cfg.control.mode!r}")
         self.cfg = cfg
@@ -45,6 +45,9 @@ class GraspEnv:
         self.observation_size = len(self.obs_layout)
         # entries the trainer's running normaliser leaves at mean 0, std 1 (hand-scaled)
         self.hand_scaled_mask = observation.hand_scaled_mask(self.obs_layout)
+        # privileged critic inputs in info["privileged"] (ppo.privileged_critic); the policy never sees them
+        self.privileged = privileged
+        self.privileged_size = len(observation.privileged_layout(cfg)) if privileged else 0
         self.robot = robot.load_robot()
         self.n_uniforms = sampling.uniforms_needed(cfg.sampling)
         self._mjx_model = None
@@ -116,6 +119,9 @@ class GraspEnv:
             "tracker": episode.start(jnp, d0, col, blocking),
             "episode": {k: zero for k in EPISODE_KEYS},
         }
+        if self.privileged:
+            info["privileged"] = observation.privileged(jnp, self.cfg, spec, col, kin.gripper_centre, info["steps"], zero,
+                                                        blocking)
         metrics = {k: zero for k in ("r_distance", "r_success", "r_obstacle", "distance", "tilt", "slowed", "finetuned")}
         return State(
             pipeline_state=self._initial_pipeline(q0),
@@ -149,6 +155,9 @@ class GraspEnv:
         new_info = dict(info)
         new_info.update(rng=rng, steps=step.tracker.steps, q_target=ctl.q_target, tracker=step.tracker,
                         episode=step.episode)
+        if self.privileged:
+            new_info["privileged"] = observation.privileged(jnp, cfg, spec, col, kin.gripper_centre, step.tracker.steps,
+                                                            info["progress"], step.tracker.blocking)
         metrics = {
             "r_distance": step.terms.r_distance,
             "r_success": step.terms.r_success,

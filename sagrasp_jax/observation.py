@@ -25,8 +25,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from sagrasp_jax import collision
-from sagrasp_jax.config import EnvConfig, TaskConfig
+from sagrasp_jax import collision, shapes
+from sagrasp_jax.config import Config, EnvConfig, TaskConfig
 from sagrasp_jax.robot import Kinematics, RobotModel, forward_kinematics, tilt
 
 _ROBOT_ENTRIES: tuple[str, ...] = (
@@ -132,6 +132,41 @@ def blind(xp: Any, cfg: EnvConfig, obs: Any) -> Any:
     mask = np.array([n in absent for n in names])
     values = np.array([absent.get(n, 0.0) for n in names])
     return xp.where(xp.asarray(mask), xp.asarray(values, dtype=obs.dtype), obs)
+
+
+_PRIVILEGED_SIZE_AND_PLACE = ("size_x", "size_y", "size_z", "dx", "dy", "dz", "distance")
+PRIVILEGED_SCALE = 0.1  # m: obstacle sizes in the privileged critic inputs are divided by this
+
+
+def privileged_layout(cfg: EnvConfig) -> tuple[str, ...]:
+    """Names of the privileged critic inputs (training only; the policy never sees them)."""
+    return ("progress", "time_fraction", "blocking") + tuple(
+        f"obstacle{k}_{e}" for k in range(cfg.sampling.max_obstacles)
+        for e in ("present", *cfg.sampling.obstacle_kinds, *_PRIVILEGED_SIZE_AND_PLACE))  # a one-hot of the env's kinds
+
+
+def critic_extra_size(cfg: Config) -> int:
+    """How many privileged inputs the value network reads (0 without ``ppo.privileged_critic``)."""
+    return len(privileged_layout(cfg.env)) if cfg.ppo.privileged_critic else 0
+
+
+def privileged(xp: Any, cfg: EnvConfig, reset: Any, col: collision.CollisionResult, gripper_centre: Any, steps: Any,
+               progress: Any, blocking: Any) -> Any:
+    """What the critic may know beyond the observation: training progress p (the reward weights
+    depend on it), the time left before the 200-step timeout, whether the scene blocks the straight
+    path, and every obstacle's kind, size, centre (from the gripper) and distance.  All hand-scaled."""
+    dtype = gripper_centre.dtype
+    present = xp.asarray(reset.obstacle_active).astype(dtype)
+    kind = xp.asarray(reset.obstacle_kind)
+    onehot = xp.stack([(kind == k).astype(dtype) for k in shapes.kind_ids(cfg.sampling.obstacle_kinds)], axis=-1)
+    size = xp.asarray(reset.obstacle_size, dtype=dtype) / PRIVILEGED_SCALE
+    clip = cfg.task.obs_vector_clip
+    centre = xp.clip((xp.asarray(reset.obstacle_pos, dtype=dtype) - gripper_centre) / cfg.task.obs_vector_scale, -clip, clip)
+    dist = xp.clip(col.obstacle_dist / cfg.task.obs_vector_scale, -1.0, clip)
+    slots = xp.concatenate([present[:, None], onehot, size, centre, dist[:, None]], axis=-1) * present[:, None]
+    head = xp.stack([xp.asarray(progress, dtype=dtype), xp.asarray(steps, dtype=dtype) / cfg.task.max_steps,
+                     xp.asarray(blocking, dtype=dtype)])
+    return xp.concatenate([head, xp.reshape(slots, (-1,))])
 
 
 def observe(xp: Any, robot: RobotModel, cfg: EnvConfig, q: Any, reset: Any, kin: Kinematics | None = None) -> Observed:

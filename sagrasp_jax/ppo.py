@@ -24,6 +24,7 @@ import numpy as np
 import optax
 from brax.envs.base import State
 from brax.training.acme import running_statistics
+from brax.training import networks as brax_networks
 from brax.training.agents.ppo import networks as ppo_networks
 from flax import linen
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
@@ -67,6 +68,7 @@ class Transition(NamedTuple):
     """One env step of the rollout; leading dims [T, B] after the scan."""
 
     obs: jax.Array
+    critic_extra: jax.Array  # privileged critic inputs (env info "privileged"); width 0 without a privileged critic
     raw_action: jax.Array  # pre-tanh sample: the log-prob is taken of this
     log_prob: jax.Array
     reward: jax.Array
@@ -77,6 +79,7 @@ class Batch(NamedTuple):
     """Flattened training data for the minibatch epochs."""
 
     obs: jax.Array
+    critic_extra: jax.Array
     raw_action: jax.Array
     log_prob: jax.Array
     advantage: jax.Array
@@ -94,12 +97,17 @@ class EvalResult(NamedTuple):
 
 # --------------------------------------------------------------------------- construction
 
-def make_networks(net: NetworkConfig, obs_size: int, action_size: int, obs_clip: float) -> PPONetworks:
-    """brax PPO networks whose preprocessor normalises with the running stats and clips (SPEC §2)."""
+def make_networks(net: NetworkConfig, obs_size: int, action_size: int, obs_clip: float,
+                  critic_extra: int = 0) -> PPONetworks:
+    """brax PPO networks whose preprocessor normalises with the running stats and clips (SPEC §2).
+
+    With ``critic_extra`` > 0 the value network also reads that many privileged inputs appended
+    to the observation (already scaled by the env, not normalised): an asymmetric actor-critic
+    whose policy — all that is exported — never needs them."""
     if net.activation not in _ACTIVATIONS:
         raise ValueError(f"activation {net.activation!r} not one of {', '.join(_ACTIVATIONS)}")
     preprocess = functools.partial(_normalise, obs_clip=obs_clip)
-    return ppo_networks.make_ppo_networks(
+    nets = ppo_networks.make_ppo_networks(
         obs_size,
         action_size,
         preprocess_observations_fn=preprocess,
@@ -107,10 +115,37 @@ def make_networks(net: NetworkConfig, obs_size: int, action_size: int, obs_clip:
         value_hidden_layer_sizes=tuple(net.value_hidden),
         activation=_ACTIVATIONS[net.activation],
     )
+    if not critic_extra:
+        return nets
+    value = brax_networks.make_value_network(
+        obs_size + critic_extra,
+        preprocess_observations_fn=functools.partial(_normalise_head, obs_clip=obs_clip, obs_size=obs_size),
+        hidden_layer_sizes=tuple(net.value_hidden),
+        activation=_ACTIVATIONS[net.activation],
+        kernel_init=jax.nn.initializers.lecun_uniform(),
+    )
+    return nets.replace(value_network=value)
 
 
 def _normalise(obs: jax.Array, normaliser: Normaliser, obs_clip: float) -> jax.Array:
     return running_statistics.normalize(obs, normaliser, max_abs_value=obs_clip)
+
+
+def _normalise_head(x: jax.Array, normaliser: Normaliser, obs_clip: float, obs_size: int) -> jax.Array:
+    """Normalise the observation part of a critic input; the privileged tail passes unchanged."""
+    return jnp.concatenate([_normalise(x[..., :obs_size], normaliser, obs_clip), x[..., obs_size:]], axis=-1)
+
+
+def critic_input(obs: jax.Array, critic_extra: jax.Array) -> jax.Array:
+    """What the value network reads: the observation and the privileged inputs (possibly none)."""
+    return jnp.concatenate([obs, critic_extra.astype(obs.dtype)], axis=-1)
+
+
+def critic_extra_of(state: State, width: int) -> jax.Array:
+    """The env's privileged critic inputs (``info["privileged"]``), or a width-0 array."""
+    if width:
+        return state.info["privileged"]
+    return jnp.zeros(state.obs.shape[:-1] + (0,), state.obs.dtype)
 
 
 def make_optimizer(cfg: PPOConfig, learning_rate: float) -> optax.GradientTransformation:
@@ -228,7 +263,7 @@ def ppo_loss(params: Params, normaliser: Normaliser, batch: Batch, key: jax.Arra
         adv = (adv - adv.mean()) / (adv.std() + 1e-8)
     clipped = jnp.clip(ratio, 1.0 - cfg.clip_eps, 1.0 + cfg.clip_eps)
     policy_loss = -jnp.mean(jnp.minimum(ratio * adv, clipped * adv))
-    value = networks.value_network.apply(normaliser, params.value, batch.obs)
+    value = networks.value_network.apply(normaliser, params.value, critic_input(batch.obs, batch.critic_extra))
     value_loss = jnp.mean(jnp.square(batch.target - value))
     entropy = jnp.mean(dist.entropy(logits, key))
     total = policy_loss + cfg.value_coef * value_loss - cfg.entropy_coef * entropy
@@ -257,7 +292,7 @@ def set_progress(env_state: State, progress: jax.Array) -> State:
 
 
 def rollout(env: Env, networks: PPONetworks, params: Params, normaliser: Normaliser, env_state: State,
-            key: jax.Array, unroll_length: int) -> tuple[State, Transition, dict[str, jax.Array]]:
+            key: jax.Array, unroll_length: int, critic_extra: int = 0) -> tuple[State, Transition, dict[str, jax.Array]]:
     """Run the vmapped, auto-resetting env for ``unroll_length`` steps.
 
     Returns the final env state, [T, B] transitions, and [T, B] episode metrics (env's
@@ -270,7 +305,8 @@ def rollout(env: Env, networks: PPONetworks, params: Params, normaliser: Normali
     def one_step(state: State, k: jax.Array) -> tuple[State, tuple[Transition, dict[str, jax.Array]]]:
         action, raw, log_prob = sample_action(networks, params, normaliser, state.obs, k)
         nxt = step_fn(state, action)
-        trans = Transition(obs=state.obs, raw_action=raw, log_prob=log_prob, reward=nxt.reward, done=nxt.done)
+        trans = Transition(obs=state.obs, critic_extra=critic_extra_of(state, critic_extra), raw_action=raw,
+                           log_prob=log_prob, reward=nxt.reward, done=nxt.done)
         episode = dict(nxt.info["episode"], done=nxt.done)
         return nxt, (trans, episode)
 
@@ -279,13 +315,16 @@ def rollout(env: Env, networks: PPONetworks, params: Params, normaliser: Normali
 
 
 def make_batch(networks: PPONetworks, params: Params, normaliser: Normaliser, data: Transition,
-               final_obs: jax.Array, cfg: PPOConfig) -> Batch:
+               final_obs: jax.Array, cfg: PPOConfig, final_extra: jax.Array | None = None) -> Batch:
     """GAE with the pre-update value net, then flatten [T, B] → [T·B]."""
-    values = networks.value_network.apply(normaliser, params.value, data.obs)
-    bootstrap = networks.value_network.apply(normaliser, params.value, final_obs)
+    if final_extra is None:
+        final_extra = jnp.zeros(final_obs.shape[:-1] + (0,), final_obs.dtype)
+    values = networks.value_network.apply(normaliser, params.value, critic_input(data.obs, data.critic_extra))
+    bootstrap = networks.value_network.apply(normaliser, params.value, critic_input(final_obs, final_extra))
     advantages, targets = compute_gae(data.reward, values, data.done, bootstrap, cfg.gamma, cfg.gae_lambda)
-    flat = lambda x: x.reshape((-1,) + x.shape[2:])
-    return Batch(obs=flat(data.obs), raw_action=flat(data.raw_action), log_prob=flat(data.log_prob),
+    flat = lambda x: x.reshape((x.shape[0] * x.shape[1],) + x.shape[2:])  # (explicit: width-0 arrays too)
+    return Batch(obs=flat(data.obs), critic_extra=flat(data.critic_extra), raw_action=flat(data.raw_action),
+                 log_prob=flat(data.log_prob),
                  advantage=flat(advantages), target=flat(targets))
 
 
@@ -335,7 +374,8 @@ def update_normaliser(normaliser: Normaliser, obs: jax.Array, cfg: PPOConfig,
 
 def iteration(train_state: TrainingState, env_state: State, key: jax.Array, progress: jax.Array, *,
               env: Env, networks: PPONetworks, optimizer: optax.GradientTransformation,
-              cfg: PPOConfig, hand_scaled: np.ndarray | None = None) -> tuple[TrainingState, State, dict[str, Any]]:
+              cfg: PPOConfig, hand_scaled: np.ndarray | None = None,
+              critic_extra: int = 0) -> tuple[TrainingState, State, dict[str, Any]]:
     """One PPO iteration; if the loss or new params are non-finite the old train state is kept.
 
     ``metrics["finite"]`` tells the host to count the rollback (the envs keep running).
@@ -344,10 +384,10 @@ def iteration(train_state: TrainingState, env_state: State, key: jax.Array, prog
     env_state = set_progress(env_state, progress)
     params = train_state.params
     env_state, data, episodes = rollout(env, networks, params, train_state.normaliser, env_state, k_roll,
-                                        cfg.unroll_length)
+                                        cfg.unroll_length, critic_extra)
     entropy = mean_policy_entropy(networks, params, train_state.normaliser, data.obs)
     normaliser = update_normaliser(train_state.normaliser, data.obs, cfg, hand_scaled)
-    batch = make_batch(networks, params, normaliser, data, env_state.obs, cfg)
+    batch = make_batch(networks, params, normaliser, data, env_state.obs, cfg, critic_extra_of(env_state, critic_extra))
     new_params, opt_state, sgd_metrics = sgd_epochs(params, train_state.opt_state, normaliser, batch, k_sgd,
                                                     networks, optimizer, cfg)
     new_state = TrainingState(params=new_params, opt_state=opt_state, normaliser=normaliser)
@@ -359,13 +399,14 @@ def iteration(train_state: TrainingState, env_state: State, key: jax.Array, prog
 
 
 def make_iteration(env: Env, networks: PPONetworks, optimizer: optax.GradientTransformation, cfg: PPOConfig,
-                   mesh: Mesh, hand_scaled: np.ndarray | None = None) -> Callable[..., tuple[TrainingState, State, dict[str, Any]]]:
+                   mesh: Mesh, hand_scaled: np.ndarray | None = None,
+                   critic_extra: int = 0) -> Callable[..., tuple[TrainingState, State, dict[str, Any]]]:
     """Jit ``iteration`` with env-batch sharding on the env state and replicated params."""
     repl, shard = replicated(mesh), batch_sharding(mesh)
 
     def fn(train_state: TrainingState, env_state: State, key: jax.Array, progress: jax.Array):
         ts, es, metrics = iteration(train_state, env_state, key, progress, env=env, networks=networks,
-                                    optimizer=optimizer, cfg=cfg, hand_scaled=hand_scaled)
+                                    optimizer=optimizer, cfg=cfg, hand_scaled=hand_scaled, critic_extra=critic_extra)
         ts = jax.lax.with_sharding_constraint(ts, repl)
         es = jax.lax.with_sharding_constraint(es, shard)
         return ts, es, metrics

@@ -298,7 +298,8 @@ def checkpoint_counters(ckpt: checkpoint.Checkpoint) -> dict[str, Any]:
 def restore_policy(cfg: Config, ckpt: checkpoint.Checkpoint, obs_size: int,
                    action_size: int) -> tuple[ppo.Params, ppo.Normaliser]:
     """Params and normaliser from a loaded checkpoint (structure, shapes and dtypes checked)."""
-    networks = ppo.make_networks(cfg.ppo.network, obs_size, action_size, cfg.ppo.obs_clip)
+    networks = ppo.make_networks(cfg.ppo.network, obs_size, action_size, cfg.ppo.obs_clip,
+                                 observation.critic_extra_size(cfg))
     optimizer = ppo.make_optimizer(cfg.ppo, cfg.sa.lr0)
     template = ppo.init_training_state(jax.random.PRNGKey(0), networks, optimizer, obs_size)
     ts = checkpoint.restore_tree(template, ckpt.trees.get("train_state", {}), "train_state", ckpt.path)

@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sagrasp_jax import checkpoint, ppo, run_dir, sa_schedule
+from sagrasp_jax import checkpoint, observation, ppo, run_dir, sa_schedule
 from sagrasp_jax.checkpoint import CheckpointError
 from sagrasp_jax.config import (
     PRESETS, SEED_RANGE, Config, ConfigError, apply_overrides, check_range, get_config, training_env_config, validate,
@@ -59,7 +59,7 @@ def default_envs(cfg: Config) -> tuple[ppo.Env, ppo.Env]:
     from sagrasp_jax.wrappers import AutoReset
 
     # training episodes follow the training mix (train.obstacle_prob / blocking_prob), evaluation the SPEC's
-    return AutoReset(GraspEnv(training_env_config(cfg))), GraspEnv(cfg.env)
+    return AutoReset(GraspEnv(training_env_config(cfg), privileged=cfg.ppo.privileged_critic)), GraspEnv(cfg.env)
 
 
 def build_config(preset: str = "cpu-quick", algo: str = "sa-ppo", seed: int | None = None,
@@ -123,11 +123,13 @@ class Trainer:
         self.train_env, self.eval_env = (env_factory or default_envs)(cfg)
         self.obs_size, self.action_size = self.train_env.observation_size, self.train_env.action_size
         self.schedule = make_schedule(cfg)
-        self.networks = ppo.make_networks(cfg.ppo.network, self.obs_size, self.action_size, cfg.ppo.obs_clip)
+        self.critic_extra = observation.critic_extra_size(cfg)  # privileged critic inputs (0: none)
+        self.networks = ppo.make_networks(cfg.ppo.network, self.obs_size, self.action_size, cfg.ppo.obs_clip,
+                                          self.critic_extra)
         self.optimizer = ppo.make_optimizer(cfg.ppo, cfg.sa.lr0 if cfg.sa.enabled else cfg.ppo.learning_rate)
         self.hand_scaled = getattr(self.eval_env, "hand_scaled_mask", None)  # normaliser leaves these entries alone
         self._iteration = ppo.make_iteration(self.train_env, self.networks, self.optimizer, cfg.ppo, self.mesh,
-                                             self.hand_scaled)
+                                             self.hand_scaled, self.critic_extra)
         self._evaluate = ppo.make_evaluator(self.networks, self.eval_env, cfg.env.task.max_steps)
         keys = ppo.eval_keys(cfg.sa.eval_seed, cfg.sa.eval_episodes)
         self.eval_keys = (ppo.shard_batch(keys, self.mesh) if cfg.sa.eval_episodes % self.mesh.size == 0

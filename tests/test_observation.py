@@ -168,3 +168,71 @@ def test_normaliser_leaves_hand_scaled_entries_alone():
     np.testing.assert_array_equal(mean[mask], 0.0)
     np.testing.assert_array_equal(std[mask], 1.0)
     assert np.all(np.abs(mean[~mask] - 3.0) < 0.3) and np.all(np.abs(std[~mask] - 2.0) < 0.3)
+
+
+def test_privileged_critic_inputs():
+    """What only the critic sees: progress, time fraction, blocking, and per slot kind/size/centre/distance."""
+    cfg = env_cfg("relative")
+    box = (robot.BOX, (0.0, -0.30, 0.20), (0.04, 0.05, 0.06))
+    scene = spec([box])
+    kin = robot.forward_kinematics(np, ROBOT, HOME)
+    col = collision.check(np, ROBOT, kin, scene, cfg)
+    names = observation.privileged_layout(cfg)
+    extra = dict(zip(names, observation.privileged(np, cfg, scene, col, kin.gripper_centre, steps=50, progress=0.25,
+                                                   blocking=True)))
+    assert len(names) == 25
+    assert (extra["progress"], extra["time_fraction"], extra["blocking"]) == (0.25, 0.25, 1.0)
+    assert (extra["obstacle0_present"], extra["obstacle0_sphere"], extra["obstacle0_cylinder"], extra["obstacle0_box"]) \
+        == (1.0, 0.0, 0.0, 1.0)
+    np.testing.assert_allclose([extra["obstacle0_size_x"], extra["obstacle0_size_y"], extra["obstacle0_size_z"]],
+                               [0.4, 0.5, 0.6])
+    np.testing.assert_allclose([extra["obstacle0_dx"], extra["obstacle0_dy"], extra["obstacle0_dz"]],
+                               [0.0, 0.0, -0.15 / 0.25], atol=1e-9)
+    assert extra["obstacle0_distance"] == pytest.approx(float(col.obstacle_dist[0]) / 0.25)
+    assert all(extra[n] == 0.0 for n in names if n.startswith("obstacle1_"))  # empty slot
+    full = config.apply_overrides(config.get_config("cpu-quick"), ["ppo.privileged_critic=true"])
+    assert observation.critic_extra_size(full) == 25
+    assert observation.critic_extra_size(config.get_config("cpu-quick")) == 0
+
+
+def test_privileged_critic_trains_and_exports_a_policy_without_it(tmp_path):
+    """The value network reads observation + privileged inputs; the policy and its export do not."""
+    import jax
+    import jax.numpy as jnp
+
+    from sagrasp_jax import ppo, runtime, train
+    from sagrasp_jax.env import GraspEnv
+
+    cfg = train.build_config("cpu-quick", overrides=["env.task.obs_layout=relative", "ppo.privileged_critic=true",
+                                                     "ppo.num_envs=8", "ppo.unroll_length=4", "ppo.num_minibatches=1",
+                                                     "ppo.num_epochs=1"])
+    env = GraspEnv(cfg.env, privileged=True)
+    state = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(0), 8))
+    assert state.info["privileged"].shape == (8, 25) and state.obs.shape == (8, 29)
+    nets = ppo.make_networks(cfg.ppo.network, 29, 6, cfg.ppo.obs_clip, critic_extra=25)
+    ts = ppo.init_training_state(jax.random.PRNGKey(1), nets, ppo.make_optimizer(cfg.ppo, 3e-4), 29)
+    assert ts.params.value["params"]["hidden_0"]["kernel"].shape[0] == 54
+    assert ts.params.policy["params"]["hidden_0"]["kernel"].shape[0] == 29
+    step = jax.jit(lambda t, s, k: ppo.iteration(t, s, k, jnp.float32(0.5), env=_Batched(env), networks=nets,
+                                                 optimizer=ppo.make_optimizer(cfg.ppo, 3e-4), cfg=cfg.ppo,
+                                                 critic_extra=25))
+    new_ts, _, metrics = step(ts, state, jax.random.PRNGKey(2))
+    assert bool(metrics["finite"]) and float(metrics["value_loss"]) > 0
+    path = runtime.save_policy_npz(tmp_path / "p.npz", weights=[(np.asarray(l["kernel"]), np.asarray(l["bias"]))
+                                   for l in jax.device_get(new_ts.params.policy["params"]).values()],
+                                   activation="tanh", obs_mean=np.zeros(29), obs_std=np.ones(29), config=cfg,
+                                   obs_layout=observation.layout_of(cfg.env))
+    assert runtime.load_policy(path).obs_size == 29
+
+
+class _Batched:
+    """vmap a single-env GraspEnv for ppo.rollout (no auto-reset needed for one short rollout)."""
+
+    def __init__(self, env):
+        self.env, self.observation_size, self.action_size = env, env.observation_size, env.action_size
+
+    def reset(self, rng):
+        return self.env.reset(rng)
+
+    def step(self, state, action):
+        return self.env.step(state, action)

@@ -313,3 +313,20 @@ def test_capsule_in_the_pybullet_reference_env_and_the_twin():
         _, quat = pb.getBasePositionAndOrientation(twin.obstacle_bodies[0], physicsClientId=twin._client)
         np.testing.assert_allclose(quaternions_to_rotations(np.asarray(quat)), shapes.world_rotation(robot.CAPSULE, 0.9),
                                    atol=1e-6)
+
+
+def test_privileged_critic_one_hot_follows_the_kinds():
+    """The critic's kind one-hot has one entry per kind of env.sampling.obstacle_kinds (the paper's three by default)."""
+    from sagrasp_jax import observation
+
+    assert observation.privileged_layout(_cfg([]))[3:8] == (
+        "obstacle0_present", "obstacle0_sphere", "obstacle0_cylinder", "obstacle0_box", "obstacle0_size_x")
+    cfg = _cfg(ALL_KINDS)
+    names = observation.privileged_layout(cfg)
+    assert len(names) == 3 + 2 * (1 + 4 + 7)
+    q = np.array(config.HOME_Q)
+    kin = robot.forward_kinematics(np, ROBOT, q)
+    spec = _capsule_spec(q, kin.gripper_centre + np.array([0.0, 0.2, -0.1]), 0.9)
+    col = collision.check(np, ROBOT, kin, spec, cfg)
+    extra = dict(zip(names, observation.privileged(np, cfg, spec, col, kin.gripper_centre, 0, 0.0, False)))
+    assert [extra[f"obstacle0_{k}"] for k in ("sphere", "cylinder", "box", "capsule")] == [0.0, 0.0, 0.0, 1.0]
