@@ -71,13 +71,14 @@ from sagrasp_jax.geometry import (  # noqa: F401  (re-exported: the full set in 
     segment_box_distance,
     support_radius,
 )
+from sagrasp_jax.geometry import __all__ as geometry_all
 from sagrasp_jax.robot import BOX, CAPSULE, CYLINDER, SPHERE
 
 Array = Any
 Vec = tuple[Any, Any, Any]
 Mat = tuple[Vec, Vec, Vec]
 
-__all__ = [
+__all__ = geometry_all + [  # geometry's public functions, re-exported, and the oracle's own
     "SPHERE",
     "CAPSULE",
     "BOX",
@@ -85,28 +86,19 @@ __all__ = [
     "GOLDEN_ITERS",
     "CYLINDER_SIDES",
     "CYLINDER_GOLDEN_ITERS",
-    "point_sphere_distance",
-    "point_capsule_distance",
-    "point_box_distance",
-    "point_cylinder_distance",
-    "point_distance",
     "segment_segment_distance",
-    "segment_box_distance",
     "segment_cylinder_distance",
     "sphere_sphere_distance",
     "sphere_capsule_distance",
     "sphere_box_distance",
     "sphere_cylinder_distance",
     "capsule_capsule_distance",
-    "capsule_box_distance",
     "capsule_cylinder_distance",
     "box_box_distance",
     "box_cylinder_distance",
     "cylinder_cylinder_distance",
     "cylinder_error_bound",
     "pair_distance",
-    "support_radius",
-    "plane_distance",
     "distance_to_obstacle",
     "distance_matrix",
     "obstacle_distance_matrix",
