@@ -475,6 +475,11 @@ def make_first_gradients(env: Env, networks: PPONetworks, cfg: PPOConfig,
         norm = running_statistics.update(train_state.normaliser, data.obs, std_min_value=cfg.obs_std_floor,
                                          pmap_axis_name=BATCH_AXIS)
         batch = make_batch(networks, train_state.params, norm, data, es.obs, cfg)
+        # env-major rows, so that each device's rows are one slice of the global batch (its envs): the
+        # entropy estimate's noise (``_normal``) then does not depend on the device count either
+        t, b = data.reward.shape
+        batch = jax.tree_util.tree_map(lambda x: x.reshape((t, b) + x.shape[1:]).swapaxes(0, 1).reshape(x.shape),
+                                       batch)
         (loss, _), grads = loss_and_grad(train_state.params, norm, batch, k_loss, networks, cfg, BATCH_AXIS)
         return loss, grads
 

@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sagrasp_jax import checkpoint, ppo, runtime, sa_schedule
+from sagrasp_jax import checkpoint, distributed, ppo, runtime, sa_schedule
 from sagrasp_jax.checkpoint import CheckpointError
 from sagrasp_jax.config import (
     PRESETS, Config, ConfigError, apply_overrides, config_from_dict, config_to_dict, get_config, validate,
@@ -527,6 +527,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--stop-after-cycles", type=int, default=None,
                    help="checkpoint and stop after this many SA cycles (simulates a preemption)")
     p.add_argument("--no-progress", action="store_true", help="no live progress bar")
+    dist = p.add_argument_group("multi-process training (jax.distributed, one process per host; see sagrasp_jax.distributed)")
+    dist.add_argument("--coordinator", default=None, metavar="HOST:PORT", help="address of process 0")
+    dist.add_argument("--num-processes", type=int, default=1)
+    dist.add_argument("--process-id", type=int, default=0)
     return p
 
 
@@ -568,9 +572,15 @@ def run(cfg: Config, out: str, *, resume: bool = False, env_factory: EnvFactory 
         progress: bool = True, stop_after_cycles: int | None = None) -> Trainer:
     """Library entry point: validate, prepare the folder, train; returns the finished trainer."""
     validate(cfg)
-    check_run_dir(out, resume)
+    try:
+        check_run_dir(out, resume)
+    except (CheckpointError, FileExistsError):
+        distributed.all_ok(False)  # under jax.distributed the other processes stop too
+        raise
+    if not distributed.all_ok(True):
+        raise CheckpointError(f"{out}: another process refused this run folder (see its error)")
     trainer = Trainer(cfg, out, env_factory=env_factory, resume=resume, progress=progress)  # writes nothing
-    if not resume:
+    if not resume and trainer.primary:
         write_config(out, cfg)
     trainer.train(stop_after_cycles=stop_after_cycles)
     return trainer
@@ -578,6 +588,8 @@ def run(cfg: Config, out: str, *, resume: bool = False, env_factory: EnvFactory 
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    if args.coordinator:
+        distributed.initialize(args.coordinator, args.num_processes, args.process_id)
     try:
         cfg = resolve_config(args)
         run(cfg, args.out, resume=args.resume, progress=not args.no_progress,

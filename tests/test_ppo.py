@@ -141,11 +141,14 @@ _TWO_DEVICE_SCRIPT = textwrap.dedent("""
         it = ppo.make_iteration(env, nets, opt, cfg, mesh)
         ts2, _, m = it(ts, es, key, ppo.replicate(jnp.float32(0.0), mesh))  # the sharded iteration runs
         assert bool(m["finite"])
-        out[name] = (float(loss), jax.device_get(grads), None)
+        trainer_path = ppo.make_first_gradients(env, nets, cfg, mesh)(ts, es, key)  # shard_map, as in training
+        out[name] = (float(loss), jax.device_get(grads), jax.device_get(trainer_path))
     (l1, g1, p1), (l2, g2, p2) = out["one"], out["two"]
     diff = max(float(np.max(np.abs(a - b))) for a, b in zip(jax.tree_util.tree_leaves(g1), jax.tree_util.tree_leaves(g2)))
-    print("dtype", jax.tree_util.tree_leaves(g1)[0].dtype, "loss diff", abs(l1 - l2), "max grad diff", diff)
-    assert abs(l1 - l2) < {tol} and diff < {tol}
+    diff_sm = max(float(np.max(np.abs(a - b))) for a, b in zip(jax.tree_util.tree_leaves(p1), jax.tree_util.tree_leaves(p2)))
+    print("dtype", jax.tree_util.tree_leaves(g1)[0].dtype, "loss diff", abs(l1 - l2), "max grad diff", diff,
+          "shard_map path", diff_sm)
+    assert abs(l1 - l2) < {tol} and diff < {tol} and diff_sm < {tol}
 """)
 
 
