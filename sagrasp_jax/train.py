@@ -46,6 +46,10 @@ TB_DIR = "tb"
 TIME_FIELDS = ("time_s", "steps_per_s", "compile_s", "compile_iteration_s", "compile_eval_s", "eval_s", "eta_s")
 
 EnvFactory = Callable[[Config], tuple[ppo.Env, ppo.Env]]  # config -> (auto-reset train env, eval env)
+# On CPU the SA evaluation runs this many episodes at a time per device, each slot taking the next
+# episode when its own ends (ppo.evaluate_policy): ≈ 2x faster than all 128 at once, the same
+# numbers.  Accelerators evaluate all episodes at once.
+CPU_EVAL_SLOTS = 32
 
 
 def enable_compilation_cache() -> None:
@@ -153,13 +157,13 @@ class Trainer:
     """One training run bound to a run folder."""
 
     def __init__(self, cfg: Config, out_dir: str, *, env_factory: EnvFactory | None = None, resume: bool = False,
-                 progress: bool = True, stream: TextIO | None = None) -> None:
+                 progress: bool = True, stream: TextIO | None = None, devices: list[Any] | None = None) -> None:
         enable_compilation_cache()
         self.cfg = cfg
         self.out_dir = out_dir
         self.progress = progress
         self.stream = stream if stream is not None else sys.stderr
-        self.mesh = ppo.make_mesh()
+        self.mesh = ppo.make_mesh(devices)  # default: every device (of every process)
         self.primary = jax.process_index() == 0  # under jax.distributed only process 0 writes files
         if cfg.ppo.num_envs % self.mesh.size:
             raise ConfigError(f"ppo.num_envs={cfg.ppo.num_envs} must be divisible by the {self.mesh.size} devices")
@@ -170,11 +174,13 @@ class Trainer:
         self.optimizer = ppo.make_optimizer(cfg.ppo, cfg.sa.lr0 if cfg.sa.enabled else cfg.ppo.learning_rate)
         self._cycle = ppo.make_cycle(self.train_env, self.networks, self.optimizer, cfg.ppo, self.mesh,
                                      self.schedule.iterations_per_cycle)
-        self._evaluate = jax.jit(lambda params, normaliser, keys: ppo.evaluate_policy(
-            self.networks, params, normaliser, self.eval_env, keys, cfg.env.task.max_steps)._replace(episodes={}))
         keys = ppo.eval_keys(cfg.sa.eval_seed, cfg.sa.eval_episodes)
-        self.eval_keys = (ppo.shard_batch(keys, self.mesh) if cfg.sa.eval_episodes % self.mesh.size == 0
-                          else ppo.replicate(keys, self.mesh))
+        split = cfg.sa.eval_episodes % self.mesh.size == 0
+        self.eval_keys = ppo.shard_batch(keys, self.mesh) if split else ppo.replicate(keys, self.mesh)
+        slots = CPU_EVAL_SLOTS if jax.default_backend() == "cpu" else None
+        evaluate = ppo.make_evaluator(self.networks, self.eval_env, cfg.env.task.max_steps,
+                                      self.mesh if split else None, slots)
+        self._evaluate = jax.jit(lambda params, normaliser, keys: evaluate(params, normaliser, keys)._replace(episodes={}))
         episode = jax.eval_shape(self.train_env.reset, jax.random.PRNGKey(0)).info["episode"]
         self.window_keys = tuple(episode)
         self._compiled_cycle: Any = None
