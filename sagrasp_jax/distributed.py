@@ -23,13 +23,15 @@ import sagrasp_jax  # noqa: F401  (XLA flags before jax)
 
 import numpy as np
 
+from sagrasp_jax.config import ConfigError
+
 
 def initialize(coordinator: str, num_processes: int, process_id: int) -> None:
     """Join the distributed run (call before any jax computation)."""
     import jax
 
     if not 0 <= process_id < num_processes:
-        raise ValueError(f"--process-id {process_id} must lie in 0 … {num_processes - 1}")
+        raise ConfigError(f"--process-id {process_id} must lie in 0 … {num_processes - 1}")
     jax.config.update("jax_cpu_collectives_implementation", "gloo")  # CPU collectives across processes
     jax.distributed.initialize(coordinator_address=coordinator, num_processes=num_processes, process_id=process_id)
 

@@ -525,7 +525,7 @@ def update_window(window: dict[str, Any], episodes: dict[str, jax.Array]) -> tup
 
 def make_cycle(env: Env, networks: PPONetworks, optimizer: optax.GradientTransformation, cfg: PPOConfig,
                mesh: Mesh, length: int) -> Callable[..., tuple[TrainingState, State, dict[str, Any], dict[str, Any]]]:
-    """Jitted run of up to ``length`` PPO iterations in one call (a ``lax.scan``), one host sync.
+    """Jitted run of up to ``length`` PPO iterations in one call (a ``lax.while_loop``), one host sync.
 
     ``cycle(train_state, env_state, window, train_key, first, count, progress)`` runs iterations
     ``first … first + count - 1`` (``count ≤ length``; iteration i uses ``fold_in(train_key, i)``
@@ -540,7 +540,7 @@ def make_cycle(env: Env, networks: PPONetworks, optimizer: optax.GradientTransfo
               first: jax.Array, count: jax.Array, progress: jax.Array):
         f32 = lambda: jnp.zeros((), jnp.float32)
         i32 = lambda: jnp.zeros((), jnp.int32)
-        # the per-iteration outputs, spelled out so the skip branch needs no second trace of ``run``
+        # the per-iteration outputs, spelled out so their buffers need no second trace of ``run``
         skipped = {**{k: f32() for k in (*CYCLE_METRICS, *RESET_STATS)}, "finite": jnp.zeros((), bool),
                    "episodes_finished": i32(),
                    "window": {**{k: f32() for k in window["values"] if k != "steps"}, "episode_steps": f32(),
@@ -561,15 +561,20 @@ def make_cycle(env: Env, networks: PPONetworks, optimizer: optax.GradientTransfo
             win, out["window"] = update_window(win, jax.lax.all_gather(kept, BATCH_AXIS, axis=1, tiled=True))
             return (ts, es, win), out
 
-        def body(carry: tuple[TrainingState, State, dict[str, Any], jax.Array], j: jax.Array):
-            ts, es, win, stopped = carry
-            active = (j < count) & ~stopped
-            (ts, es, win), out = jax.lax.cond(active, lambda c: run(c, j), lambda c: (c, skipped), (ts, es, win))
-            out["executed"] = active
-            return (ts, es, win, stopped | (active & ~out["finite"])), out
+        def cond(carry: tuple[Any, ...]) -> jax.Array:
+            j, _, _, _, stopped, _ = carry
+            return (j < count) & ~stopped
 
-        init = (train_state, env_state, window, jnp.zeros((), bool))
-        (ts, es, win, _), outs = jax.lax.scan(body, init, jnp.arange(length))
+        def body(carry: tuple[Any, ...]) -> tuple[Any, ...]:
+            j, ts, es, win, _, outs = carry
+            (ts, es, win), out = run((ts, es, win), j)
+            outs = jax.tree_util.tree_map(lambda buf, x: buf.at[j].set(x), outs, out)
+            return j + 1, ts, es, win, ~out["finite"], outs
+
+        outs = jax.tree_util.tree_map(lambda x: jnp.zeros((length,) + x.shape, x.dtype), skipped)
+        init = (jnp.zeros((), jnp.int32), train_state, env_state, window, jnp.zeros((), bool), outs)
+        ran, ts, es, win, _, outs = jax.lax.while_loop(cond, body, init)
+        outs["executed"] = jnp.arange(length) < ran
         return ts, es, win, outs
 
     return jax.jit(_sharded(local, mesh, (rep, shard, rep, rep, rep, rep, rep), (rep, shard, rep, rep)))

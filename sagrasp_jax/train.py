@@ -574,6 +574,30 @@ def write_config(out: str, cfg: Config) -> None:
     checkpoint.atomic_write_bytes(os.path.join(out, CONFIG_FILE), text.encode())
 
 
+def cpu_devices_for(cfg: Config, processes: int = 1) -> int:
+    """CPU devices per process for a run: one per usable core (XLA:CPU runs most of one device's
+    program on one thread, so a single device leaves the other cores idle), such that the
+    ``processes`` × devices divide ``ppo.num_envs``."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    devices = max(1, min(cores, cfg.ppo.num_envs // processes))
+    while cfg.ppo.num_envs % (devices * processes):
+        devices -= 1
+    return devices
+
+
+def use_cpu_devices(cfg: Config, processes: int = 1) -> None:
+    """Split the CPU into ``cpu_devices_for`` devices for this run (the env batch is sharded over
+    them) unless the device count was chosen already (``JAX_NUM_CPU_DEVICES``, XLA_FLAGS'
+    ``--xla_force_host_platform_device_count``) or jax has started its backends."""
+    chosen = "JAX_NUM_CPU_DEVICES" in os.environ or "xla_force_host_platform_device_count" in os.environ.get(
+        "XLA_FLAGS", "")
+    if not chosen:
+        try:
+            jax.config.update("jax_num_cpu_devices", cpu_devices_for(cfg, processes))
+        except RuntimeError:  # jax already started: keep its devices
+            pass
+
+
 def run(cfg: Config, out: str, *, resume: bool = False, env_factory: EnvFactory | None = None,
         progress: bool = True, stop_after_cycles: int | None = None) -> Trainer:
     """Library entry point: validate, prepare the folder, train; returns the finished trainer."""
@@ -594,10 +618,11 @@ def run(cfg: Config, out: str, *, resume: bool = False, env_factory: EnvFactory 
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
-    if args.coordinator:
-        distributed.initialize(args.coordinator, args.num_processes, args.process_id)
     try:
         cfg = resolve_config(args)
+        use_cpu_devices(cfg, args.num_processes if args.coordinator else 1)
+        if args.coordinator:
+            distributed.initialize(args.coordinator, args.num_processes, args.process_id)
         run(cfg, args.out, resume=args.resume, progress=not args.no_progress,
             stop_after_cycles=args.stop_after_cycles)
     except (ConfigError, CheckpointError, FileExistsError) as exc:
