@@ -207,37 +207,42 @@ def bench_profile(cfg: Any) -> dict[str, Any]:
                         done=data.done)
         timed("training-episode window (device side)", ppo.update_window, win, episodes)
 
-    # the real thing: the trainer's jitted call on the preset (1 device and all devices), the SA
-    # evaluation, the host sync
+    # the real thing: the trainer's jitted call on the preset and the SA evaluation, on 1 device and
+    # on all devices, the two trainers' calls interleaved so that both see the same load
     devices = jax.devices()
-    for d in sorted({1, len(devices)}):
-        tr = train.Trainer(cfg, tempfile.mkdtemp(prefix="bench_train_profile."), progress=False, devices=devices[:d])
+    trainers = {d: train.Trainer(cfg, tempfile.mkdtemp(prefix="bench_train_profile."), progress=False,
+                                 devices=devices[:d]) for d in sorted({1, len(devices)})}
+    timing: dict[int, dict[str, list[float]]] = {d: {"wall": [], "cpu": [], "sync": [], "eval": []} for d in trainers}
+    for tr in trainers.values():
         tr.compile()
-        k = tr.schedule.iterations_per_cycle
-        walls, cpus, syncs, evals = [], [], [], []
-        for _ in range(6):
+        tr.run_iterations(tr.schedule.iterations_per_cycle)  # warm-up
+    for rep in range(8):
+        for d, tr in trainers.items():
+            k = tr.schedule.iterations_per_cycle
             c, t = time.process_time(), time.perf_counter()
             tr.run_iterations(k)
-            walls.append(time.perf_counter() - t)
-            cpus.append(time.process_time() - c)
-        out = tr._compiled_cycle(*tr._cycle_args(k))
-        jax.block_until_ready(out)
+            timing[d]["wall"].append((time.perf_counter() - t) / k)
+            timing[d]["cpu"].append((time.process_time() - c) / k)
+            if rep % 2 == 0:
+                t = time.perf_counter()
+                tr.evaluate()
+                timing[d]["eval"].append(time.perf_counter() - t)
+    for d, tr in trainers.items():
+        k = tr.schedule.iterations_per_cycle
+        out = jax.block_until_ready(tr._compiled_cycle(*tr._cycle_args(k)))
         for _ in range(5):
             t = time.perf_counter()
             ppo.to_host(out[3])
-            syncs.append(time.perf_counter() - t)
-        for _ in range(3):
-            t = time.perf_counter()
-            tr.evaluate()
-            evals.append(time.perf_counter() - t)
+            timing[d]["sync"].append((time.perf_counter() - t) / k)
         cycle_iters = tr.schedule.num_iterations / tr.schedule.num_cycles
         pieces[f"training call per iteration, {d} device(s) (the real fused program)"] = {
-            "wall_s": float(np.median(walls[2:])) / k, "cpu_s": float(np.median(cpus[2:])) / k,
+            "wall_s": float(np.median(timing[d]["wall"])), "cpu_s": float(np.median(timing[d]["cpu"])),
             "compile_s": tr.compile_s["iteration"]}
         pieces[f"host sync of a cycle's metrics, per iteration, {d} device(s)"] = {
-            "wall_s": float(np.median(syncs)) / k, "cpu_s": math.nan, "compile_s": 0.0}
+            "wall_s": float(np.median(timing[d]["sync"])), "cpu_s": math.nan, "compile_s": 0.0}
         pieces[f"SA evaluation per iteration (untrained: 200-step episodes), {d} device(s)"] = {
-            "wall_s": float(np.median(evals)) / cycle_iters, "cpu_s": math.nan, "compile_s": tr.compile_s["eval"]}
+            "wall_s": float(np.median(timing[d]["eval"])) / cycle_iters, "cpu_s": math.nan,
+            "compile_s": tr.compile_s["eval"]}
         for name in list(pieces)[-3:]:
             print(f"  {name:44s} {1e3 * pieces[name]['wall_s']:8.2f} ms/iteration", flush=True)
     iteration_s = pieces[f"training call per iteration, {len(devices)} device(s) (the real fused program)"]["wall_s"]
@@ -262,7 +267,7 @@ def _vm_hwm_kb(pid: int) -> int | None:
 
 
 def train_run(args_extra: list[str], work: str, name: str, cache_dir: str, budget_s: float,
-              stop_level: float | None, env_extra: dict[str, str] | None = None) -> dict[str, Any]:
+              stop_level: float | None, env_extra: dict[str, str] | None = None, root: str = ROOT) -> dict[str, Any]:
     """Run ``python -m sagrasp_jax.train`` and watch its metrics; stop at ``stop_level`` or the budget."""
     from sagrasp_jax.train import METRICS_FILE, read_metrics
 
@@ -274,7 +279,7 @@ def train_run(args_extra: list[str], work: str, name: str, cache_dir: str, budge
     loads, offset, reached, stopped, peak_kb = [], math.inf, {}, None, 0
     t0 = time.perf_counter()
     with open(log_path, "w", encoding="utf-8") as log:
-        proc = subprocess.Popen(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, env=env)
+        proc = subprocess.Popen(cmd, cwd=root, stdout=log, stderr=subprocess.STDOUT, env=env)
         try:
             while proc.poll() is None:
                 time.sleep(0.25)
@@ -334,7 +339,8 @@ def train_run(args_extra: list[str], work: str, name: str, cache_dir: str, budge
     }
 
 
-def bench_run(preset: str, seeds: list[int], overrides: list[str], budget_s: float, work: str) -> dict[str, Any]:
+def bench_run(preset: str, seeds: list[int], overrides: list[str], budget_s: float, work: str,
+              root: str = ROOT) -> dict[str, Any]:
     cache = os.path.join(work, "jax_cache")  # fresh: the first run compiles cold
     sets = [a for o in overrides for a in ("--set", o)]
     runs = {}
@@ -342,7 +348,7 @@ def bench_run(preset: str, seeds: list[int], overrides: list[str], budget_s: flo
         label = f"seed {seed}" + (" (cold compile)" if i == 0 else " (warm cache)")
         print(f"  README command, {label}, budget {budget_s:.0f} s ...", flush=True)
         r = train_run(["--preset", preset, "--algo", "sa-ppo", "--seed", str(seed), *sets], work, f"seed{seed}",
-                      cache, budget_s, max(LEVELS))
+                      cache, budget_s, max(LEVELS), root=root)
         runs[f"seed{seed}"] = r
         print(f"    {r['median_iteration_env_steps_per_s']:,.0f} env-steps/s per iteration, "
               f"{r['overall_env_steps_per_s']:,.0f} overall, compile {r['compile_s']:.1f} s, start-up "
@@ -351,7 +357,7 @@ def bench_run(preset: str, seeds: list[int], overrides: list[str], budget_s: flo
               + f" (load {r['load_during']})", flush=True)
     print("  warm compile: the same command again, stopped after one cycle ...", flush=True)
     warm = train_run(["--preset", preset, "--algo", "sa-ppo", "--seed", str(seeds[0]), *sets, "--stop-after-cycles", "1"],
-                     work, "warm", cache, budget_s, None)
+                     work, "warm", cache, budget_s, None, root=root)
     print(f"    compile {warm['compile_s']:.1f} s, start-up {warm['startup_s']:.1f} s", flush=True)
     return {"runs": runs, "warm": {k: warm[k] for k in ("compile_s", "compile_iteration_s", "compile_eval_s",
                                                          "startup_s", "peak_rss_mb", "load_during")}}
@@ -363,6 +369,46 @@ def _fmt_reach(value: Any) -> str:
 
 # ---------------------------------------------------------------------- SB3 and the raw PyBullet env
 
+def bench_bare_pybullet(steps: int = 20_000) -> dict[str, Any] | None:
+    """Raw stepping of a bare PyBullet AUBO-i5 chain (SPEC §6's anchor, no learning): per step
+    resetJointState of the 6 arm joints, the gripper link's pose, one closest-point query to an
+    obstacle, a 17-number observation."""
+    try:
+        import pybullet as pb
+    except ImportError:
+        return None
+    import numpy as np
+
+    from sagrasp_jax import config, robot
+
+    cid = pb.connect(pb.DIRECT)
+    try:
+        arm = pb.loadURDF(robot.URDF_PATH, useFixedBase=True, physicsClientId=cid)
+        joints = [j for j in range(pb.getNumJoints(arm, physicsClientId=cid))
+                  if pb.getJointInfo(arm, j, physicsClientId=cid)[2] == pb.JOINT_REVOLUTE][:6]
+        tip = pb.getNumJoints(arm, physicsClientId=cid) - 1
+        shape = pb.createCollisionShape(pb.GEOM_SPHERE, radius=0.05, physicsClientId=cid)
+        obstacle = pb.createMultiBody(0, shape, basePosition=[0.0, -0.45, 0.2], physicsClientId=cid)
+        rng = np.random.default_rng(0)
+        actions = rng.uniform(-1, 1, (steps, 6))
+        q = np.array(config.HOME_Q)
+        target = np.array([0.1, -0.45, 0.025])
+        t = time.perf_counter()
+        for a in actions:
+            q = np.clip(q + 0.05 * a, -config.Q_LIMIT, config.Q_LIMIT)
+            for j, qj in zip(joints, q):
+                pb.resetJointState(arm, j, qj, physicsClientId=cid)
+            pos = pb.getLinkState(arm, tip, physicsClientId=cid)[0]
+            close = pb.getClosestPoints(arm, obstacle, 1.0, physicsClientId=cid)
+            d = min((c[8] for c in close), default=1.0)
+            np.concatenate([q, pos, target, [0.0, -0.45, 0.2, d, 0.0]])
+        elapsed = time.perf_counter() - t
+    finally:
+        pb.disconnect(physicsClientId=cid)
+    return {"what": "bare PyBullet AUBO-i5 chain: resetJointState x6, link pose, one closest-point query, "
+                    "17-d observation", "steps": steps, "env_steps_per_s": steps / elapsed}
+
+
 def bench_sb3_section(sb3_python: str | None, seconds: float, work: str) -> dict[str, Any]:
     sys.path.insert(0, HERE)
     import bench_env
@@ -373,6 +419,11 @@ def bench_sb3_section(sb3_python: str | None, seconds: float, work: str) -> dict
     out["pybullet_raw"] = raw if raw is not None else {"status": "skipped (reference extra missing)"}
     if raw is not None:
         print(f"  raw PyBullet reference env stepping: {raw['env_steps_per_s']:,.0f} env-steps/s (load {load()})", flush=True)
+    bare = bench_bare_pybullet()
+    out["pybullet_bare_chain"] = bare if bare is not None else {"status": "skipped (pybullet missing)"}
+    if bare is not None:
+        print(f"  raw bare PyBullet AUBO chain stepping: {bare['env_steps_per_s']:,.0f} env-steps/s (load {load()})",
+              flush=True)
     python = sb3_python
     if python is None:
         probe = subprocess.run([sys.executable, "-c", "import stable_baselines3, torch"], capture_output=True)
@@ -431,8 +482,12 @@ def table(result: dict[str, Any]) -> str:
     sb3 = result.get("sb3")
     if sb3:
         raw = sb3["pybullet_raw"].get("env_steps_per_s")
+        bare = sb3["pybullet_bare_chain"].get("env_steps_per_s")
         s = sb3["sb3"]
         ours = next(iter(run["runs"].values()))["overall_env_steps_per_s"] if run else None
+        if bare:
+            lines.append(f"{'raw bare PyBullet AUBO chain stepping (no learning)':58s} {bare:>12,.0f} env-steps/s"
+                         + (f"   ours (d) / bare = {ours / bare:.1f}x" if ours else ""))
         if raw:
             lines.append(f"{'raw PyBullet reference env stepping (no learning)':58s} {raw:>12,.0f} env-steps/s"
                          + (f"   ours (d) / raw = {ours / raw:.1f}x" if ours else ""))
@@ -468,6 +523,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sb3-python", default=None, help="interpreter with stable-baselines3 (default: this one, if it has it)")
     p.add_argument("--sb3-seconds", type=float, default=120.0)
     p.add_argument("--out", default="experiments/results/bench_train_cpu.json")
+    p.add_argument("--trainer-root", default=ROOT, help="source tree whose trainer the run section starts "
+                   "(e.g. an older checkout, for before/after; put it first on PYTHONPATH too)")
     args = p.parse_args(argv)
     sections = [s for s in args.sections.split(",") if s]
     unknown = set(sections) - set(SECTIONS)
@@ -502,7 +559,8 @@ def main(argv: list[str] | None = None) -> int:
             result["profile"] = bench_profile(cfg)
         if "run" in sections:
             print("[run] the README command", flush=True)
-            result["run"] = bench_run(args.preset, args.seeds, args.overrides, args.budget_s, work)
+            result["run"] = bench_run(args.preset, args.seeds, args.overrides, args.budget_s, work,
+                                      os.path.abspath(args.trainer_root))
         if "sb3" in sections:
             print("[sb3] the paper's stack", flush=True)
             result["sb3"] = bench_sb3_section(args.sb3_python, args.sb3_seconds, work)
