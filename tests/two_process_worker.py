@@ -1,6 +1,6 @@
-"""Worker of tests/test_distributed.py: the first iteration's gradients and a tiny toy training run,
-either in one process with two CPU devices (``single``) or as one of two ``jax.distributed``
-processes with one CPU device each (``proc``; gloo collectives).
+"""Worker of tests/test_distributed.py: the first iteration's gradients, either in one process with
+two CPU devices (``single``) or as one of two ``jax.distributed`` processes with one CPU device
+each (``proc``; gloo collectives), which then also train a tiny toy run together.
 
     python tests/two_process_worker.py single OUT
     python tests/two_process_worker.py proc OUT --port P --process-id I
@@ -50,8 +50,8 @@ def main() -> int:
     result = {f"two_{k}": v for k, v in first_gradients(ppo.make_mesh()).items()}
     if args.mode == "single":
         result.update({f"one_{k}": v for k, v in first_gradients(ppo.make_mesh(jax.devices()[:1])).items()})
-    run_dir = os.path.join(args.out, f"run_{args.mode}")
-    train.run(cfg, run_dir, env_factory=toy_factory(), progress=False)
+    if args.mode == "proc":  # the trainer's multi-process plumbing: gathered checkpoint, process 0 writes
+        train.run(cfg, os.path.join(args.out, "run_proc"), env_factory=toy_factory(), progress=False)
     if jax.process_index() == 0:
         np.savez(os.path.join(args.out, f"grads_{args.mode}.npz"), **result)
     return 0
