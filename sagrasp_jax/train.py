@@ -283,6 +283,8 @@ class Trainer:
     def run_iterations(self, count: int) -> list[dict[str, Any]]:
         """Up to ``count`` (≤ ``schedule.iterations_per_cycle``) PPO iterations in one jitted call and
         one host sync, one row each.  A non-finite iteration ends the call and restores the snapshot."""
+        if not 1 <= count <= self.schedule.iterations_per_cycle:
+            raise ValueError(f"run_iterations: count {count} outside 1 … {self.schedule.iterations_per_cycle}")
         self.compile()
         spi, total = self.schedule.steps_per_iteration, self.cfg.train.total_steps
         first = self.host.iteration
