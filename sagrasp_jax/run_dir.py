@@ -319,7 +319,7 @@ def load_policy_state(run: str, obs_size: int | None = None, action_size: int = 
 
 def export_policy(file: str, cfg: Config, params: ppo.Params, normaliser: ppo.Normaliser, obs_size: int) -> str:
     """Write the deterministic policy (weights + normaliser) as ``runtime``'s ``policy.npz``."""
-    layers = jax.device_get(params.policy["params"])
+    layers = ppo.to_host(params.policy["params"])
     weights = [(np.asarray(layers[f"hidden_{i}"]["kernel"]), np.asarray(layers[f"hidden_{i}"]["bias"]))
                for i in range(len(layers))]
     names = observation.layout_of(cfg.env)
