@@ -152,6 +152,10 @@ class Trainer:
         self.obs_size, self.action_size = self.train_env.observation_size, self.train_env.action_size
         self.schedule = make_schedule(cfg)
         self.critic_extra = observation.critic_extra_size(cfg)  # privileged critic inputs (0: none)
+        provided = getattr(getattr(self.train_env, "env", self.train_env), "privileged_size", 0)
+        if self.critic_extra and provided != self.critic_extra:
+            raise ConfigError(f"ppo.privileged_critic needs an env that reports {self.critic_extra} privileged inputs "
+                              f"(GraspEnv(privileged=True)); the training env reports {provided}")
         self.networks = ppo.make_networks(cfg.ppo.network, self.obs_size, self.action_size, cfg.ppo.obs_clip,
                                           self.critic_extra)
         self.optimizer = ppo.make_optimizer(cfg.ppo, cfg.sa.lr0 if cfg.sa.enabled else cfg.ppo.learning_rate)
