@@ -3,8 +3,10 @@
 brax 0.14.2's ``ppo.train`` does not run on jax >= 0.10, so the loop lives here; brax supplies
 only the networks, the tanh-Gaussian distribution and the running observation statistics.
 A PPO iteration (rollout, normaliser update, GAE, minibatch epochs) is a pure function;
-``make_cycle`` jits a ``lax.scan`` of several of them (a SA cycle's worth) so the host syncs
-once per cycle; the host sets the learning rate and the training progress between calls.
+``make_cycle`` jits a ``lax.while_loop`` of several of them (a cycle's worth) so the host syncs
+once per cycle; the host sets the training progress and the learning rate (per iteration, or
+between calls), or the ``kl-adaptive`` schedule adapts it after every minibatch
+(``sagrasp_jax.lr_schedule``).
 
 Data parallelism: the env batch is split over a 1-D ``Mesh`` of devices — the local ones, or
 every process's under ``jax.distributed`` — and params and optimizer state are replicated.
@@ -35,6 +37,7 @@ from brax.training.distribution import TanhBijector
 from flax import linen
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from sagrasp_jax import lr_schedule
 from sagrasp_jax.config import NetworkConfig, PPOConfig
 
 Normaliser = running_statistics.RunningStatisticsState
@@ -172,6 +175,19 @@ def init_training_state(key: jax.Array, networks: PPONetworks, optimizer: optax.
 
 def get_learning_rate(opt_state: optax.OptState) -> float:
     return float(opt_state[1].hyperparams["learning_rate"])
+
+
+def with_learning_rate(opt_state: optax.OptState, lr: jax.Array) -> optax.OptState:
+    """``set_learning_rate`` inside a traced function (``lr`` a traced scalar)."""
+    inject = opt_state[1]
+    old = inject.hyperparams["learning_rate"]
+    hyper = dict(inject.hyperparams, learning_rate=jnp.asarray(lr, dtype=old.dtype))
+    return (opt_state[0], inject._replace(hyperparams=hyper), *opt_state[2:])
+
+
+def learning_rate_of(opt_state: optax.OptState) -> jax.Array:
+    """The Adam lr in ``opt_state`` as an array (traceable)."""
+    return opt_state[1].hyperparams["learning_rate"]
 
 
 def set_learning_rate(opt_state: optax.OptState, lr: float) -> optax.OptState:
@@ -411,11 +427,15 @@ def make_batch(networks: PPONetworks, params: Params, normaliser: Normaliser, da
 
 def sgd_epochs(params: Params, opt_state: optax.OptState, normaliser: Normaliser, batch: Batch, key: jax.Array,
                networks: PPONetworks, optimizer: optax.GradientTransformation,
-               cfg: PPOConfig, axis_name: str | None = None) -> tuple[Params, optax.OptState, dict[str, jax.Array]]:
+               cfg: PPOConfig, axis_name: str | None = None,
+               kl_rule: lr_schedule.Rule | None = None) -> tuple[Params, optax.OptState, dict[str, jax.Array]]:
     """``num_epochs`` passes over the batch in ``num_minibatches`` shuffled minibatches.
 
     With ``axis_name`` each device shuffles its own share (a minibatch is the union of the
-    devices' minibatches) and the gradients are averaged over devices."""
+    devices' minibatches) and the gradients are averaged over devices.  With ``kl_rule`` (the
+    ``kl-adaptive`` schedule) each minibatch first adapts the lr to its KL, as brax does: the
+    minibatch's ``approx_kl`` (k3 estimate of KL(π_old ‖ π_θ) from the rollout's log-probs,
+    averaged over devices) goes through ``lr_schedule.kl_adaptive_lr``, then the step is taken."""
     n = batch.obs.shape[0]
     mb = n // cfg.num_minibatches
 
@@ -423,6 +443,10 @@ def sgd_epochs(params: Params, opt_state: optax.OptState, normaliser: Normaliser
         params, opt_state = carry
         minibatch, k = xs
         (_, metrics), grads = loss_and_grad(params, normaliser, minibatch, k, networks, cfg, axis_name)
+        if kl_rule is not None:
+            kl = jax.lax.stop_gradient(metrics["approx_kl"])
+            lr = lr_schedule.kl_adaptive_lr(jnp, kl_rule, learning_rate_of(opt_state), kl)
+            opt_state = with_learning_rate(opt_state, lr)
         updates, opt_state = optimizer.update(grads, opt_state, params)
         metrics["grad_norm"] = optax.tree.norm(grads)
         return (optax.apply_updates(params, updates), opt_state), metrics
@@ -461,7 +485,7 @@ def update_normaliser(normaliser: Normaliser, obs: jax.Array, cfg: PPOConfig,
 def iteration(train_state: TrainingState, env_state: State, key: jax.Array, progress: jax.Array, *,
               env: Env, networks: PPONetworks, optimizer: optax.GradientTransformation,
               cfg: PPOConfig, axis_name: str | None = None, hand_scaled: np.ndarray | None = None,
-              critic_extra: int = 0) -> tuple[TrainingState, State, dict[str, Any]]:
+              critic_extra: int = 0, kl_rule: lr_schedule.Rule | None = None) -> tuple[TrainingState, State, dict[str, Any]]:
     """One PPO iteration; if the loss or new params are non-finite the old train state is kept.
 
     ``metrics["finite"]`` tells the host to count the rollback (the envs keep running).  With
@@ -477,7 +501,7 @@ def iteration(train_state: TrainingState, env_state: State, key: jax.Array, prog
     normaliser = update_normaliser(train_state.normaliser, data.obs, cfg, hand_scaled, axis_name)
     batch = make_batch(networks, params, normaliser, data, env_state.obs, cfg, critic_extra_of(env_state, critic_extra))
     new_params, opt_state, sgd_metrics = sgd_epochs(params, train_state.opt_state, normaliser, batch, k_sgd,
-                                                    networks, optimizer, cfg, axis_name)
+                                                    networks, optimizer, cfg, axis_name, kl_rule)
     new_state = TrainingState(params=new_params, opt_state=opt_state, normaliser=normaliser)
     finite = _all_finite(sgd_metrics["loss"]) & _all_finite(new_state)
     if axis_name is not None:  # every device must take the same branch
@@ -578,37 +602,47 @@ def update_window(window: dict[str, Any], episodes: dict[str, jax.Array]) -> tup
 # --------------------------------------------------------------------------- several iterations per call
 
 def make_cycle(env: Env, networks: PPONetworks, optimizer: optax.GradientTransformation, cfg: PPOConfig,
-               mesh: Mesh, length: int, hand_scaled: np.ndarray | None = None,
-               critic_extra: int = 0) -> Callable[..., tuple[TrainingState, State, dict[str, Any], dict[str, Any]]]:
+               mesh: Mesh, length: int, hand_scaled: np.ndarray | None = None, critic_extra: int = 0,
+               lr_rule: lr_schedule.Rule | None = None
+               ) -> Callable[..., tuple[TrainingState, State, dict[str, Any], dict[str, Any]]]:
     """Jitted run of up to ``length`` PPO iterations in one call (a ``lax.while_loop``), one host sync.
 
-    ``cycle(train_state, env_state, window, train_key, first, count, progress)`` runs iterations
-    ``first … first + count - 1`` (``count ≤ length``; iteration i uses ``fold_in(train_key, i)``
-    and ``progress[i - first]``), stopping after a non-finite one (its state is not kept, see
-    ``iteration``).  Each iteration appends its finished episodes to ``window``
-    (``init_window``).  Returns the new states and per-iteration metrics of shape [length]:
-    ``executed`` marks the iterations that ran; ``window`` holds the window means.
+    ``cycle(train_state, env_state, window, train_key, first, count, progress, lr)`` runs iterations
+    ``first … first + count - 1`` (``count ≤ length``; iteration i uses ``fold_in(train_key, i)``,
+    ``progress[i - first]`` and, under a ``per_iteration`` lr schedule, ``lr[i - first]``),
+    stopping after a non-finite one (its state is not kept, see ``iteration``).  ``lr_rule``
+    (``lr_schedule.Rule``; default: the host's lr) says how the lr moves inside the call:
+    ``fixed`` (constant, sa) keeps the optimizer state's, ``per_iteration`` (cosine, linear)
+    sets ``lr[j]`` before iteration j, ``kl`` (kl-adaptive) adapts it after every minibatch.
+    Each iteration appends its finished episodes to ``window`` (``init_window``).  Returns the
+    new states and per-iteration metrics of shape [length]: ``executed`` marks the iterations
+    that ran; ``window`` holds the window means; ``learning_rate`` the optimizer's lr after it.
     """
     rep, shard = PartitionSpec(), PartitionSpec(BATCH_AXIS)
+    mode = "fixed" if lr_rule is None else lr_rule.mode
+    kl_rule = lr_rule if mode == "kl" else None
 
     def local(train_state: TrainingState, env_state: State, window: dict[str, Any], train_key: jax.Array,
-              first: jax.Array, count: jax.Array, progress: jax.Array):
+              first: jax.Array, count: jax.Array, progress: jax.Array, lr: jax.Array):
         f32 = lambda: jnp.zeros((), jnp.float32)
         i32 = lambda: jnp.zeros((), jnp.int32)
         # the per-iteration outputs, spelled out so their buffers need no second trace of ``run``
         skipped = {**{k: f32() for k in (*CYCLE_METRICS, *RESET_STATS)}, "finite": jnp.zeros((), bool),
-                   "episodes_finished": i32(),
+                   "episodes_finished": i32(), "learning_rate": f32(),
                    "window": {**{k: f32() for k in window["values"] if k != "steps"}, "episode_steps": f32(),
                               "steps_to_success": f32(), "window_episodes": i32()}}
 
         def run(carry: tuple[TrainingState, State, dict[str, Any]], j: jax.Array):
             ts, es, win = carry
             key = jax.random.fold_in(train_key, first + j)
+            if mode == "per_iteration":
+                ts = ts._replace(opt_state=with_learning_rate(ts.opt_state, lr[j]))
             ts, es, metrics = iteration(ts, es, key, progress[j], env=env, networks=networks, optimizer=optimizer,
                                         cfg=cfg, axis_name=BATCH_AXIS, hand_scaled=hand_scaled,
-                                        critic_extra=critic_extra)
+                                        critic_extra=critic_extra, kl_rule=kl_rule)
             episodes = metrics["episodes"]
             out = {k: metrics[k].astype(jnp.float32) for k in CYCLE_METRICS}
+            out["learning_rate"] = learning_rate_of(ts.opt_state).astype(jnp.float32)
             out.update({name: jax.lax.psum(jnp.sum(episodes.get(name, jnp.zeros(()))), BATCH_AXIS).astype(jnp.float32)
                         for name in RESET_STATS})
             out["finite"] = metrics["finite"]
@@ -633,7 +667,7 @@ def make_cycle(env: Env, networks: PPONetworks, optimizer: optax.GradientTransfo
         outs["executed"] = jnp.arange(length) < ran
         return ts, es, win, outs
 
-    return jax.jit(_sharded(local, mesh, (rep, shard, rep, rep, rep, rep, rep), (rep, shard, rep, rep)))
+    return jax.jit(_sharded(local, mesh, (rep, shard, rep, rep, rep, rep, rep, rep), (rep, shard, rep, rep)))
 
 
 def make_reset(env: Env, mesh: Mesh) -> Callable[[jax.Array], State]:

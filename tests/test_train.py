@@ -85,7 +85,7 @@ def test_sa_reject_restores_the_snapshot_bit_for_bit(tmp_path):
     # Three rejections in a row decay the lr, and the restored optimizer state carries it.
     tr.anneal(metric=-1e9, entropy=0.5)
     third = tr.anneal(metric=-1e9, entropy=0.5)
-    assert third.decayed and tr.lr == pytest.approx(cfg.sa.lr0 * cfg.sa.decay)
+    assert third.decayed and tr.lr == pytest.approx(cfg.ppo.learning_rate * cfg.sa.decay)
     assert ppo.get_learning_rate(tr.train_state.opt_state) == pytest.approx(tr.lr)
     assert _leaves_equal(tr.train_state.params, accepted.params)
 
@@ -99,14 +99,14 @@ def test_nonfinite_iterations_are_rolled_back_and_training_continues(tmp_path):
     assert events and all(r["sa_decision"] == "reject" and r["sa_decayed"] for r in events)
     assert events[0]["loss"] is None  # NaN is logged as null, the JSON stays valid
     assert rows[-1]["iteration"] == train.make_schedule(cfg).num_iterations - 1
-    assert rows[-1]["lr"] == pytest.approx(cfg.sa.lr0 * cfg.sa.decay ** tr.sa_state.decays)
+    assert rows[-1]["lr"] == pytest.approx(cfg.ppo.learning_rate * cfg.sa.decay ** tr.sa_state.decays)
     assert tr.host.nonfinite == len(events)
     assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree_util.tree_leaves(tr.train_state.params))
 
 
 def test_ppo_baseline_keeps_a_constant_learning_rate(tmp_path):
     cfg = toy_config(cycles=3, algo="ppo", extra=["ppo.learning_rate=2e-4"])
-    assert not cfg.sa.enabled
+    assert cfg.lr.schedule == "constant"
     out = str(tmp_path / "ppo")
     train.run(cfg, out, env_factory=toy_factory(), progress=False)
     rows = train.read_metrics(os.path.join(out, train.METRICS_FILE))
