@@ -230,3 +230,57 @@ def test_same_rng_same_trajectory() -> None:
         return out
 
     assert run(5) == run(5)
+
+
+# ---------------------------------------------------------------------- ablation switches
+
+def test_without_metropolis_a_worse_cycle_is_always_rejected() -> None:
+    cfg = dataclasses.replace(CFG, metropolis=False)
+    state = _started(cfg, metric=1.0)
+    state, dec = sa.update(cfg, state, 1.0 - 0.06, H, 0.0)  # u = 0 would accept anything with metropolis on
+    assert dec.kind == "reject" and dec.accept_prob == 0.0 and state.n_accept_worse == 0
+    # within tol is still an outright accept
+    state, dec = sa.update(cfg, state, 1.0 - 0.04, H, 0.0)
+    assert dec.kind == "accept"
+    rng, ref = np.random.default_rng(11), np.random.default_rng(11)
+    state = _started(cfg)
+    for _ in range(500):
+        state, dec = sa.update(cfg, state, float(rng.normal(1.0, 0.3)), H, rng)
+        ref.random()
+        assert dec.kind != "accept-worse"
+    assert state.n_accept_worse == 0 and state.n_reject > 50
+    assert rng.bit_generator.state == ref.bit_generator.state  # one draw per call, used or not
+
+
+def test_without_plateau_decay_rule_3_never_decays() -> None:
+    cfg = dataclasses.replace(CFG, plateau_decay=False)
+    state = _started(cfg)
+    for _ in range(3 * CFG.patience):  # stalls
+        state, dec = sa.update(cfg, state, 1.0, H, 0.5)
+        assert not dec.decayed
+    for _ in range(3 * CFG.max_rollbacks):  # rejections in a row
+        state, dec = sa.update(cfg, state, 0.0, H, REJECT)
+        assert dec.kind == "reject" and not dec.decayed
+    assert state.lr == LR0 and state.decays == 0 and state.n_reject == 3 * CFG.max_rollbacks
+    # the counters still count and reset as with the decay on
+    on = _started()
+    off = _started(cfg)
+    for m, u in ((1.0, 0.5), (0.0, REJECT), (1.0, 0.5), (0.0, REJECT), (0.0, REJECT), (0.0, REJECT), (1.0, 0.5)):
+        on, _ = sa.update(CFG, on, m, H, u)
+        off, _ = sa.update(cfg, off, m, H, u)
+        assert (off.stall, off.rejections, off.m_acc, off.n_reject) == (on.stall, on.rejections, on.m_acc, on.n_reject)
+    # the non-finite escape hatch still decays
+    state, dec = sa.force_reject_and_decay(cfg, state)
+    assert dec.decayed and state.lr == pytest.approx(LR0 * 0.98)
+
+
+def test_without_entropy_temperature_t_stays_t0() -> None:
+    cfg = dataclasses.replace(CFG, entropy_temperature=False)
+    state, _ = sa.update(cfg, sa.init(LR0), 1.0, 5.0, 0.5)
+    for h in (5.0, 2.0, -3.0, 10.0):
+        assert sa.temperature(cfg, state, h) == cfg.t0
+        _, dec = sa.update(cfg, state, 0.9, h, REJECT)
+        assert dec.temperature == cfg.t0 and dec.accept_prob == pytest.approx(math.exp(-0.1 / cfg.t0))
+    # with it on, a colder policy lowers T (and kappa = 0 does the same as switching it off)
+    assert sa.temperature(CFG, state, 2.0) < CFG.t0
+    assert sa.temperature(dataclasses.replace(CFG, kappa=0.0), state, 2.0) == CFG.t0
