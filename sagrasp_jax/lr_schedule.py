@@ -1,25 +1,21 @@
 """Learning-rate schedules of the trainer: one interface, five rules (``lr.schedule``).
 
-=============  =====================================================  ===========================
-schedule       rule                                                   where the lr changes
-=============  =====================================================  ===========================
-``constant``   ``ppo.learning_rate`` throughout (the paper's PPO)      never
-``sa``         SPEC §3's simulated-annealing plateau schedule          host, once per cycle
-               (``sa_schedule``); a reject restores the snapshot
-``kl-adaptive`` brax ≥ 0.14 / rsl_rl: after every minibatch's KL,      device, every minibatch
-               ÷ ``kl_factor`` above 2·desired, × below desired / 2,
-               kept in [``kl_lr_min``, ``kl_lr_max``]
-``cosine``     lr0 → ``lr.final`` by a half cosine in progress p      device, every iteration
-``linear``     lr0 → ``lr.final`` linearly in p                       device, every iteration
-=============  =====================================================  ===========================
+* ``constant``: ``ppo.learning_rate`` throughout (the paper's PPO); the lr never moves.
+* ``sa``: SPEC §3's simulated-annealing plateau schedule (``sa_schedule``), on the host once
+  per cycle; a reject restores the snapshot.
+* ``kl-adaptive``: brax ≥ 0.14 / rsl_rl, on the device after every minibatch's KL: lr ÷
+  ``kl_factor`` above 2·``desired_kl``, × ``kl_factor`` below ``desired_kl`` / 2, kept in
+  [``kl_lr_min``, ``kl_lr_max``].
+* ``cosine``: lr0 → ``lr.final`` by a half cosine in progress p, set before every iteration.
+* ``linear``: lr0 → ``lr.final`` linearly in p, set before every iteration.
 
 p = env steps done / ``train.total_steps`` (the progress the reward weights read).  Every
 schedule starts at ``ppo.learning_rate``.
 
 Pure functions over a typed :class:`ScheduleState` (a NamedTuple, like brax's training
 states), host-side and jax-free, with the two per-step rules written for any array module
-(``progress_lr(xp, …)``, ``kl_adaptive_lr(xp, …)``: numpy here and in the tests, jax.numpy
-inside the jitted cycle, ``ppo.make_cycle``).  The trainer calls
+(``progress_lr(xp, …)``, ``kl_adaptive_lr(xp, …)``: numpy on the host and in the tests,
+jax.numpy for ``kl_adaptive_lr`` inside the jitted cycle, ``ppo.sgd_epochs``).  The trainer calls
 
 * :func:`iteration_lrs` before a jitted call: the lr of each of its iterations (used by the
   ``per_iteration`` schedules; the others keep the optimizer's lr);
