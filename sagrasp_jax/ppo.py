@@ -93,6 +93,9 @@ class Batch(NamedTuple):
     log_prob: jax.Array
     advantage: jax.Array
     target: jax.Array  # GAE return, the value target
+    # kl-adaptive only: log-probs of the actions under the iteration's pre-SGD policy and updated
+    # normaliser, the reference of the KL the lr rule reads (``sgd_epochs``); None otherwise
+    kl_log_prob: jax.Array | None = None
 
 
 class EvalResult(NamedTuple):
@@ -351,7 +354,7 @@ def ppo_loss(params: Params, normaliser: Normaliser, batch: Batch, key: jax.Arra
     value_loss = jnp.mean(jnp.square(batch.target - value))
     entropy = jnp.mean(tanh_gaussian_entropy(networks, logits, key, axis_name))
     total = policy_loss + cfg.value_coef * value_loss - cfg.entropy_coef * entropy
-    return total, {
+    metrics = {
         "loss": total,
         "policy_loss": policy_loss,
         "value_loss": value_loss,
@@ -359,6 +362,10 @@ def ppo_loss(params: Params, normaliser: Normaliser, batch: Batch, key: jax.Arra
         "approx_kl": jnp.mean((ratio - 1.0) - log_ratio),
         "clip_fraction": jnp.mean((jnp.abs(ratio - 1.0) > cfg.clip_eps).astype(jnp.float32)),
     }
+    if batch.kl_log_prob is not None:  # KL(π_start ‖ π_θ) of this iteration's SGD so far (k3 estimator)
+        step = jax.lax.stop_gradient(log_prob - batch.kl_log_prob)
+        metrics["step_kl"] = jnp.mean(jnp.expm1(step) - step)
+    return total, metrics
 
 
 def loss_and_grad(params: Params, normaliser: Normaliser, batch: Batch, key: jax.Array,
@@ -433,20 +440,29 @@ def sgd_epochs(params: Params, opt_state: optax.OptState, normaliser: Normaliser
 
     With ``axis_name`` each device shuffles its own share (a minibatch is the union of the
     devices' minibatches) and the gradients are averaged over devices.  With ``kl_rule`` (the
-    ``kl-adaptive`` schedule) each minibatch first adapts the lr to its KL, as brax does: the
-    minibatch's ``approx_kl`` (k3 estimate of KL(π_old ‖ π_θ) from the rollout's log-probs,
-    averaged over devices) goes through ``lr_schedule.kl_adaptive_lr``, then the step is taken."""
+    ``kl-adaptive`` schedule) each minibatch first adapts the lr to its KL, as brax does, then
+    takes its step.  The KL is ``step_kl``, the k3 estimate mean(e^s − 1 − s), s = log π_θ(a) −
+    log π_start(a), of KL(π_start ‖ π_θ) on the minibatch (averaged over devices), π_start being
+    the policy before this iteration's SGD under the already updated normaliser: what the
+    epochs moved, as in brax (which updates its normaliser after the epochs for that reason);
+    the PPO ratio's ``approx_kl`` would also count the normaliser's move.  The iteration's first
+    minibatch, where π_θ = π_start and the KL is 0 by definition, leaves the lr alone."""
     n = batch.obs.shape[0]
     mb = n // cfg.num_minibatches
+    if kl_rule is not None:
+        dist = networks.parametric_action_distribution
+        logits = networks.policy_network.apply(normaliser, params.policy, batch.obs)
+        batch = batch._replace(kl_log_prob=jax.lax.stop_gradient(dist.log_prob(logits, batch.raw_action)))
+        start_count = opt_state[1].count  # optax.inject_hyperparams counts the updates
 
     def minibatch_step(carry: tuple[Params, optax.OptState], xs: tuple[Batch, jax.Array]):
         params, opt_state = carry
         minibatch, k = xs
         (_, metrics), grads = loss_and_grad(params, normaliser, minibatch, k, networks, cfg, axis_name)
         if kl_rule is not None:
-            kl = jax.lax.stop_gradient(metrics["approx_kl"])
-            lr = lr_schedule.kl_adaptive_lr(jnp, kl_rule, learning_rate_of(opt_state), kl)
-            opt_state = with_learning_rate(opt_state, lr)
+            lr = learning_rate_of(opt_state)
+            adapted = lr_schedule.kl_adaptive_lr(jnp, kl_rule, lr, metrics["step_kl"])
+            opt_state = with_learning_rate(opt_state, jnp.where(opt_state[1].count == start_count, lr, adapted))
         updates, opt_state = optimizer.update(grads, opt_state, params)
         metrics["grad_norm"] = optax.tree.norm(grads)
         return (optax.apply_updates(params, updates), opt_state), metrics
@@ -616,7 +632,8 @@ def make_cycle(env: Env, networks: PPONetworks, optimizer: optax.GradientTransfo
     sets ``lr[j]`` before iteration j, ``kl`` (kl-adaptive) adapts it after every minibatch.
     Each iteration appends its finished episodes to ``window`` (``init_window``).  Returns the
     new states and per-iteration metrics of shape [length]: ``executed`` marks the iterations
-    that ran; ``window`` holds the window means; ``learning_rate`` the optimizer's lr after it.
+    that ran; ``window`` holds the window means; ``learning_rate`` the optimizer's lr after it
+    (and under ``kl``, ``step_kl`` the mean KL its minibatches measured, see ``sgd_epochs``).
     """
     rep, shard = PartitionSpec(), PartitionSpec(BATCH_AXIS)
     mode = "fixed" if lr_rule is None else lr_rule.mode
@@ -628,7 +645,7 @@ def make_cycle(env: Env, networks: PPONetworks, optimizer: optax.GradientTransfo
         i32 = lambda: jnp.zeros((), jnp.int32)
         # the per-iteration outputs, spelled out so their buffers need no second trace of ``run``
         skipped = {**{k: f32() for k in (*CYCLE_METRICS, *RESET_STATS)}, "finite": jnp.zeros((), bool),
-                   "episodes_finished": i32(), "learning_rate": f32(),
+                   "episodes_finished": i32(), "learning_rate": f32(), **({"step_kl": f32()} if kl_rule else {}),
                    "window": {**{k: f32() for k in window["values"] if k != "steps"}, "episode_steps": f32(),
                               "steps_to_success": f32(), "window_episodes": i32()}}
 
@@ -643,6 +660,8 @@ def make_cycle(env: Env, networks: PPONetworks, optimizer: optax.GradientTransfo
             episodes = metrics["episodes"]
             out = {k: metrics[k].astype(jnp.float32) for k in CYCLE_METRICS}
             out["learning_rate"] = learning_rate_of(ts.opt_state).astype(jnp.float32)
+            if kl_rule is not None:  # the mean KL the kl-adaptive rule read over the iteration's minibatches
+                out["step_kl"] = metrics["step_kl"].astype(jnp.float32)
             out.update({name: jax.lax.psum(jnp.sum(episodes.get(name, jnp.zeros(()))), BATCH_AXIS).astype(jnp.float32)
                         for name in RESET_STATS})
             out["finite"] = metrics["finite"]
