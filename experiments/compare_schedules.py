@@ -408,6 +408,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     summary = {v: summarise(sorted(recs, key=lambda r: r["seed"])) for v, recs in records.items()}
     versus = compare_with_reference(summary)
     stem = os.path.splitext(args.out)[0]
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     written = [] if args.no_figures else figures(args, variants, seeds, stem)
     result = {
         "preset": args.preset, "total_steps": args.total_steps, "seeds": seeds, "eval_episodes": args.eval_episodes,

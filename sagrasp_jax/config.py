@@ -221,7 +221,7 @@ class SAConfig:
     eval_episodes: int = 128  # episodes of the fixed evaluation set that measures M each cycle
     eval_seed: int = 12345  # seed of that evaluation set (the same episodes every cycle)
     decay: float = 0.98  # lr ← max(lr·decay, lr_min) at a plateau (SA starts at ppo.learning_rate)
-    lr_min: float = 1e-6  # the learning rate's floor
+    lr_min: float = 1e-6  # the SA schedule's learning-rate floor
     # A cycle within this of the accepted metric is accepted outright.  Calibrated: on the fixed
     # 128-episode evaluation set the metric moves by ≈ 0.10 (std) from cycle to cycle of a run that is
     # still improving, so 0.05 rejected ≈ 40 % of cycles on noise; 0.2 (2 σ) rejects ≈ 5 %.

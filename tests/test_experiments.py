@@ -185,7 +185,7 @@ def test_bench_sb3_missing_interpreter_is_skipped(tmp_path: pytest.TempPathFacto
 
 
 def test_compare_schedules_smoke(tmp_path: pytest.TempPathFactory) -> None:
-    out, runs = str(tmp_path / "cmp.json"), str(tmp_path / "runs")
+    out, runs = str(tmp_path / "results" / "cmp.json"), str(tmp_path / "runs")  # results/ does not exist yet
     args = ["experiments/compare_schedules.py", "--preset", "cpu-quick", "--total-steps", "8192", "--seeds", "1",
             "--variants", "constant,sa", "--eval-episodes", "16", "--blocking-episodes", "8", "--out", out,
             "--runs-dir", runs, "--no-progress", *_sets(TINY_SETS)]
