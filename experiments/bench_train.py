@@ -131,12 +131,14 @@ def bench_profile(cfg: Any) -> dict[str, Any]:
     import numpy as np
     from brax.training.acme import running_statistics
 
-    from sagrasp_jax import collision, control, ppo, robot, train
+    from sagrasp_jax import collision, control, observation, ppo, robot, train
+    from sagrasp_jax.config import training_env_config
     from sagrasp_jax.env import GraspEnv
     from sagrasp_jax.wrappers import AutoReset
 
     n, t_len = cfg.ppo.num_envs, cfg.ppo.unroll_length
-    env = GraspEnv(cfg.env)
+    env = GraspEnv(training_env_config(cfg), privileged=cfg.ppo.privileged_critic)  # the training env
+    hand_scaled = env.hand_scaled_mask
     auto = AutoReset(env)
     rob = env.robot
     key = jax.random.PRNGKey(0)
@@ -181,20 +183,21 @@ def bench_profile(cfg: Any) -> dict[str, Any]:
         short_states, actions)  # past the synchronous start: resets spread as in training
     timed("env step + auto-reset (30-step episodes)", env_steps(short.batch_step), short_states, actions)
 
-    nets = ppo.make_networks(cfg.ppo.network, env.observation_size, env.action_size, cfg.ppo.obs_clip)
+    extra = observation.critic_extra_size(cfg)  # the privileged critic's inputs, as in training
+    nets = ppo.make_networks(cfg.ppo.network, env.observation_size, env.action_size, cfg.ppo.obs_clip, extra)
     opt = ppo.make_optimizer(cfg.ppo, 3e-4)
     ts = ppo.init_training_state(key, nets, opt, env.observation_size)
     obs = jax.random.normal(key, (t_len, n, env.observation_size))
     timed("policy forward + sampling", over_steps(
         lambda x, tr: ppo.sample_action(nets, tr.params, tr.normaliser, x[0], x[1])[:2]),
         (obs, jax.random.split(key, t_len)), ts)
-    data = ppo.Transition(obs=obs, raw_action=actions, log_prob=actions[..., 0], reward=actions[..., 1],
+    data = ppo.Transition(obs=obs, critic_extra=jax.random.normal(key, (t_len, n, extra)), raw_action=actions, log_prob=actions[..., 0], reward=actions[..., 1],
                           done=(actions[..., 2] > 0.9).astype(jnp.float32))
 
     def gae(tr: Any, d: Any) -> Any:
-        norm = running_statistics.update(tr.normaliser, d.obs, std_min_value=cfg.ppo.obs_std_floor)
+        norm = ppo.update_normaliser(tr.normaliser, d.obs, cfg.ppo, hand_scaled)
         entropy = ppo.mean_policy_entropy(nets, tr.params, tr.normaliser, d.obs)
-        return ppo.make_batch(nets, tr.params, norm, d, d.obs[-1], cfg.ppo), entropy
+        return ppo.make_batch(nets, tr.params, norm, d, d.obs[-1], cfg.ppo, d.critic_extra[-1]), entropy
 
     timed("normaliser + entropy + value net + GAE", gae, ts, data)
     batch = jax.jit(gae)(ts, data)[0]

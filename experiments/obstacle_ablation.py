@@ -55,6 +55,7 @@ LEVERS: dict[str, tuple[list[str], list[str]]] = {  # name -> (off, on) override
     "critic": (["ppo.privileged_critic=false"], ["ppo.privileged_critic=true"]),
 }
 RESULT_FILE = "ablation_eval.json"
+LEARNED = 50.0  # % overall success: below it a run never learned to grasp (hovering near the cube, timeouts)
 
 
 def variants(leave_one_out: bool) -> dict[str, set[str]]:
@@ -155,6 +156,11 @@ def summarise(records: list[dict[str, Any]]) -> dict[str, Any]:
             hits.setdefault(kind, []).append(100.0 * rate)
     out["collision_by_in_obstacle_episodes"] = {k: mean_ci(v) for k, v in hits.items()}
     out["per_seed"] = [{"seed": r["seed"], **{k: v[i] for k, v in metrics.items()}} for i, r in enumerate(records)]
+    # a run that never learned to grasp drags every mean down; say how many did, and how the others fared
+    learned = [i for i, v in enumerate(metrics["success_overall"]) if v is not None and v >= LEARNED]
+    out["runs_learned"] = {"learned": len(learned), "runs": len(records), "threshold_pct": LEARNED}
+    out["learned_only"] = {k: mean_ci([metrics[k][i] for i in learned]) for k in
+                           ("success_overall", "success_obstacle", "success_blocking_scenes", "steps_per_success")}
     return out
 
 
@@ -172,6 +178,13 @@ def markdown(summary: dict[str, dict[str, Any]]) -> str:
     lines = ["| variant | " + " | ".join(c[1] for c in cols) + " |", "|---" * (len(cols) + 1) + "|"]
     for name, s in summary.items():
         lines.append(f"| {name} | " + " | ".join(_cell(s[k]) for k, _ in cols) + " |")
+    lines += ["", f"Runs that learned to grasp (overall success ≥ {LEARNED:.0f} %), and their means:", "",
+              "| variant | learned | overall % | obstacle % | blocking scenes % | steps/success |", "|---" * 6 + "|"]
+    for name, s in summary.items():
+        lo, n = s["learned_only"], s["runs_learned"]
+        lines.append(f"| {name} | {n['learned']} of {n['runs']} | " + " | ".join(
+            _cell(lo[k]) for k in ("success_overall", "success_obstacle", "success_blocking_scenes", "steps_per_success"))
+            + " |")
     hit_kinds = sorted({k for s in summary.values() for k in s["collision_by_in_obstacle_episodes"]})
     lines += ["", "Collisions in obstacle episodes of the evaluation mix, by what was hit (% of those episodes):", "",
               "| variant | " + " | ".join(hit_kinds) + " |", "|---" * (len(hit_kinds) + 1) + "|"]

@@ -209,3 +209,40 @@ def test_compare_schedules_smoke(tmp_path: pytest.TempPathFactory) -> None:
     again = _run(args)
     assert again.returncode == 0, again.stderr[-3000:]
     assert again.stdout.count("done already, skipped") == 2
+
+
+# ---------------------------------------------------------------------- obstacle ablation
+
+def _ablation_record(seed: int, overall: float, obstacle: float, blocking: float) -> dict:
+    group = lambda rate, n=100: {"episodes": n, "success_rate": rate, "collision_rate": 1.0 - rate,  # noqa: E731
+                                 "mean_steps_per_success": 24.0, "collision_by": {"obstacle": 1.0 - rate}}
+    blind = {"seeing_minus_blind": 0.1}
+    return {"seed": seed, "mix": {"overall": group(overall), "obstacle_present": group(obstacle),
+                                  "blocking": group(blocking, 10), "obstacle_absent": group(overall)},
+            "blocking_scenes": {"blocking": group(blocking)}, "blind": {"obstacle": blind, "blocking": blind},
+            "train_time_s": 100.0}
+
+
+def test_obstacle_ablation_variants_and_overrides() -> None:
+    import obstacle_ablation as ab
+
+    names = ab.variants(leave_one_out=True)
+    assert names["base"] == set() and names["all"] == set(ab.LEVERS) and names["+mix"] == {"mix"}
+    assert names["all-critic"] == set(ab.LEVERS) - {"critic"} and len(names) == 2 + 2 * len(ab.LEVERS)
+    on = ab.overrides_for({"layout"})
+    assert "env.task.obs_layout=relative" in on and "env.reward.near_miss_mode=per_step" in on
+    assert len(on) == sum(len(ab.LEVERS[k][1]) for k in ab.LEVERS)  # every lever pinned, on or off
+
+
+def test_obstacle_ablation_summary_counts_runs_that_never_learned() -> None:
+    import obstacle_ablation as ab
+
+    records = [_ablation_record(0, 0.98, 0.90, 0.80), _ablation_record(1, 0.004, 0.02, 0.04),
+               _ablation_record(2, 0.96, 0.86, 0.70)]
+    s = ab.summarise(records)
+    assert s["success_overall"]["mean"] == pytest.approx((98.0 + 0.4 + 96.0) / 3)
+    assert s["runs_learned"] == {"learned": 2, "runs": 3, "threshold_pct": ab.LEARNED}
+    assert s["learned_only"]["success_obstacle"]["mean"] == pytest.approx(88.0)  # seed 1 (hovering) left out
+    assert s["collision_by_in_obstacle_episodes"]["obstacle"]["mean"] == pytest.approx((10 + 98 + 14) / 3)
+    table = ab.markdown({"v": s})
+    assert "| v | 2 of 3 | 97.0" in table
