@@ -70,30 +70,48 @@ def overrides_for(on: set[str]) -> list[str]:
     return [item for lever, (off, on_sets) in LEVERS.items() for item in (on_sets if lever in on else off)]
 
 
+def finished_record(out: str, cfg: Any, result_file: str, wanted: dict[str, Any], tag: str) -> dict[str, Any] | None:
+    """The run's saved result record if it exists and was made with ``wanted`` (e.g. the same episode
+    counts) by a run of ``cfg`` (another config is refused), else None."""
+    result_path = os.path.join(out, result_file)
+    if not os.path.isfile(result_path):
+        return None
+    check_same_config(out, cfg)
+    with open(result_path, encoding="utf-8") as f:
+        done = json.load(f)
+    if all(done.get(k) == v for k, v in wanted.items()):
+        print(f"{tag}: done already, skipped", flush=True)
+        return done
+    return None
+
+
+def ensure_trained(out: str, cfg: Any, tag: str, progress: bool) -> float | None:
+    """Bring the run folder ``out`` to a finished training of ``cfg`` (``train.run``, in process): skip a
+    finished one, resume one with a checkpoint, restart one killed before its first checkpoint; a folder
+    trained with another config is refused.  Returns this call's training wall time (None: was finished)."""
+    if os.path.isdir(out) and os.listdir(out):
+        check_same_config(out, cfg)
+    if os.path.isfile(os.path.join(out, train.POLICY_FILE)):
+        return None
+    resume = os.path.isfile(os.path.join(out, train.CHECKPOINT_FILE))
+    if os.path.isdir(out) and not resume:
+        shutil.rmtree(out)  # killed before its first checkpoint
+    print(f"{tag}: {'resuming' if resume else 'training'} {cfg.train.total_steps:,} env steps -> {out}", flush=True)
+    t = time.perf_counter()
+    train.run(cfg, out, resume=resume, progress=progress)
+    return time.perf_counter() - t
+
+
 def run_one(name: str, on: set[str], seed: int, args: argparse.Namespace, tag: str) -> dict[str, Any]:
     """Train (or resume / skip) one run and evaluate it; returns its result record."""
     out = os.path.join(args.runs_dir, f"{name}-s{seed}")
     cfg = train.build_config(args.preset, args.algo, seed, args.total_steps, overrides_for(on) + args.overrides)
     result_path = os.path.join(out, RESULT_FILE)
-    if os.path.isfile(result_path):
-        check_same_config(out, cfg)
-        with open(result_path, encoding="utf-8") as f:
-            done = json.load(f)
-        if done.get("eval_episodes") == args.eval_episodes and done.get("blind_episodes") == args.blind_episodes:
-            print(f"{tag}: done already, skipped", flush=True)
-            return done
-    if os.path.isdir(out) and os.listdir(out):
-        check_same_config(out, cfg)
-    finished = os.path.isfile(os.path.join(out, train.POLICY_FILE))
-    wall = None
-    if not finished:
-        resume = os.path.isfile(os.path.join(out, train.CHECKPOINT_FILE))
-        if os.path.isdir(out) and not resume:
-            shutil.rmtree(out)  # killed before its first checkpoint
-        print(f"{tag}: {'resuming' if resume else 'training'} {args.total_steps:,} env steps -> {out}", flush=True)
-        t = time.perf_counter()
-        train.run(cfg, out, resume=resume, progress=not args.no_progress)
-        wall = time.perf_counter() - t
+    done = finished_record(out, cfg, RESULT_FILE, {"eval_episodes": args.eval_episodes,
+                                                   "blind_episodes": args.blind_episodes}, tag)
+    if done is not None:
+        return done
+    wall = ensure_trained(out, cfg, tag, not args.no_progress)
     print(f"{tag}: evaluating", flush=True)
     mix = evaluate.evaluate_run(out, args.eval_episodes)
     blocking = evaluate.evaluate_run(out, args.eval_episodes, scenes="blocking")

@@ -40,7 +40,7 @@ import numpy as np
 
 from sagrasp_jax import evaluate, fileio, train
 from sagrasp_jax.checkpoint import CheckpointError
-from sagrasp_jax.config import ConfigError, config_to_dict
+from sagrasp_jax.config import ConfigError, config_from_dict, config_to_dict
 
 ALGOS = ("ppo", "sa-ppo")
 LABELS = {"ppo": "PPO", "sa-ppo": "SA-PPO"}
@@ -120,6 +120,10 @@ def check_same_config(out: str, cfg: Any) -> None:
     except (FileNotFoundError, json.JSONDecodeError) as exc:
         raise ReproduceError(f"{path}: unreadable run config ({exc}); delete {out} to retrain it") from None
     want = json.loads(json.dumps(config_to_dict(cfg)))
+    try:  # a config saved before a key was added or renamed means what config_from_dict makes of it
+        saved = json.loads(json.dumps(config_to_dict(config_from_dict(saved))))
+    except (ConfigError, TypeError, ValueError):
+        pass  # compared as written (and refused below)
     if saved != want:
         diffs = _dict_diff(saved, want)
         raise ReproduceError(f"{out} was trained with another config ({'; '.join(diffs[:5])}); "

@@ -180,7 +180,7 @@ class PPOConfig:
     entropy_coef: float = 0.0  # weight of the entropy bonus in the loss
     value_coef: float = 0.5  # weight of the value loss
     max_grad_norm: float = 0.5  # global gradient-norm clip
-    learning_rate: float = 3e-4  # Adam learning rate of plain PPO (--algo ppo); SA-PPO starts at sa.lr0
+    learning_rate: float = 3e-4  # initial Adam learning rate of every lr schedule (lr.schedule); constant under "constant"
     normalize_advantages: bool = True  # advantages to zero mean, unit std per minibatch
     obs_std_floor: float = 0.01  # the observation normaliser's std is floored at this (SPEC §2)
     obs_clip: float = 5.0  # normalised observations are clipped to ±this
@@ -191,19 +191,37 @@ class PPOConfig:
     network: NetworkConfig = field(default_factory=NetworkConfig)
 
 
+LR_SCHEDULES = ("constant", "sa", "kl-adaptive", "cosine", "linear")  # the names lr.schedule accepts (lr_schedule.py)
+
+
+@dataclass(frozen=True)
+class LRConfig:
+    """Learning-rate schedule (sagrasp_jax/lr_schedule.py, docs/design.md); every one starts at ppo.learning_rate."""
+
+    # "constant": the paper's PPO baseline (--algo ppo); "sa": SPEC §3's simulated-annealing plateau schedule, the
+    # sa.* keys (--algo sa-ppo, the default); "kl-adaptive": brax's / rsl_rl's rule, after every minibatch lr ÷
+    # kl_factor when its KL > 2·desired_kl, × kl_factor when KL < desired_kl / 2, kept in [kl_lr_min, kl_lr_max];
+    # "cosine" / "linear": from ppo.learning_rate at progress 0 to lr.final at progress 1 (env steps / budget)
+    schedule: str = "sa"
+    final: float = 1e-6  # cosine / linear: the learning rate at the end of the env-step budget (the paper's 1e-6 floor)
+    desired_kl: float = 0.01  # kl-adaptive: the target KL(old ‖ new policy) of a minibatch (brax / rsl_rl default)
+    kl_factor: float = 1.5  # kl-adaptive: the factor the lr is multiplied or divided by outside the KL band
+    kl_lr_min: float = 1e-5  # kl-adaptive: the lowest learning rate it may reach
+    kl_lr_max: float = 1e-2  # kl-adaptive: the highest learning rate it may reach
+
+
 @dataclass(frozen=True)
 class SAConfig:
-    """Simulated-annealing learning-rate plateau schedule (SPEC §3)."""
+    """Simulated-annealing learning-rate plateau schedule (SPEC §3).  The cycle and evaluation keys
+    (cycle_steps … eval_seed) set every schedule's evaluation cadence; the rest act under lr.schedule = sa."""
 
-    enabled: bool = True  # the SA learning-rate schedule; false = the paper's PPO baseline (--algo ppo)
     cycle_steps: int = 0  # env steps per cycle; 0 = total_steps / num_cycles
     num_cycles: int = 200  # SA cycles over the run when cycle_steps = 0
     metric: str = "return"  # cycle metric M: "return" (mean return with the p = 1 reward weights) | "success" (rate)
     eval_episodes: int = 128  # episodes of the fixed evaluation set that measures M each cycle
     eval_seed: int = 12345  # seed of that evaluation set (the same episodes every cycle)
-    lr0: float = 3e-4  # SA-PPO's initial learning rate
-    decay: float = 0.98  # lr ← max(lr·decay, lr_min) at a plateau
-    lr_min: float = 1e-6  # the learning rate's floor
+    decay: float = 0.98  # lr ← max(lr·decay, lr_min) at a plateau (SA starts at ppo.learning_rate)
+    lr_min: float = 1e-6  # the SA schedule's learning-rate floor
     # A cycle within this of the accepted metric is accepted outright.  Calibrated: on the fixed
     # 128-episode evaluation set the metric moves by ≈ 0.10 (std) from cycle to cycle of a run that is
     # still improving, so 0.05 rejected ≈ 40 % of cycles on noise; 0.2 (2 σ) rejects ≈ 5 %.
@@ -213,6 +231,11 @@ class SAConfig:
     max_rollbacks: int = 3  # rejections in a row before the learning rate decays
     t0: float = 0.1  # temperature scale T_0 of the Metropolis acceptance of a worse cycle
     kappa: float = 1.0  # κ: T = T_0·exp(κ·(H − H_0)/n_actions), H the policy entropy
+    # Ablation switches (docs/design.md, "SA ablation switches"); all true is SPEC §3.
+    metropolis: bool = True  # accept a worse cycle with probability exp(−ΔE/T); false: every worse cycle is rejected
+    rollback: bool = True  # a rejected cycle restores the snapshot; false: its updates are kept (still counted a reject)
+    plateau_decay: bool = True  # rule 3 decays the lr (stall or rejections in a row); false: only a non-finite step decays it
+    entropy_temperature: bool = True  # T follows the policy entropy (κ); false: T = T_0 throughout
 
 
 @dataclass(frozen=True)
@@ -232,6 +255,7 @@ class TrainConfig:
 class Config:
     env: EnvConfig = field(default_factory=EnvConfig)
     ppo: PPOConfig = field(default_factory=PPOConfig)
+    lr: LRConfig = field(default_factory=LRConfig)
     sa: SAConfig = field(default_factory=SAConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
 
@@ -353,6 +377,7 @@ _CHOICES = {
     "env.task.obstacle_geometry": ("fine", "cover"),
     "env.sampling.obstacle_kinds": shapes.NAMES,  # a tuple key: each entry
     "sa.metric": ("return", "success"),
+    "lr.schedule": LR_SCHEDULES,
     "ppo.network.activation": ("tanh", "relu", "silu", "elu"),
 }
 
@@ -443,11 +468,15 @@ _RANGES: dict[str, tuple[float | str, float]] = {
     "ppo.obs_clip": (">0", 1e6),
     "ppo.network.policy_hidden": (1, 65_536),
     "ppo.network.value_hidden": (1, 65_536),
+    "lr.final": (0.0, 1.0),
+    "lr.desired_kl": (">0", 100.0),
+    "lr.kl_factor": (">1", 100.0),
+    "lr.kl_lr_min": (">0", 1.0),
+    "lr.kl_lr_max": (">0", 1.0),
     "sa.cycle_steps": (0, _BIG),
     "sa.num_cycles": (1, 10**6),
     "sa.eval_episodes": (1, 100_000),  # evaluated in one batch
     "sa.eval_seed": SEED_RANGE,
-    "sa.lr0": (">0", 1.0),
     "sa.decay": (">0", 1.0),
     "sa.lr_min": (">0", 1.0),
     "sa.tol": (0.0, 1e6),
@@ -640,6 +669,8 @@ def valid_keys(cfg: Config | None = None) -> list[str]:
 def _set(obj: Any, path: list[str], text: str, full_key: str) -> Any:
     names = {f.name for f in dataclasses.fields(obj)}
     head = path[0]
+    if full_key in REMOVED_KEYS:
+        raise ConfigError(f"config key {full_key!r} was replaced by {REMOVED_KEYS[full_key]}")
     if head not in names:
         raise ConfigError(
             f"unknown config key {full_key!r}; valid keys: {', '.join(valid_keys())}"
@@ -680,7 +711,8 @@ def validate(cfg: Config) -> None:
     # What the ranges above cannot say: rules across keys and lengths (single values are in _RANGES)
     kinds = cfg.env.sampling.obstacle_kinds
     checks = [
-        ("sa.lr_min", cfg.sa.lr_min <= cfg.sa.lr0),
+        ("sa.lr_min", cfg.lr.schedule != "sa" or cfg.sa.lr_min <= cfg.ppo.learning_rate),  # SA starts above its floor
+        ("lr.kl_lr_min", cfg.lr.kl_lr_min <= cfg.lr.kl_lr_max),
         ("env.task.home_q", len(cfg.env.task.home_q) == 6),
         ("env.sampling.max_obstacles", cfg.env.sampling.max_obstacles == 2),  # the MJCF has two slots
         ("env.sampling.obstacle_kinds", 0 < len(set(kinds)) == len(kinds)),  # some, none twice
@@ -741,9 +773,36 @@ LEGACY_VALUES: dict[str, Any] = {
 }
 
 
+# Keys removed since the first release, with what replaced them (``apply_overrides`` names the new key;
+# ``upgrade_config_dict`` turns a saved config that has them into the same training).
+REMOVED_KEYS: dict[str, str] = {
+    "sa.enabled": "lr.schedule (sa or constant; or --algo / --lr-schedule)",
+    "sa.lr0": "ppo.learning_rate (the initial learning rate of every lr schedule)",
+}
+
+
+def _upgrade_lr_keys(out: dict[str, Any]) -> None:
+    """``sa.enabled`` / ``sa.lr0`` (before lr.schedule): SA ran from sa.lr0, plain PPO at ppo.learning_rate."""
+    sa = out.get("sa")
+    if not isinstance(sa, dict) or not ({"enabled", "lr0"} & set(sa)):
+        return
+    enabled = sa.pop("enabled", True)
+    lr0 = sa.pop("lr0", None)
+    if not isinstance(enabled, bool):
+        raise ConfigError(f"invalid value for sa.enabled in a saved config: {enabled!r} (expected true/false)")
+    lr = out.setdefault("lr", {})
+    if isinstance(lr, dict):
+        lr.setdefault("schedule", "sa" if enabled else "constant")
+    if enabled and lr0 is not None and isinstance(out.setdefault("ppo", {}), dict):
+        out["ppo"]["learning_rate"] = lr0
+
+
 def upgrade_config_dict(data: dict[str, Any]) -> dict[str, Any]:
-    """A saved config dict with every key added since it was written set to its legacy value."""
+    """A saved config dict with every key added since it was written set to its legacy value, and every
+    removed key replaced by what now means the same (``REMOVED_KEYS``)."""
     out = json.loads(json.dumps(data))
+    if isinstance(out, dict):
+        _upgrade_lr_keys(out)
     for key, value in LEGACY_VALUES.items():
         *sections, name = key.split(".")
         node = out

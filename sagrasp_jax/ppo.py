@@ -3,8 +3,10 @@
 brax 0.14.2's ``ppo.train`` does not run on jax >= 0.10, so the loop lives here; brax supplies
 only the networks, the tanh-Gaussian distribution and the running observation statistics.
 A PPO iteration (rollout, normaliser update, GAE, minibatch epochs) is a pure function;
-``make_cycle`` jits a ``lax.scan`` of several of them (a SA cycle's worth) so the host syncs
-once per cycle; the host sets the learning rate and the training progress between calls.
+``make_cycle`` jits a ``lax.while_loop`` of several of them (a cycle's worth) so the host syncs
+once per cycle; the host sets the training progress and the learning rate (per iteration, or
+between calls), or the ``kl-adaptive`` schedule adapts it after every minibatch
+(``sagrasp_jax.lr_schedule``).
 
 Data parallelism: the env batch is split over a 1-D ``Mesh`` of devices — the local ones, or
 every process's under ``jax.distributed`` — and params and optimizer state are replicated.
@@ -35,6 +37,7 @@ from brax.training.distribution import TanhBijector
 from flax import linen
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from sagrasp_jax import lr_schedule
 from sagrasp_jax.config import NetworkConfig, PPOConfig
 
 Normaliser = running_statistics.RunningStatisticsState
@@ -90,6 +93,9 @@ class Batch(NamedTuple):
     log_prob: jax.Array
     advantage: jax.Array
     target: jax.Array  # GAE return, the value target
+    # kl-adaptive only: log-probs of the actions under the iteration's pre-SGD policy and updated
+    # normaliser, the reference of the KL the lr rule reads (``sgd_epochs``); None otherwise
+    kl_log_prob: jax.Array | None = None
 
 
 class EvalResult(NamedTuple):
@@ -172,6 +178,19 @@ def init_training_state(key: jax.Array, networks: PPONetworks, optimizer: optax.
 
 def get_learning_rate(opt_state: optax.OptState) -> float:
     return float(opt_state[1].hyperparams["learning_rate"])
+
+
+def with_learning_rate(opt_state: optax.OptState, lr: jax.Array) -> optax.OptState:
+    """``set_learning_rate`` inside a traced function (``lr`` a traced scalar)."""
+    inject = opt_state[1]
+    old = inject.hyperparams["learning_rate"]
+    hyper = dict(inject.hyperparams, learning_rate=jnp.asarray(lr, dtype=old.dtype))
+    return (opt_state[0], inject._replace(hyperparams=hyper), *opt_state[2:])
+
+
+def learning_rate_of(opt_state: optax.OptState) -> jax.Array:
+    """The Adam lr in ``opt_state`` as an array (traceable)."""
+    return opt_state[1].hyperparams["learning_rate"]
 
 
 def set_learning_rate(opt_state: optax.OptState, lr: float) -> optax.OptState:
@@ -335,7 +354,7 @@ def ppo_loss(params: Params, normaliser: Normaliser, batch: Batch, key: jax.Arra
     value_loss = jnp.mean(jnp.square(batch.target - value))
     entropy = jnp.mean(tanh_gaussian_entropy(networks, logits, key, axis_name))
     total = policy_loss + cfg.value_coef * value_loss - cfg.entropy_coef * entropy
-    return total, {
+    metrics = {
         "loss": total,
         "policy_loss": policy_loss,
         "value_loss": value_loss,
@@ -343,6 +362,10 @@ def ppo_loss(params: Params, normaliser: Normaliser, batch: Batch, key: jax.Arra
         "approx_kl": jnp.mean((ratio - 1.0) - log_ratio),
         "clip_fraction": jnp.mean((jnp.abs(ratio - 1.0) > cfg.clip_eps).astype(jnp.float32)),
     }
+    if batch.kl_log_prob is not None:  # KL(π_start ‖ π_θ) of this iteration's SGD so far (k3 estimator)
+        step = jax.lax.stop_gradient(log_prob - batch.kl_log_prob)
+        metrics["step_kl"] = jnp.mean(jnp.expm1(step) - step)
+    return total, metrics
 
 
 def loss_and_grad(params: Params, normaliser: Normaliser, batch: Batch, key: jax.Array,
@@ -411,18 +434,35 @@ def make_batch(networks: PPONetworks, params: Params, normaliser: Normaliser, da
 
 def sgd_epochs(params: Params, opt_state: optax.OptState, normaliser: Normaliser, batch: Batch, key: jax.Array,
                networks: PPONetworks, optimizer: optax.GradientTransformation,
-               cfg: PPOConfig, axis_name: str | None = None) -> tuple[Params, optax.OptState, dict[str, jax.Array]]:
+               cfg: PPOConfig, axis_name: str | None = None,
+               kl_rule: lr_schedule.Rule | None = None) -> tuple[Params, optax.OptState, dict[str, jax.Array]]:
     """``num_epochs`` passes over the batch in ``num_minibatches`` shuffled minibatches.
 
     With ``axis_name`` each device shuffles its own share (a minibatch is the union of the
-    devices' minibatches) and the gradients are averaged over devices."""
+    devices' minibatches) and the gradients are averaged over devices.  With ``kl_rule`` (the
+    ``kl-adaptive`` schedule) each minibatch first adapts the lr to its KL, as brax does, then
+    takes its step.  The KL is ``step_kl``, the k3 estimate mean(e^s − 1 − s), s = log π_θ(a) −
+    log π_start(a), of KL(π_start ‖ π_θ) on the minibatch (averaged over devices), π_start being
+    the policy before this iteration's SGD under the already updated normaliser: what the
+    epochs moved, as in brax (which updates its normaliser after the epochs for that reason);
+    the PPO ratio's ``approx_kl`` would also count the normaliser's move.  The iteration's first
+    minibatch, where π_θ = π_start and the KL is 0 by definition, leaves the lr alone."""
     n = batch.obs.shape[0]
     mb = n // cfg.num_minibatches
+    if kl_rule is not None:
+        dist = networks.parametric_action_distribution
+        logits = networks.policy_network.apply(normaliser, params.policy, batch.obs)
+        batch = batch._replace(kl_log_prob=jax.lax.stop_gradient(dist.log_prob(logits, batch.raw_action)))
+        start_count = opt_state[1].count  # optax.inject_hyperparams counts the updates
 
     def minibatch_step(carry: tuple[Params, optax.OptState], xs: tuple[Batch, jax.Array]):
         params, opt_state = carry
         minibatch, k = xs
         (_, metrics), grads = loss_and_grad(params, normaliser, minibatch, k, networks, cfg, axis_name)
+        if kl_rule is not None:
+            lr = learning_rate_of(opt_state)
+            adapted = lr_schedule.kl_adaptive_lr(jnp, kl_rule, lr, metrics["step_kl"])
+            opt_state = with_learning_rate(opt_state, jnp.where(opt_state[1].count == start_count, lr, adapted))
         updates, opt_state = optimizer.update(grads, opt_state, params)
         metrics["grad_norm"] = optax.tree.norm(grads)
         return (optax.apply_updates(params, updates), opt_state), metrics
@@ -461,7 +501,7 @@ def update_normaliser(normaliser: Normaliser, obs: jax.Array, cfg: PPOConfig,
 def iteration(train_state: TrainingState, env_state: State, key: jax.Array, progress: jax.Array, *,
               env: Env, networks: PPONetworks, optimizer: optax.GradientTransformation,
               cfg: PPOConfig, axis_name: str | None = None, hand_scaled: np.ndarray | None = None,
-              critic_extra: int = 0) -> tuple[TrainingState, State, dict[str, Any]]:
+              critic_extra: int = 0, kl_rule: lr_schedule.Rule | None = None) -> tuple[TrainingState, State, dict[str, Any]]:
     """One PPO iteration; if the loss or new params are non-finite the old train state is kept.
 
     ``metrics["finite"]`` tells the host to count the rollback (the envs keep running).  With
@@ -477,7 +517,7 @@ def iteration(train_state: TrainingState, env_state: State, key: jax.Array, prog
     normaliser = update_normaliser(train_state.normaliser, data.obs, cfg, hand_scaled, axis_name)
     batch = make_batch(networks, params, normaliser, data, env_state.obs, cfg, critic_extra_of(env_state, critic_extra))
     new_params, opt_state, sgd_metrics = sgd_epochs(params, train_state.opt_state, normaliser, batch, k_sgd,
-                                                    networks, optimizer, cfg, axis_name)
+                                                    networks, optimizer, cfg, axis_name, kl_rule)
     new_state = TrainingState(params=new_params, opt_state=opt_state, normaliser=normaliser)
     finite = _all_finite(sgd_metrics["loss"]) & _all_finite(new_state)
     if axis_name is not None:  # every device must take the same branch
@@ -578,37 +618,50 @@ def update_window(window: dict[str, Any], episodes: dict[str, jax.Array]) -> tup
 # --------------------------------------------------------------------------- several iterations per call
 
 def make_cycle(env: Env, networks: PPONetworks, optimizer: optax.GradientTransformation, cfg: PPOConfig,
-               mesh: Mesh, length: int, hand_scaled: np.ndarray | None = None,
-               critic_extra: int = 0) -> Callable[..., tuple[TrainingState, State, dict[str, Any], dict[str, Any]]]:
+               mesh: Mesh, length: int, hand_scaled: np.ndarray | None = None, critic_extra: int = 0,
+               lr_rule: lr_schedule.Rule | None = None
+               ) -> Callable[..., tuple[TrainingState, State, dict[str, Any], dict[str, Any]]]:
     """Jitted run of up to ``length`` PPO iterations in one call (a ``lax.while_loop``), one host sync.
 
-    ``cycle(train_state, env_state, window, train_key, first, count, progress)`` runs iterations
-    ``first … first + count - 1`` (``count ≤ length``; iteration i uses ``fold_in(train_key, i)``
-    and ``progress[i - first]``), stopping after a non-finite one (its state is not kept, see
-    ``iteration``).  Each iteration appends its finished episodes to ``window``
-    (``init_window``).  Returns the new states and per-iteration metrics of shape [length]:
-    ``executed`` marks the iterations that ran; ``window`` holds the window means.
+    ``cycle(train_state, env_state, window, train_key, first, count, progress, lr)`` runs iterations
+    ``first … first + count - 1`` (``count ≤ length``; iteration i uses ``fold_in(train_key, i)``,
+    ``progress[i - first]`` and, under a ``per_iteration`` lr schedule, ``lr[i - first]``),
+    stopping after a non-finite one (its state is not kept, see ``iteration``).  ``lr_rule``
+    (``lr_schedule.Rule``; default: the host's lr) says how the lr moves inside the call:
+    ``fixed`` (constant, sa) keeps the optimizer state's, ``per_iteration`` (cosine, linear)
+    sets ``lr[j]`` before iteration j, ``kl`` (kl-adaptive) adapts it after every minibatch.
+    Each iteration appends its finished episodes to ``window`` (``init_window``).  Returns the
+    new states and per-iteration metrics of shape [length]: ``executed`` marks the iterations
+    that ran; ``window`` holds the window means; ``learning_rate`` the optimizer's lr after it
+    (and under ``kl``, ``step_kl`` the mean KL its minibatches measured, see ``sgd_epochs``).
     """
     rep, shard = PartitionSpec(), PartitionSpec(BATCH_AXIS)
+    mode = "fixed" if lr_rule is None else lr_rule.mode
+    kl_rule = lr_rule if mode == "kl" else None
 
     def local(train_state: TrainingState, env_state: State, window: dict[str, Any], train_key: jax.Array,
-              first: jax.Array, count: jax.Array, progress: jax.Array):
+              first: jax.Array, count: jax.Array, progress: jax.Array, lr: jax.Array):
         f32 = lambda: jnp.zeros((), jnp.float32)
         i32 = lambda: jnp.zeros((), jnp.int32)
         # the per-iteration outputs, spelled out so their buffers need no second trace of ``run``
         skipped = {**{k: f32() for k in (*CYCLE_METRICS, *RESET_STATS)}, "finite": jnp.zeros((), bool),
-                   "episodes_finished": i32(),
+                   "episodes_finished": i32(), "learning_rate": f32(), **({"step_kl": f32()} if kl_rule else {}),
                    "window": {**{k: f32() for k in window["values"] if k != "steps"}, "episode_steps": f32(),
                               "steps_to_success": f32(), "window_episodes": i32()}}
 
         def run(carry: tuple[TrainingState, State, dict[str, Any]], j: jax.Array):
             ts, es, win = carry
             key = jax.random.fold_in(train_key, first + j)
+            if mode == "per_iteration":
+                ts = ts._replace(opt_state=with_learning_rate(ts.opt_state, lr[j]))
             ts, es, metrics = iteration(ts, es, key, progress[j], env=env, networks=networks, optimizer=optimizer,
                                         cfg=cfg, axis_name=BATCH_AXIS, hand_scaled=hand_scaled,
-                                        critic_extra=critic_extra)
+                                        critic_extra=critic_extra, kl_rule=kl_rule)
             episodes = metrics["episodes"]
             out = {k: metrics[k].astype(jnp.float32) for k in CYCLE_METRICS}
+            out["learning_rate"] = learning_rate_of(ts.opt_state).astype(jnp.float32)
+            if kl_rule is not None:  # the mean KL the kl-adaptive rule read over the iteration's minibatches
+                out["step_kl"] = metrics["step_kl"].astype(jnp.float32)
             out.update({name: jax.lax.psum(jnp.sum(episodes.get(name, jnp.zeros(()))), BATCH_AXIS).astype(jnp.float32)
                         for name in RESET_STATS})
             out["finite"] = metrics["finite"]
@@ -633,7 +686,7 @@ def make_cycle(env: Env, networks: PPONetworks, optimizer: optax.GradientTransfo
         outs["executed"] = jnp.arange(length) < ran
         return ts, es, win, outs
 
-    return jax.jit(_sharded(local, mesh, (rep, shard, rep, rep, rep, rep, rep), (rep, shard, rep, rep)))
+    return jax.jit(_sharded(local, mesh, (rep, shard, rep, rep, rep, rep, rep, rep), (rep, shard, rep, rep)))
 
 
 def make_reset(env: Env, mesh: Mesh) -> Callable[[jax.Array], State]:

@@ -300,7 +300,7 @@ def restore_policy(cfg: Config, ckpt: checkpoint.Checkpoint, obs_size: int,
     """Params and normaliser from a loaded checkpoint (structure, shapes and dtypes checked)."""
     networks = ppo.make_networks(cfg.ppo.network, obs_size, action_size, cfg.ppo.obs_clip,
                                  observation.critic_extra_size(cfg))
-    optimizer = ppo.make_optimizer(cfg.ppo, cfg.sa.lr0)
+    optimizer = ppo.make_optimizer(cfg.ppo, cfg.ppo.learning_rate)
     template = ppo.init_training_state(jax.random.PRNGKey(0), networks, optimizer, obs_size)
     ts = checkpoint.restore_tree(template, ckpt.trees.get("train_state", {}), "train_state", ckpt.path)
     return ts.params, ts.normaliser

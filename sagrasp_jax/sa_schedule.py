@@ -1,9 +1,9 @@
 """Simulated-annealing learning-rate plateau schedule of SA-PPO (SPEC §3).
 
-A small, pure, host-side state machine: the trainer calls :func:`update` once per
-*cycle* (never per PPO iteration) with the cycle's evaluation metric M and the mean
-policy entropy H, and gets back a new :class:`SAState` plus a :class:`Decision` that
-tells it what to do with its parameters:
+A small, pure, host-side state machine (the ``sa`` schedule of ``sagrasp_jax.lr_schedule``,
+which hands it the trainer's calls): :func:`update` runs once per *cycle* (never per PPO
+iteration) with the cycle's evaluation metric M and the mean policy entropy H, and returns a
+new :class:`SAState` plus a :class:`Decision` that says what to do with the parameters:
 
 * ``"accept"`` / ``"accept-worse"``: take a snapshot (params, optimizer state,
   observation normaliser); ``state.snapshot_id`` names it.
@@ -12,21 +12,23 @@ tells it what to do with its parameters:
 * ``decision.decayed``: set the optimizer learning rate to ``decision.new_lr``.
 
 Nothing here is jitted or imports jax: it runs once per cycle, and keeping it plain
-Python makes it trivially deterministic and checkpointable (``to_dict`` /
-``from_dict`` are JSON-safe).  Randomness enters only through the explicit ``rng``
+Python makes it trivially deterministic and checkpointable (a NamedTuple, like brax's
+training states; ``to_dict`` / ``from_dict`` are JSON-safe).  Randomness enters only through the explicit ``rng``
 argument of :func:`update`, which consumes exactly one uniform draw per call so a
 resumed run stays in step with an uninterrupted one.
 
 Snapshot id 0 means "the initial parameters": the trainer should snapshot them before
 the first cycle so that a reject before the first accepted evaluation (only possible
 through a non-finite metric or loss) has something to restore.
+
+The ablation switches of ``SAConfig`` (``metropolis``, ``plateau_decay``,
+``entropy_temperature``) act here; ``rollback`` acts in the trainer (a reject is still a
+reject here, the trainer just keeps its parameters).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import math
-from dataclasses import dataclass
 from typing import Any, Literal, NamedTuple
 
 import numpy as np
@@ -39,8 +41,7 @@ DecisionKind = Literal["accept", "accept-worse", "reject"]
 _HALF_LOG_2PI_E = 0.5 * math.log(2.0 * math.pi * math.e)
 
 
-@dataclass(frozen=True)
-class SAState:
+class SAState(NamedTuple):
     """Everything the schedule carries between cycles (goes into checkpoints).
 
     ``best_m`` is the reference for stall detection: it moves only when an accepted
@@ -64,12 +65,12 @@ class SAState:
 
     def to_dict(self) -> dict[str, Any]:
         """Plain-JSON dict (no NaN: unset values are None)."""
-        return dataclasses.asdict(self)
+        return dict(self._asdict())
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> SAState:
         """Inverse of :meth:`to_dict`; refuses unknown or missing keys so a stale checkpoint fails loudly."""
-        names = {f.name for f in dataclasses.fields(cls)}
+        names = set(cls._fields)
         unknown = set(data) - names
         missing = names - set(data)
         if unknown or missing:
@@ -102,9 +103,10 @@ class Decision(NamedTuple):
     accept_prob: float  # probability with which this outcome could be accepted
 
 
-def init(cfg: SAConfig, h0: float | None = None) -> SAState:
-    """Fresh schedule at lr0; ``h0`` may be given if the trainer measures the initial entropy itself."""
-    return SAState(lr=float(cfg.lr0), h0=None if h0 is None else float(h0))
+def init(lr0: float, h0: float | None = None) -> SAState:
+    """Fresh schedule at ``lr0`` (``ppo.learning_rate``); ``h0`` may be given if the trainer measures
+    the initial entropy itself."""
+    return SAState(lr=float(lr0), h0=None if h0 is None else float(h0))
 
 
 def gaussian_entropy(log_std: ArrayLike | None = None, *, std: ArrayLike | None = None) -> float:
@@ -130,8 +132,11 @@ def temperature(cfg: SAConfig, state: SAState, entropy: float, n_actions: int = 
     """T = T0·exp(κ·(H − H0)/n_actions): hot while the policy explores, cold as it converges.
 
     Before H0 is known (first call) H0 = H, so T = T0.  Dividing by n_actions makes κ a
-    per-dimension rate, independent of the action size.
+    per-dimension rate, independent of the action size.  With ``entropy_temperature`` off,
+    T = T0 always.
     """
+    if not cfg.entropy_temperature:
+        return float(cfg.t0)
     h = float(entropy)
     h0 = h if state.h0 is None else state.h0
     return float(cfg.t0 * math.exp(cfg.kappa * (h - h0) / n_actions))
@@ -156,22 +161,20 @@ def force_reject_and_decay(cfg: SAConfig, state: SAState) -> tuple[SAState, Deci
     The trainer calls this when a loss, gradient or parameter goes non-finite;
     :func:`update` calls it for a non-finite metric or entropy.  It ends the cycle (the
     trainer starts a fresh one from the restored snapshot) and resets both counters:
-    the lr just changed, so patience and the rollback count start over.  With SA off
-    (plain PPO) it still asks for a restore but keeps the lr constant.
+    the lr just changed, so patience and the rollback count start over.  It is an escape
+    hatch, not rule 3: it decays even with ``plateau_decay`` off.
     """
-    decay = cfg.enabled
-    lr = _decayed_lr(cfg, state.lr) if decay else state.lr
-    new = dataclasses.replace(
-        state,
+    lr = _decayed_lr(cfg, state.lr)
+    new = state._replace(
         lr=lr,
-        decays=state.decays + int(decay),
-        stall=0 if decay else state.stall,
-        rejections=0 if decay else state.rejections + 1,
+        decays=state.decays + 1,
+        stall=0,
+        rejections=0,
         n_reject=state.n_reject + 1,
         cycle=state.cycle + 1,
     )
     last_t = math.nan if state.temperature is None else state.temperature
-    return new, Decision("reject", decay, lr, last_t, math.nan, 0.0)
+    return new, Decision("reject", True, lr, last_t, math.nan, 0.0)
 
 
 def update(
@@ -187,42 +190,24 @@ def update(
     ``rng`` is a NumPy Generator (exactly one ``random()`` draw per call, used or not)
     or an already drawn uniform in [0, 1).  The first finite evaluation is always
     accepted.  A non-finite metric or entropy is a reject plus a forced decay.
+    ``cfg.metropolis`` off: a worse cycle is never accepted (probability 0; the draw is
+    still consumed); ``cfg.plateau_decay`` off: rule 3 never decays the lr (its counters
+    still count and reset as usual).
     """
     u = _uniform(rng)
     m = float(metric)
     h = float(entropy)
 
-    if not cfg.enabled:
-        # Plain PPO baseline: log the metric, keep every iterate, never touch the lr.
-        t = temperature(cfg, state, h, n_actions) if math.isfinite(h) else math.nan
-        finite = math.isfinite(m)
-        best = state.best_m
-        if finite and (best is None or m > best):
-            best = m
-        delta = state.m_acc - m if finite and state.m_acc is not None else math.nan
-        new = dataclasses.replace(
-            state,
-            m_acc=m if finite else state.m_acc,
-            best_m=best,
-            h0=h if state.h0 is None and math.isfinite(h) else state.h0,
-            temperature=t,
-            snapshot_id=state.snapshot_id + 1,
-            n_accept=state.n_accept + 1,
-            cycle=state.cycle + 1,
-        )
-        return new, Decision("accept", False, state.lr, t, delta, 1.0)
-
     if not (math.isfinite(m) and math.isfinite(h)):
         return force_reject_and_decay(cfg, state)
 
     h0 = h if state.h0 is None else state.h0
-    state = dataclasses.replace(state, h0=h0)
+    state = state._replace(h0=h0)
     t = temperature(cfg, state, h, n_actions)
 
     if state.m_acc is None:
         # First evaluation: nothing to compare with, so it defines the reference.
-        new = dataclasses.replace(
-            state,
+        new = state._replace(
             m_acc=m,
             best_m=m,
             stall=0,
@@ -254,7 +239,7 @@ def update(
             stall += 1
     else:
         # Rule 2: Metropolis; the stall counter grows whatever the draw says.
-        accept_prob = math.exp(-delta_e / t) if t > 0.0 else 0.0
+        accept_prob = math.exp(-delta_e / t) if cfg.metropolis and t > 0.0 else 0.0
         stall += 1
         if u < accept_prob:
             kind = "accept-worse"
@@ -270,15 +255,14 @@ def update(
     # Rule 3: at most one decay per cycle; reset whichever counter(s) triggered it.
     stall_fired = stall >= cfg.patience
     rollback_fired = rejections >= cfg.max_rollbacks
-    decayed = stall_fired or rollback_fired
+    decayed = cfg.plateau_decay and (stall_fired or rollback_fired)
     lr = _decayed_lr(cfg, state.lr) if decayed else state.lr
     if stall_fired:
         stall = 0
     if rollback_fired:
         rejections = 0
 
-    new = dataclasses.replace(
-        state,
+    new = state._replace(
         lr=lr,
         decays=state.decays + int(decayed),
         m_acc=m_acc,

@@ -2,7 +2,10 @@
 
 The loop is a handful of named steps on a :class:`Trainer`: ``run_iteration`` (one jitted PPO
 iteration: rollout + update), ``evaluate`` (fixed-seed deterministic episodes at p = 1),
-``anneal`` (the SA schedule, once per cycle, on the evaluation metric), ``save_checkpoint``.
+``anneal`` (the lr schedule's end of cycle, ``lr_schedule.end_cycle``: SA's decision on the
+evaluation metric), ``save_checkpoint``.  ``--algo sa-ppo`` / ``--algo ppo`` are
+``--lr-schedule sa`` / ``--lr-schedule constant``; ``--lr-schedule`` also takes kl-adaptive,
+cosine and linear.
 Everything that changes the numbers lives in jax arrays or in the checkpoint's host state,
 so a killed run resumed from its last checkpoint continues exactly as if uninterrupted.
 
@@ -31,16 +34,18 @@ from typing import Any, Callable, TextIO
 import jax
 import numpy as np
 
-from sagrasp_jax import checkpoint, distributed, observation, ppo, run_dir, sa_schedule
+from sagrasp_jax import checkpoint, distributed, lr_schedule, observation, ppo, run_dir, sa_schedule
 from sagrasp_jax.checkpoint import CheckpointError
 from sagrasp_jax.config import (
-    PRESETS, SEED_RANGE, Config, ConfigError, apply_overrides, check_range, get_config, training_env_config, validate,
+    LR_SCHEDULES, PRESETS, SEED_RANGE, Config, ConfigError, apply_overrides, check_range, get_config,
+    training_env_config, validate,
 )
 from sagrasp_jax.run_dir import (  # noqa: F401  (the run-folder names and readers, re-exported for callers)
     CHECKPOINT_FILE, CONFIG_FILE, METRICS_FILE, POLICY_FILE, TB_DIR, RunDirError, RunLogger, export_policy, read_metrics,
 )
 
 ALGOS = ("sa-ppo", "ppo")
+ALGO_SCHEDULES = {"sa-ppo": "sa", "ppo": "constant"}  # --algo is shorthand for these lr schedules
 # Row fields that depend on wall-clock time, not on the training maths.
 TIME_FIELDS = ("time_s", "steps_per_s", "compile_s", "compile_iteration_s", "compile_eval_s", "eval_s", "eta_s")
 
@@ -68,13 +73,20 @@ def default_envs(cfg: Config) -> tuple[ppo.Env, ppo.Env]:
     return AutoReset(GraspEnv(training_env_config(cfg), privileged=cfg.ppo.privileged_critic)), GraspEnv(cfg.env)
 
 
-def build_config(preset: str = "cpu-quick", algo: str = "sa-ppo", seed: int | None = None,
-                 total_steps: int | None = None, overrides: list[str] | None = None) -> Config:
-    """Preset + ``--algo`` + ``--seed`` + ``--total-steps`` + ``--set`` overrides, validated."""
-    if algo not in ALGOS:
+def build_config(preset: str = "cpu-quick", algo: str | None = None, seed: int | None = None,
+                 total_steps: int | None = None, overrides: list[str] | None = None,
+                 lr_schedule: str | None = None) -> Config:
+    """Preset + ``--algo`` or ``--lr-schedule`` + ``--seed`` + ``--total-steps`` + ``--set`` overrides,
+    validated.  ``algo`` is shorthand for a schedule (``ALGO_SCHEDULES``); giving both is refused
+    unless they agree; neither means ``sa``.  ``--set lr.schedule=…`` in ``overrides`` wins over both."""
+    if algo is not None and algo not in ALGOS:
         raise ConfigError(f"unknown algo {algo!r}; valid algos: {', '.join(ALGOS)}")
+    if lr_schedule is not None and lr_schedule not in LR_SCHEDULES:
+        raise ConfigError(f"unknown lr schedule {lr_schedule!r}; valid lr schedules: {', '.join(LR_SCHEDULES)}")
+    if algo is not None and lr_schedule is not None and ALGO_SCHEDULES[algo] != lr_schedule:
+        raise ConfigError(f"--algo {algo} means --lr-schedule {ALGO_SCHEDULES[algo]}, not {lr_schedule}; give one of them")
     cfg = get_config(preset)
-    sets = [f"sa.enabled={algo == 'sa-ppo'}"]
+    sets = [f"lr.schedule={lr_schedule or ALGO_SCHEDULES[algo or 'sa-ppo']}"]
     if seed is not None:
         sets.append(f"train.seed={seed}")
     if total_steps is not None:
@@ -158,10 +170,12 @@ class Trainer:
                               f"(GraspEnv(privileged=True)); the training env reports {provided}")
         self.networks = ppo.make_networks(cfg.ppo.network, self.obs_size, self.action_size, cfg.ppo.obs_clip,
                                           self.critic_extra)
-        self.optimizer = ppo.make_optimizer(cfg.ppo, cfg.sa.lr0 if cfg.sa.enabled else cfg.ppo.learning_rate)
+        self.rule = lr_schedule.rule_of(cfg)
+        self.optimizer = ppo.make_optimizer(cfg.ppo, cfg.ppo.learning_rate)
         self.hand_scaled = getattr(self.eval_env, "hand_scaled_mask", None)  # normaliser leaves these entries alone
         self._cycle = ppo.make_cycle(self.train_env, self.networks, self.optimizer, cfg.ppo, self.mesh,
-                                     self.schedule.iterations_per_cycle, self.hand_scaled, self.critic_extra)
+                                     self.schedule.iterations_per_cycle, self.hand_scaled, self.critic_extra,
+                                     self.rule)
         keys = ppo.eval_keys(cfg.sa.eval_seed, cfg.sa.eval_episodes)
         split = cfg.sa.eval_episodes % self.mesh.size == 0
         self.eval_keys = ppo.shard_batch(keys, self.mesh) if split else ppo.replicate(keys, self.mesh)
@@ -189,10 +203,7 @@ class Trainer:
         reset = ppo.make_reset(self.train_env, self.mesh)
         self.env_state = reset(ppo.shard_batch(jax.random.split(k_env, cfg.ppo.num_envs), self.mesh))
         self.train_key = ppo.replicate(k_train, self.mesh)
-        sa_state = sa_schedule.init(cfg.sa)
-        if not cfg.sa.enabled:
-            sa_state = dataclasses.replace(sa_state, lr=cfg.ppo.learning_rate)
-        self.sa_state = sa_state
+        self.lr_state = lr_schedule.init(self.rule)
         self.sa_rng = np.random.default_rng([cfg.train.seed, 0x5A])
         self.host = HostState()
         self.window = ppo.replicate(ppo.init_window(self.window_keys, cfg.train.metrics_window), self.mesh)
@@ -205,7 +216,7 @@ class Trainer:
         """Atomically write everything an exact resume needs (under jax.distributed every process
         gathers, process 0 writes)."""
         path = os.path.join(self.out_dir, CHECKPOINT_FILE)
-        host = {"counters": dataclasses.asdict(self.host), "sa_state": self.sa_state.to_dict(),
+        host = {"counters": dataclasses.asdict(self.host), "lr_state": self.lr_state.to_dict(),
                 "sa_rng": self.sa_rng.bit_generator.state}
         trees = ppo.to_host(self._trees())
         if self.primary:
@@ -218,7 +229,12 @@ class Trainer:
         try:
             host = ckpt.host
             counters = HostState(**host["counters"])
-            sa_state = sa_schedule.SAState.from_dict(host["sa_state"])
+            if "lr_state" in host:
+                lr_state = lr_schedule.ScheduleState.from_dict(host["lr_state"])
+            else:  # written before lr schedules: SA's state machine served plain PPO too
+                lr_state = lr_schedule.from_legacy(host["sa_state"], self.rule.name)
+            if (lr_state.sa is None) != (self.rule.name != "sa"):
+                raise ValueError(f"its lr-schedule state does not fit lr.schedule={self.rule.name}")
             rng = np.random.default_rng()
             rng.bit_generator.state = host["sa_rng"]
         except (KeyError, TypeError, ValueError) as exc:
@@ -230,11 +246,17 @@ class Trainer:
         self.env_state = ppo.shard_batch(trees["env_state"], self.mesh)
         self.train_key = ppo.replicate(trees["train_key"], self.mesh)
         self.window = ppo.replicate(trees["episode_window"], self.mesh)
-        self.host, self.sa_state, self.sa_rng = counters, sa_state, rng
+        self.host, self.lr_state, self.sa_rng = counters, lr_state, rng
 
     @property
     def lr(self) -> float:
-        return self.sa_state.lr
+        """The learning rate the next iteration starts from."""
+        return self.lr_state.lr
+
+    @property
+    def sa_state(self) -> sa_schedule.SAState | None:
+        """The SA state machine's state (``lr.schedule = sa``; None under the other schedules)."""
+        return self.lr_state.sa
 
     def _apply_lr(self) -> None:
         """Make the optimizer state's lr the schedule's (after a decay or a restore)."""
@@ -246,11 +268,16 @@ class Trainer:
 
     def _cycle_args(self, count: int) -> tuple[Any, ...]:
         """Arguments of the jitted call running iterations ``host.iteration …`` (+ ``count``)."""
-        first, spi = self.host.iteration, self.schedule.steps_per_iteration
-        progress = np.array([min(1.0, (first + j) * spi / self.cfg.train.total_steps)
-                             for j in range(self.schedule.iterations_per_cycle)], np.float32)
-        scalars = ppo.replicate((np.int32(first), np.int32(count), progress), self.mesh)
+        first = self.host.iteration
+        progress = np.array([self._progress(first + j) for j in range(self.schedule.iterations_per_cycle)], np.float32)
+        lrs = lr_schedule.iteration_lrs(self.rule, self.lr_state, progress)
+        scalars = ppo.replicate((np.int32(first), np.int32(count), progress, lrs), self.mesh)
         return (self.train_state, self.env_state, self.window, self.train_key, *scalars)
+
+    def _progress(self, iteration: int) -> float:
+        """Training progress p at the start of iteration ``iteration`` (the reward weights and the
+        cosine / linear lr read it)."""
+        return min(1.0, iteration * self.schedule.steps_per_iteration / self.cfg.train.total_steps)
 
     def compile(self) -> dict[str, float]:
         """Compile the training call and the evaluation ahead of time, timing each."""
@@ -283,6 +310,7 @@ class Trainer:
         self.env_state, self.window = env_state, window
         means, finite = metrics.pop("window"), metrics.pop("finite")
         ran = int(metrics.pop("executed").sum())
+        device_lr = metrics.pop("learning_rate")
         rows: list[dict[str, Any]] = []
         for j in range(ran):
             progress = self.host.env_steps / total
@@ -293,15 +321,23 @@ class Trainer:
                                    "episodes_finished": int(metrics["episodes_finished"][j])}
             row.update({k: float(v[j]) for k, v in metrics.items() if k != "episodes_finished"})
             row.update(self._window_row(means, j))
+            if self.rule.mode == "kl":  # the lr after this iteration: what the next one starts from
+                row["lr"] = float(device_lr[j])
+            elif self.rule.mode == "per_iteration":
+                row["lr"] = float(lr_schedule.progress_lr(np, self.rule, np.float32(self._progress(first + j + 1))))
             if finite[j]:
                 self.host.entropy_sum += float(metrics["entropy"][j])
                 self.host.entropy_n += 1
             rows.append(row)
         if finite[ran - 1]:
             self.train_state = ts
+            self.lr_state = lr_schedule.observe(self.rule, self.lr_state, device_lr=float(device_lr[ran - 1]),
+                                                progress=self._progress(self.host.iteration))
         else:
             self.host.nonfinite += 1
-            self.sa_state, decision = sa_schedule.force_reject_and_decay(self.cfg.sa, self.sa_state)
+            self.lr_state, decision = lr_schedule.nonfinite(
+                self.rule, self.cfg.sa, self.lr_state, snapshot_lr=ppo.get_learning_rate(self.snapshot.opt_state),
+                progress=self._progress(self.host.iteration))
             self.train_state = self.snapshot
             self._apply_lr()
             self._start_cycle()
@@ -328,13 +364,14 @@ class Trainer:
         ts = self.train_state
         return ppo.to_host(self._compiled_eval(ts.params, ts.normaliser, self.eval_keys))
 
-    def anneal(self, metric: float, entropy: float) -> sa_schedule.Decision:
-        """SA decision for the cycle: accept → snapshot, reject → restore the snapshot; set the lr."""
-        self.sa_state, decision = sa_schedule.update(self.cfg.sa, self.sa_state, metric, entropy, self.sa_rng,
-                                                     n_actions=self.action_size)
-        if decision.kind == "reject":
+    def anneal(self, metric: float, entropy: float) -> lr_schedule.Decision:
+        """The lr schedule's end of cycle: accept → snapshot, reject → restore the snapshot (unless
+        ``sa.rollback`` is off: then keep going from the current parameters); set the lr."""
+        self.lr_state, decision = lr_schedule.end_cycle(self.rule, self.cfg.sa, self.lr_state, metric, entropy,
+                                                        self.sa_rng, n_actions=self.action_size)
+        if decision.restore:
             self.train_state = self.snapshot
-        else:
+        elif decision.kind != "reject":
             self.snapshot = self.train_state
         self._apply_lr()
         return decision
@@ -356,16 +393,22 @@ class Trainer:
         entropy = self.host.entropy_sum / max(self.host.entropy_n, 1)
         decision = self.anneal(metric, entropy)
         self._start_cycle()
-        counts = self.sa_state
-        return {
-            "cycle": counts.cycle, "eval_s": eval_s, "eval_return": float(ev.mean_return),
+        state = self.lr_state
+        row = {
+            "cycle": state.cycle, "eval_s": eval_s, "eval_return": float(ev.mean_return),
             "eval_success": float(ev.success_rate), "eval_steps_to_success": float(ev.steps_to_success),
             "eval_collision": float(ev.collision_rate), "eval_timeout": float(ev.timeout_rate),
             "sa_metric": metric, "cycle_entropy": entropy, "sa_decision": decision.kind,
-            "sa_decayed": decision.decayed, "sa_delta_e": decision.delta_e, "sa_accept_prob": decision.accept_prob,
-            "temperature": decision.temperature, "sa_accepts": counts.n_accept,
-            "sa_accept_worse": counts.n_accept_worse, "sa_rejects": counts.n_reject, "sa_decays": counts.decays,
+            "sa_decayed": decision.decayed, "rollbacks": state.rollbacks,
         }
+        sa = state.sa
+        if sa is None:  # every cycle kept but those rolled back for a non-finite step
+            row.update(sa_accepts=state.cycle - state.rollbacks, sa_rejects=state.rollbacks)
+        else:
+            row.update(sa_delta_e=decision.delta_e, sa_accept_prob=decision.accept_prob,
+                       temperature=decision.temperature, sa_accepts=sa.n_accept, sa_accept_worse=sa.n_accept_worse,
+                       sa_rejects=sa.n_reject, sa_decays=sa.decays)
+        return row
 
     # ------------------------------------------------------------------ run
 
@@ -391,7 +434,8 @@ class Trainer:
                       f"{sched.num_cycles} cycles of <= {sched.iterations_per_cycle}, {self.mesh.size} device(s)")
         try:
             while self.host.iteration < sched.num_iterations:
-                lr, temperature = self.lr, self.sa_state.temperature  # during this call
+                lr = self.lr  # during this call (fixed-lr schedules)
+                temperature = None if self.sa_state is None else self.sa_state.temperature
                 t_call = time.perf_counter()
                 end = sched.cycle_end(self.host.iteration)
                 rows = self.run_iterations(end - self.host.iteration)
@@ -402,8 +446,9 @@ class Trainer:
                 t_end = time.perf_counter()
                 for j, row in enumerate(rows):
                     last = j == len(rows) - 1
-                    row["lr"] = self.lr if last else lr
-                    row.setdefault("temperature", self.sa_state.temperature if last else temperature)
+                    row["lr"] = self.lr if last else row.get("lr", lr)  # the lr after the row's iteration
+                    if self.sa_state is not None:
+                        row.setdefault("temperature", self.sa_state.temperature if last else temperature)
                     elapsed = (t_end if last else t_call + (j + 1) / len(rows) * (t_run - t_call)) - t_start
                     done = row["iteration"] + 1
                     rate = (done * sched.steps_per_iteration - start_steps) / max(elapsed, 1e-9)
@@ -423,7 +468,7 @@ class Trainer:
                             bar.write(f"iteration {row['iteration']}: non-finite loss/params -> rolled back to the "
                                       f"snapshot, lr {self.lr:.3g}")
                 last_row = rows[-1]
-                cycles = self.sa_state.cycle
+                cycles = self.lr_state.cycle
                 finished = self.host.iteration >= sched.num_iterations
                 stop = cycle_ended and stop_after_cycles is not None and cycles >= stop_after_cycles
                 if finished or stop or (cycle_ended and cycles % self.cfg.train.checkpoint_every_cycles == 0):
@@ -446,7 +491,8 @@ class Trainer:
         """One line for the end of a run: speed, compile time, SA counts, last evaluation."""
         sa = self.sa_state
         schedule = (f"SA accept {sa.n_accept}, accept-worse {sa.n_accept_worse}, reject {sa.n_reject}, "
-                    f"decays {sa.decays}, lr {sa.lr:.3g}" if self.cfg.sa.enabled else f"constant lr {self.lr:.3g} (PPO)")
+                    f"decays {sa.decays}, lr {sa.lr:.3g}" if sa is not None else
+                    f"{self.rule.name} lr schedule, lr {self.lr:.3g}" + (" (PPO)" if self.rule.name == "constant" else ""))
         return (f"{steps:,} env steps this session, {row['time_s']:.1f} s training ({steps / max(row['time_s'], 1e-9):,.0f} "
                 f"steps/s incl. evaluation) + {row['compile_s']:.1f} s compile; {schedule}; "
                 f"non-finite {self.host.nonfinite}; last eval success {_fmt(row.get('eval_success'))}, "
@@ -486,7 +532,10 @@ def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m sagrasp_jax.train", description=__doc__.split("\n\n")[0],
                                 epilog="--list-keys shows every KEY for --set with its meaning, value and valid values.")
     p.add_argument("--preset", default=None, help=f"one of {', '.join(PRESETS)} (default cpu-quick)")
-    p.add_argument("--algo", default=None, help=f"one of {', '.join(ALGOS)} (default sa-ppo)")
+    p.add_argument("--algo", default=None,
+                   help=f"one of {', '.join(ALGOS)} (default sa-ppo): shorthand for --lr-schedule sa / constant")
+    p.add_argument("--lr-schedule", default=None, metavar="NAME",
+                   help=f"learning-rate schedule (lr.schedule), one of {', '.join(LR_SCHEDULES)} (default sa)")
     p.add_argument("--seed", type=int, default=None)
     p.add_argument("--out", required=True, help="run folder (refused if it exists and is not empty, unless --resume)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
@@ -518,14 +567,15 @@ def check_args(args: argparse.Namespace) -> None:
 
 def resolve_config(args: argparse.Namespace) -> Config:
     """The run's config; on --resume without config options it is the run folder's config.json."""
-    explicit = any(v is not None for v in (args.preset, args.algo, args.seed, args.total_steps)) or args.overrides
+    explicit = any(v is not None for v in (args.preset, args.algo, args.lr_schedule, args.seed, args.total_steps)) \
+        or args.overrides
     if args.resume and not explicit:
         if not os.path.isfile(os.path.join(args.out, CONFIG_FILE)) and not os.path.isfile(os.path.join(args.out, CHECKPOINT_FILE)):
             raise RunDirError(f"{args.out}: cannot resume, no {CONFIG_FILE} and no {CHECKPOINT_FILE} there (the run "
                               "wrote neither); start it again without --resume, or pass its config options")
         return run_dir.load_config(args.out)
-    return build_config(args.preset or "cpu-quick", args.algo or "sa-ppo", args.seed, args.total_steps,
-                        args.overrides)
+    return build_config(args.preset or "cpu-quick", args.algo, args.seed, args.total_steps, args.overrides,
+                        args.lr_schedule)
 
 
 def cpu_devices_for(cfg: Config, processes: int = 1) -> int:

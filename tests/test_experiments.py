@@ -19,6 +19,7 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.join(REPO, "experiments"))
 
 import bench_vs_paper_stack as bench  # noqa: E402
+import compare_schedules as compare  # noqa: E402
 import reproduce_paper as repro  # noqa: E402
 
 TINY_SETS = ["ppo.num_envs=64", "ppo.num_epochs=1", "ppo.num_minibatches=1", "env.task.max_steps=50",
@@ -78,6 +79,45 @@ def test_first_reach() -> None:
     out = bench.first_reach(pts, [0.5, 0.95])
     assert out["0.5"] == {"time_s": 2.0, "env_steps": 200}
     assert out["0.95"] == "not reached in budget"
+
+
+def test_t_test_p_values() -> None:
+    assert compare.t_test_p(2.776, 4) == pytest.approx(0.05, abs=2e-4)
+    assert compare.t_test_p(12.706, 1) == pytest.approx(0.05, abs=2e-4)
+    assert compare.t_test_p(2.045, 29) == pytest.approx(0.05, abs=2e-4)
+    assert compare.t_test_p(1.0, 1) == pytest.approx(0.5, abs=1e-9)
+    assert compare.t_test_p(0.0, 7) == pytest.approx(1.0) and compare.t_test_p(-3.0, 6) == compare.t_test_p(3.0, 6)
+    assert compare.betainc(2.0, 3.0, 0.4) == pytest.approx(0.5248, abs=1e-4)  # 1 − Σ_{k<2} C(4,k) 0.4^k 0.6^(4−k)
+
+
+def test_paired_comparison() -> None:
+    a, b = [80.0, 85.0, 90.0, 70.0], [78.0, 86.0, 85.0, 66.0]
+    out = compare.paired(a, b)
+    d = np.array(a) - np.array(b)
+    half = 3.182 * d.std(ddof=1) / 2.0
+    assert out["n"] == 4 and out["mean_diff"] == pytest.approx(d.mean())
+    assert out["ci95"] == pytest.approx([d.mean() - half, d.mean() + half])
+    assert out["t"] == pytest.approx(d.mean() / (d.std(ddof=1) / 2.0))
+    assert (out["wins"], out["ties"], out["losses"]) == (3, 0, 1)
+    assert 0.1 < out["p"] < 0.3
+    assert compare.paired([100.0, 120.0], [110.0, 125.0], larger_is_better=False)["wins"] == 2  # fewer steps wins
+    missing = compare.paired([1.0, None, 3.0], [0.0, 2.0, None])
+    assert missing["n"] == 1 and missing["mean_diff"] == 1.0 and missing["p"] is None
+    assert compare.paired([2.0, 3.0], [1.0, 2.0])["p"] == 0.0  # the same difference on every seed
+
+
+def test_training_time_adds_up_sessions() -> None:
+    rows = [{"time_s": 1.0}, {"time_s": 2.0}, {"time_s": 0.5}, {}, {"time_s": 1.5}]
+    assert compare.training_time(rows) == [1.0, 2.0, 2.5, 2.5, 3.5]
+
+
+def test_schedule_variants() -> None:
+    assert list(compare.SCHEDULE_VARIANTS) == ["constant", "sa", "kl-adaptive", "cosine", "linear"]
+    assert compare.ABLATION_VARIANTS["sa-no-plateau-decay"] == ["lr.schedule=sa", "sa.plateau_decay=false"]
+    for sets in compare.ALL_VARIANTS.values():  # every variant is a valid config
+        from sagrasp_jax import train
+
+        train.build_config("cpu-quick", overrides=sets)
 
 
 # ---------------------------------------------------------------------- CLI smoke tests
@@ -142,6 +182,33 @@ def test_bench_sb3_missing_interpreter_is_skipped(tmp_path: pytest.TempPathFacto
     if importlib.util.find_spec("stable_baselines3") is None:  # the test venv has no SB3: reported, not crashed
         res = bench.bench_sb3(sys.executable, 1.0, 16, [0.5], 16, str(tmp_path), 10.0)
         assert res["status"] == "skipped" and "cannot import" in res["reason"]
+
+
+def test_compare_schedules_smoke(tmp_path: pytest.TempPathFactory) -> None:
+    out, runs = str(tmp_path / "results" / "cmp.json"), str(tmp_path / "runs")  # results/ does not exist yet
+    args = ["experiments/compare_schedules.py", "--preset", "cpu-quick", "--total-steps", "8192", "--seeds", "1",
+            "--variants", "constant,sa", "--eval-episodes", "16", "--blocking-episodes", "8", "--out", out,
+            "--runs-dir", runs, "--no-progress", *_sets(TINY_SETS)]
+    res = _run(args)
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    with open(out, encoding="utf-8") as f:
+        result = json.load(f)
+    assert set(result["summary"]) == {"constant", "sa"} and result["seeds"] == [0]
+    for name in ("constant", "sa"):
+        rec = result["runs"][name][0]
+        assert rec["mix"]["episodes"] == 16 and rec["blocking_scenes"]["episodes"] == 8
+        assert set(rec["reach"]) == {"0.9", "0.98"} and rec["cycles"] == 4
+        s = result["summary"][name]
+        assert 0.0 <= s["success_overall"]["mean"] <= 100.0 and s["success_overall"]["n"] == 1
+    assert result["runs"]["constant"][0]["final_lr"] == 3e-4
+    assert set(result["paired_vs_reference"]) == {"constant"}
+    assert result["paired_vs_reference"]["constant"]["success_overall"]["n"] == 1
+    assert "| constant |" in res.stdout and "Paired with `sa`" in res.stdout
+    if importlib.util.find_spec("matplotlib") is not None:
+        assert os.path.getsize(out[:-5] + "_curves.png") > 0 and os.path.getsize(out[:-5] + "_lr.png") > 0
+    again = _run(args)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert again.stdout.count("done already, skipped") == 2
 
 
 # ---------------------------------------------------------------------- obstacle ablation

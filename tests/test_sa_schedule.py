@@ -12,25 +12,26 @@ import pytest
 from sagrasp_jax import sa_schedule as sa
 from sagrasp_jax.config import SAConfig
 
+LR0 = 3e-4  # ppo.learning_rate, where SA starts
 CFG = SAConfig(tol=0.05)  # the rules on hand-made numbers: lr0 3e-4, decay 0.98, lr_min 1e-6, tol 0.05, min_delta 0.02, patience 5, rollbacks 3, T0 0.1
 H = 1.0  # a fixed entropy keeps T = T0
 REJECT = 0.999999  # a uniform draw that rejects any exp(-ΔE/T) < 1 - 1e-6
 
 
 def _started(cfg: SAConfig = CFG, metric: float = 1.0) -> sa.SAState:
-    state, dec = sa.update(cfg, sa.init(cfg), metric, H, 0.5)
+    state, dec = sa.update(cfg, sa.init(LR0), metric, H, 0.5)
     assert dec.kind == "accept"
     return state
 
 
 def test_first_update_accepts_and_sets_references() -> None:
-    state, dec = sa.update(CFG, sa.init(CFG), -3.25, 2.0, np.random.default_rng(0))
+    state, dec = sa.update(CFG, sa.init(LR0), -3.25, 2.0, np.random.default_rng(0))
     assert dec.kind == "accept" and not dec.decayed
     assert math.isnan(dec.delta_e)
     assert dec.temperature == pytest.approx(CFG.t0)
     assert state.m_acc == -3.25 and state.best_m == -3.25 and state.h0 == 2.0
     assert state.snapshot_id == 1 and state.n_accept == 1 and state.cycle == 1
-    assert state.lr == CFG.lr0
+    assert state.lr == LR0
 
 
 def test_patience_stalled_cycles_decay_exactly_once() -> None:
@@ -131,7 +132,7 @@ def test_steadily_improving_metric_never_decays() -> None:
     for k in range(1, 301):
         state, dec = sa.update(CFG, state, 0.03 * k, H, REJECT)
         assert dec.kind == "accept" and not dec.decayed
-    assert state.lr == CFG.lr0 and state.decays == 0 and state.stall == 0
+    assert state.lr == LR0 and state.decays == 0 and state.stall == 0
     assert state.best_m == pytest.approx(9.0) and state.snapshot_id == 301
 
 
@@ -162,7 +163,7 @@ def test_accept_worse_moves_snapshot() -> None:
 def test_temperature_falls_with_entropy() -> None:
     h0 = sa.gaussian_entropy(np.zeros((32, 6)))
     assert h0 == pytest.approx(6 * 0.5 * math.log(2 * math.pi * math.e))
-    state = sa.init(CFG)
+    state = sa.init(LR0)
     assert sa.temperature(CFG, state, h0) == CFG.t0  # H0 unset: T = T0
     state, dec = sa.update(CFG, state, 1.0, h0, 0.5)
     assert state.h0 == h0 and dec.temperature == pytest.approx(CFG.t0)
@@ -198,7 +199,7 @@ def test_non_finite_metric_rejects_and_decays(bad: float) -> None:
 
 
 def test_non_finite_metric_before_first_evaluation() -> None:
-    state, dec = sa.update(CFG, sa.init(CFG), math.nan, H, 0.5)
+    state, dec = sa.update(CFG, sa.init(LR0), math.nan, H, 0.5)
     assert dec.kind == "reject" and dec.decayed and state.m_acc is None and state.snapshot_id == 0
     state, dec = sa.update(CFG, state, 0.5, H, 0.5)
     assert dec.kind == "accept" and state.m_acc == 0.5
@@ -206,7 +207,7 @@ def test_non_finite_metric_before_first_evaluation() -> None:
 
 def test_round_trip_through_json() -> None:
     rng = np.random.default_rng(3)
-    state = sa.init(CFG)
+    state = sa.init(LR0)
     blank = sa.SAState.from_dict(json.loads(json.dumps(state.to_dict(), allow_nan=False)))
     assert blank == state
     for m in (1.0, 0.2, 0.95, math.nan, 1.3, 0.1):
@@ -222,7 +223,7 @@ def test_round_trip_through_json() -> None:
 def test_same_rng_same_trajectory() -> None:
     def run(seed: int) -> list[tuple[str, bool, float]]:
         rng = np.random.default_rng(seed)
-        state, out = sa.init(CFG), []
+        state, out = sa.init(LR0), []
         for k in range(200):
             state, dec = sa.update(CFG, state, 1.0 - 0.01 * k + 0.1 * math.sin(k), H, rng)
             out.append((dec.kind, dec.decayed, state.lr))
@@ -231,13 +232,55 @@ def test_same_rng_same_trajectory() -> None:
     assert run(5) == run(5)
 
 
-def test_disabled_keeps_lr_constant() -> None:
-    cfg = dataclasses.replace(CFG, enabled=False)
-    state = sa.init(cfg)
-    for m in (1.0, 0.0, -5.0, -5.0, -5.0, math.nan, -10.0, -10.0, -10.0, -10.0):
-        state, dec = sa.update(cfg, state, m, H, REJECT)
-        assert dec.kind == "accept" and not dec.decayed and dec.new_lr == cfg.lr0
-    assert state.lr == cfg.lr0 and state.decays == 0 and state.n_reject == 0
-    assert state.m_acc == -10.0 and state.best_m == 1.0 and state.n_accept == 10
+# ---------------------------------------------------------------------- ablation switches
+
+def test_without_metropolis_a_worse_cycle_is_always_rejected() -> None:
+    cfg = dataclasses.replace(CFG, metropolis=False)
+    state = _started(cfg, metric=1.0)
+    state, dec = sa.update(cfg, state, 1.0 - 0.06, H, 0.0)  # u = 0 would accept anything with metropolis on
+    assert dec.kind == "reject" and dec.accept_prob == 0.0 and state.n_accept_worse == 0
+    # within tol is still an outright accept
+    state, dec = sa.update(cfg, state, 1.0 - 0.04, H, 0.0)
+    assert dec.kind == "accept"
+    rng, ref, metrics = np.random.default_rng(11), np.random.default_rng(11), np.random.default_rng(12)
+    state = _started(cfg)
+    for _ in range(500):
+        state, dec = sa.update(cfg, state, float(metrics.normal(1.0, 0.3)), H, rng)
+        ref.random()
+        assert dec.kind != "accept-worse"
+    assert state.n_accept_worse == 0 and state.n_reject > 50
+    assert rng.bit_generator.state == ref.bit_generator.state  # one draw per call, used or not
+
+
+def test_without_plateau_decay_rule_3_never_decays() -> None:
+    cfg = dataclasses.replace(CFG, plateau_decay=False)
+    state = _started(cfg)
+    for _ in range(3 * CFG.patience):  # stalls
+        state, dec = sa.update(cfg, state, 1.0, H, 0.5)
+        assert not dec.decayed
+    for _ in range(3 * CFG.max_rollbacks):  # rejections in a row
+        state, dec = sa.update(cfg, state, 0.0, H, REJECT)
+        assert dec.kind == "reject" and not dec.decayed
+    assert state.lr == LR0 and state.decays == 0 and state.n_reject == 3 * CFG.max_rollbacks
+    # the counters still count and reset as with the decay on
+    on = _started()
+    off = _started(cfg)
+    for m, u in ((1.0, 0.5), (0.0, REJECT), (1.0, 0.5), (0.0, REJECT), (0.0, REJECT), (0.0, REJECT), (1.0, 0.5)):
+        on, _ = sa.update(CFG, on, m, H, u)
+        off, _ = sa.update(cfg, off, m, H, u)
+        assert (off.stall, off.rejections, off.m_acc, off.n_reject) == (on.stall, on.rejections, on.m_acc, on.n_reject)
+    # the non-finite escape hatch still decays
     state, dec = sa.force_reject_and_decay(cfg, state)
-    assert dec.kind == "reject" and not dec.decayed and state.lr == cfg.lr0
+    assert dec.decayed and state.lr == pytest.approx(LR0 * 0.98)
+
+
+def test_without_entropy_temperature_t_stays_t0() -> None:
+    cfg = dataclasses.replace(CFG, entropy_temperature=False)
+    state, _ = sa.update(cfg, sa.init(LR0), 1.0, 5.0, 0.5)
+    for h in (5.0, 2.0, -3.0, 10.0):
+        assert sa.temperature(cfg, state, h) == cfg.t0
+        _, dec = sa.update(cfg, state, 0.9, h, REJECT)
+        assert dec.temperature == cfg.t0 and dec.accept_prob == pytest.approx(math.exp(-0.1 / cfg.t0))
+    # with it on, a colder policy lowers T (and kappa = 0 does the same as switching it off)
+    assert sa.temperature(CFG, state, 2.0) < CFG.t0
+    assert sa.temperature(dataclasses.replace(CFG, kappa=0.0), state, 2.0) == CFG.t0

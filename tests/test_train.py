@@ -14,7 +14,7 @@ import pytest
 
 from conftest import toy_config, toy_factory
 
-from sagrasp_jax import ppo, run_dir, runtime, train
+from sagrasp_jax import lr_schedule, ppo, run_dir, runtime, train
 from sagrasp_jax.checkpoint import CheckpointError
 
 
@@ -85,7 +85,7 @@ def test_sa_reject_restores_the_snapshot_bit_for_bit(tmp_path):
     # Three rejections in a row decay the lr, and the restored optimizer state carries it.
     tr.anneal(metric=-1e9, entropy=0.5)
     third = tr.anneal(metric=-1e9, entropy=0.5)
-    assert third.decayed and tr.lr == pytest.approx(cfg.sa.lr0 * cfg.sa.decay)
+    assert third.decayed and tr.lr == pytest.approx(cfg.ppo.learning_rate * cfg.sa.decay)
     assert ppo.get_learning_rate(tr.train_state.opt_state) == pytest.approx(tr.lr)
     assert _leaves_equal(tr.train_state.params, accepted.params)
 
@@ -99,14 +99,14 @@ def test_nonfinite_iterations_are_rolled_back_and_training_continues(tmp_path):
     assert events and all(r["sa_decision"] == "reject" and r["sa_decayed"] for r in events)
     assert events[0]["loss"] is None  # NaN is logged as null, the JSON stays valid
     assert rows[-1]["iteration"] == train.make_schedule(cfg).num_iterations - 1
-    assert rows[-1]["lr"] == pytest.approx(cfg.sa.lr0 * cfg.sa.decay ** tr.sa_state.decays)
+    assert rows[-1]["lr"] == pytest.approx(cfg.ppo.learning_rate * cfg.sa.decay ** tr.sa_state.decays)
     assert tr.host.nonfinite == len(events)
     assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree_util.tree_leaves(tr.train_state.params))
 
 
 def test_ppo_baseline_keeps_a_constant_learning_rate(tmp_path):
     cfg = toy_config(cycles=3, algo="ppo", extra=["ppo.learning_rate=2e-4"])
-    assert not cfg.sa.enabled
+    assert cfg.lr.schedule == "constant"
     out = str(tmp_path / "ppo")
     train.run(cfg, out, env_factory=toy_factory(), progress=False)
     rows = train.read_metrics(os.path.join(out, train.METRICS_FILE))
@@ -213,3 +213,110 @@ def test_short_cpu_quick_run_learns_to_grasp(trained_run):
           f"median train steps/s {np.median([r['steps_per_s'] for r in rows]):.0f}, compile {rows[-1]['compile_s']:.1f} s")
     assert trained["success_rate"] >= float(untrained.success_rate) + 0.3
     assert trained["success_ci95"][0] > float(untrained.success_rate)
+
+
+# ---------------------------------------------------------------------- learning-rate schedules
+
+@pytest.mark.parametrize("schedule,extra", [
+    ("constant", []),
+    ("kl-adaptive", []),
+    ("cosine", []),
+    ("linear", ["lr.final=1e-5"]),
+    ("sa", ["sa.tol=0.0", "sa.t0=0.5", "sa.rollback=false", "sa.metropolis=false"]),
+])
+def test_every_schedule_resumes_exactly(tmp_path, schedule, extra):
+    cfg = toy_config(cycles=6, extra=[f"lr.schedule={schedule}", *extra])
+    full = train.run(cfg, str(tmp_path / "full"), env_factory=toy_factory(), progress=False)
+    half_dir = str(tmp_path / "half")
+    half = train.run(cfg, half_dir, env_factory=toy_factory(), progress=False, stop_after_cycles=3)
+    assert half.lr_state.cycle == 3 and half.host.iteration < full.host.iteration
+    resumed = train.run(cfg, half_dir, env_factory=toy_factory(), progress=False, resume=True)
+    assert _rows(half_dir) == _rows(str(tmp_path / "full"))
+    assert _leaves_equal(resumed.train_state, full.train_state)
+    assert _leaves_equal(resumed.snapshot, full.snapshot)
+    assert resumed.lr_state == full.lr_state and resumed.lr_state.cycle == 6
+    assert (resumed.sa_state is None) == (schedule != "sa")
+    rows = _rows(half_dir)
+    lrs = [r["lr"] for r in rows]
+    device_lr = ppo.get_learning_rate(full.train_state.opt_state)
+    if schedule == "constant":
+        assert set(lrs) == {cfg.ppo.learning_rate}
+    elif schedule == "kl-adaptive":
+        bounds = np.float32(cfg.lr.kl_lr_min), np.float32(cfg.lr.kl_lr_max)  # the optimizer's lr is float32
+        assert len(set(lrs)) > 1 and all(bounds[0] <= np.float32(v) <= bounds[1] for v in lrs)
+        assert lrs[-1] == pytest.approx(device_lr)  # the host follows the optimizer's lr
+    elif schedule in ("cosine", "linear"):
+        assert all(a > b for a, b in zip(lrs, lrs[1:]))  # strictly falling, iteration by iteration
+        assert lrs[-1] == pytest.approx(cfg.lr.final, rel=1e-4)  # progress 1 after the last iteration
+        n = len(rows)
+        rule = full.rule
+        assert lrs[n // 2 - 1] == pytest.approx(float(lr_schedule.progress_lr(np, rule, (n // 2) / n)), rel=1e-5)
+    else:
+        assert {r["sa_decision"] for r in rows if "sa_decision" in r} <= {"accept", "reject"}
+
+
+def test_kl_adaptive_adapts_after_every_minibatch(tmp_path):
+    """KL far below the band: × 1.5 per minibatch; far above: ÷ 1.5; here 2 epochs × 4 minibatches,
+    the first of which (KL 0 by definition) leaves the lr alone."""
+    steps = 2 * 4 - 1
+    for desired, expected in ((50.0, min(3e-4 * 1.5**steps, 1e-2)), (1e-9, max(3e-4 / 1.5**steps, 1e-5))):
+        cfg = toy_config(extra=["lr.schedule=kl-adaptive", f"lr.desired_kl={desired}"])
+        tr = train.Trainer(cfg, str(tmp_path / str(desired)), env_factory=toy_factory(), progress=False)
+        row = tr.run_iteration()
+        assert row["step_kl"] > 0.0 and row["approx_kl"] > row["step_kl"]  # approx_kl also sees the normaliser move
+        assert ppo.get_learning_rate(tr.train_state.opt_state) == pytest.approx(expected, rel=1e-5)
+        assert tr.lr == pytest.approx(expected, rel=1e-5) and row["lr"] == pytest.approx(expected, rel=1e-5)
+
+
+def test_sa_without_rollback_keeps_the_rejected_parameters(tmp_path):
+    cfg = toy_config(extra=["sa.rollback=false"])
+    tr = train.Trainer(cfg, str(tmp_path), env_factory=toy_factory(), progress=False)
+    tr.run_iteration()
+    assert tr.anneal(metric=1.0, entropy=0.5).kind == "accept"
+    accepted = tr.snapshot
+    tr.run_iteration()
+    current = tr.train_state
+    decision = tr.anneal(metric=-1e9, entropy=0.5)
+    assert decision.kind == "reject" and not decision.restore
+    assert _leaves_equal(tr.train_state.params, current.params)  # kept, not restored
+    assert tr.snapshot is accepted  # the snapshot stays the last accepted one
+    assert tr.lr_state.rollbacks == 0 and tr.sa_state.n_reject == 1
+
+
+def test_resume_reads_a_checkpoint_from_before_lr_schedules(tmp_path):
+    """A checkpoint whose host state holds ``sa_state`` (no ``lr_state``) resumes as if uninterrupted."""
+    from sagrasp_jax import checkpoint
+
+    cfg = toy_config(cycles=4)
+    full = train.run(cfg, str(tmp_path / "full"), env_factory=toy_factory(), progress=False)
+    half_dir = str(tmp_path / "half")
+    train.run(cfg, half_dir, env_factory=toy_factory(), progress=False, stop_after_cycles=2)
+    path = os.path.join(half_dir, train.CHECKPOINT_FILE)
+    with open(path, "rb") as f:
+        blob = f.read()
+    start = len(checkpoint.MAGIC) + checkpoint._LEN.size
+    (n,) = checkpoint._LEN.unpack(blob[len(checkpoint.MAGIC):start])
+    header = json.loads(blob[start:start + n])
+    header["host"]["sa_state"] = header["host"].pop("lr_state")["sa"]
+    head = json.dumps(header, sort_keys=True).encode()
+    with open(path, "wb") as f:
+        f.write(checkpoint.MAGIC + checkpoint._LEN.pack(len(head)) + head + blob[start + n:])
+    resumed = train.run(cfg, half_dir, env_factory=toy_factory(), progress=False, resume=True)
+    assert _rows(half_dir) == _rows(str(tmp_path / "full"))
+    assert resumed.lr_state == full.lr_state
+
+
+def test_algo_and_lr_schedule_options(tmp_path, capsys):
+    assert train.build_config("paper", "ppo").lr.schedule == "constant"
+    assert train.build_config("paper", "sa-ppo").lr.schedule == "sa"
+    assert train.build_config("paper").lr.schedule == "sa"
+    assert train.build_config("paper", lr_schedule="cosine").lr.schedule == "cosine"
+    assert train.build_config("paper", "ppo", lr_schedule="constant").lr.schedule == "constant"
+    assert train.build_config("paper", "ppo", overrides=["lr.schedule=linear"]).lr.schedule == "linear"
+    for argv, message in ((["--algo", "ppo", "--lr-schedule", "cosine"], "--algo ppo means --lr-schedule constant"),
+                          (["--lr-schedule", "step"], "valid lr schedules: constant, sa, kl-adaptive, cosine, linear"),
+                          (["--set", "sa.lr0=1e-4"], "replaced by ppo.learning_rate")):
+        out = tmp_path / "run"
+        assert train.main(["--out", str(out), *argv]) == 2
+        assert message in capsys.readouterr().err
+        assert not out.exists()
