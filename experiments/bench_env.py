@@ -2,7 +2,9 @@
 
 Measures (a) the bare env (``jax.vmap(env.step)``, no auto-reset) and (b) the training
 path (``AutoReset.batch_step``, fresh-sample resets) inside a jitted ``lax.scan`` of
-random actions; compile time is reported separately.  With ``--pybullet`` it also times
+random actions; compile time is reported separately.  The machine may be shared: every row
+records the 1-minute load average before and after it and the process CPU time per env step
+beside the wall-clock rate (under contention the wall clock suffers, the CPU time much less).  With ``--pybullet`` it also times
 the PyBullet reference env (raw stepping, one env, kinematic and dynamic) when the
 ``reference`` extra is installed.  Prints a table and writes JSON.
 
@@ -27,9 +29,8 @@ from sagrasp_jax.fileio import atomic_write_json
 from sagrasp_jax.wrappers import AutoReset
 
 
-def bench_jax(mode: str, batch: int, steps: int, auto_reset: bool) -> dict:
-    cfg = config.get_config("paper").env
-    cfg = dataclasses.replace(cfg, control=dataclasses.replace(cfg.control, mode=mode))
+def bench_jax(mode: str, batch: int, steps: int, auto_reset: bool, overrides: list[str] | None = None) -> dict:
+    cfg = config.apply_overrides(config.get_config("paper"), [f"env.control.mode={mode}"] + list(overrides or [])).env
     base = GraspEnv(cfg)
     env = AutoReset(base) if auto_reset else base
     step = env.batch_step if auto_reset else jax.vmap(base.step)
@@ -50,19 +51,24 @@ def bench_jax(mode: str, batch: int, steps: int, auto_reset: bool) -> dict:
     jax.block_until_ready(out)
     compile_s = time.perf_counter() - t0
     state = out[0]
-    best = float("inf")
-    for rep in range(2):
-        t0 = time.perf_counter()
+    best = best_cpu = float("inf")
+    load_before = os.getloadavg()[0]
+    for rep in range(3):
+        t0, c0 = time.perf_counter(), time.process_time()
         state, dones = run(state, jax.random.PRNGKey(2 + rep))
         jax.block_until_ready(dones)
         best = min(best, time.perf_counter() - t0)
+        best_cpu = min(best_cpu, time.process_time() - c0)
     return {
         "mode": mode,
         "auto_reset": auto_reset,
         "batch": batch,
         "steps": steps,
+        "overrides": list(overrides or []),
         "compile_s": round(compile_s, 2),
         "env_steps_per_s": round(batch * steps / best, 1),
+        "cpu_us_per_env_step": round(1e6 * best_cpu / (batch * steps), 2),
+        "load_1min": [round(load_before, 2), round(os.getloadavg()[0], 2)],
     }
 
 
@@ -96,6 +102,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--max-steps", type=int, default=200, help="max scan length per cell")
     parser.add_argument("--dynamic-max-batch", type=int, default=1024, help="largest batch for dynamic mode on CPU")
     parser.add_argument("--pybullet", action="store_true", help="also time the PyBullet reference env")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                        help="config override of the env for every JAX row (e.g. env.control.substeps=2)")
+    parser.add_argument("--no-auto-reset", action="store_true", help="time the bare env only")
     parser.add_argument("--out", default="experiments/results/bench_env.json")
     args = parser.parse_args(argv)
     try:
@@ -114,11 +123,13 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             steps = max(5, min(args.max_steps, args.env_steps // batch))
             if mode == "dynamic":
-                steps = max(5, steps // 10)
-            for auto in (False, True):
-                row = bench_jax(mode, batch, steps, auto)
+                steps = max(5, steps // 2)
+            for auto in (False,) if args.no_auto_reset else (False, True):
+                row = bench_jax(mode, batch, steps, auto, args.overrides)
                 rows.append(row)
-                print(f"{mode:10s} {'auto' if auto else 'none':>6s} {batch:6d} {steps:6d} {row['compile_s']:10.1f} {row['env_steps_per_s']:12.0f}", flush=True)
+                print(f"{mode:10s} {'auto' if auto else 'none':>6s} {batch:6d} {steps:6d} {row['compile_s']:10.1f} "
+                      f"{row['env_steps_per_s']:12.0f} {row['cpu_us_per_env_step']:8.1f} us cpu  load {row['load_1min']}",
+                      flush=True)
     if args.pybullet:
         for mode in modes:
             row = bench_pybullet(mode, 2000 if mode == "kinematic" else 500)
