@@ -247,6 +247,9 @@ class TrainConfig:
     log_every: int = 1  # iterations between JSONL rows
     checkpoint_every_cycles: int = 10  # SA cycles between checkpoints
     metrics_window: int = 256  # finished episodes in the training-episode window
+    # Run folder whose final checkpoint's policy, value network and observation normaliser start this run (train
+    # --init-from; e.g. a kinematic run fine-tuned in dynamic mode); optimizer and SA schedule start fresh.  "" = none
+    init_from: str = ""
 
 
 @dataclass(frozen=True)
