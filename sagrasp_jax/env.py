@@ -91,6 +91,7 @@ class GraspEnv:
         model.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_CONTACT | mujoco.mjtDisableBit.mjDSBL_CONSTRAINT
         if model.nq != 6 or model.nu != 6:
             raise RuntimeError(f"{MJCF_ROBOT}: expected the 6-joint arm after welding the fingers, got nq={model.nq}")
+        self._mj_model = model  # Warp's make_data takes the MuJoCo model
         self._servo_kp = jnp.asarray(model.actuator_gainprm[:, 0])  # for the servo-gain randomisation
         self._servo_kv = jnp.asarray(-model.actuator_biasprm[:, 2])
         return mjx.put_model(model, impl=self.cfg.control.impl)
@@ -100,7 +101,8 @@ class GraspEnv:
             return None
         from mujoco import mjx
 
-        data = mjx.make_data(self._mjx_model, impl=self.cfg.control.impl)
+        impl = self.cfg.control.impl
+        data = mjx.make_data(self._mj_model if impl == "warp" else self._mjx_model, impl=impl)
         return data.replace(qpos=q0.astype(data.qpos.dtype), ctrl=q0.astype(data.ctrl.dtype))
 
     def _advance(self, pipeline: Any, q_target: jax.Array, q_previous: jax.Array,
