@@ -61,15 +61,13 @@ from sagrasp_jax.scene import SCENE
 ENV_ID = "SAGrasp-PyBullet-v0"
 EPISODE_KEYS = episode.EPISODE_KEYS
 
-# POSITION_CONTROL gains of the dynamic mode, per arm joint: positionGain kp and velocityGain kd of
-# PyBullet's motor constraint (after a substep h: v = kp·(q* − q)/h + (1 − kd)·v).  MuJoCo's
-# implicit PD servo of the MJCF (Kp, Kv + damping D, armature a) is v = (I·v + h·Kp·(q* − q))/(I + h·D),
-# i.e. kp = h²·Kp/(I + h·D), kd = h·D/(I + h·D) with I the joint inertia incl. armature; these values
-# were fitted (Nelder-Mead, 24 random-action episodes × 80 steps against MuJoCo at 0.01 s × 5) and match
-# that formula at the home pose for joints 1-3; the wrists differ because their MuJoCo servos saturate
-# at 13.5 N·m (docs/parity.md).
-DYNAMIC_POSITION_GAINS = (0.13, 0.07, 0.11, 0.29, 0.31, 0.26)
-DYNAMIC_VELOCITY_GAINS = (0.64, 0.37, 0.57, 1.0, 1.0, 0.88)
+# POSITION_CONTROL gains of servo="position_control", per arm joint: positionGain kp and velocityGain kd of
+# PyBullet's motor constraint (after a substep h: v = kp·(q* − q)/h + (1 − kd)·v, whatever the arm's inertia).
+# Refitted to the MJX env's servos by linear least squares over 19,200 physics substeps of scripted episodes
+# (experiments/fit_position_control.py).  That law cannot follow MuJoCo's force servo (pose-dependent inertia,
+# armature, torque limits), and parity fails with it (docs/parity.md); the default servo="mujoco" is exact.
+DYNAMIC_POSITION_GAINS = (0.126, 0.087, 0.115, 0.142, 0.134, 0.143)
+DYNAMIC_VELOCITY_GAINS = (0.636, 0.439, 0.584, 0.517, 0.493, 0.523)
 GRAVITY = 9.81  # m/s²: the world's gravity when the arm's weight is not left out (see _build_world)
 UNLIMITED = 1e3  # a joint range no motion reaches (rad or m)
 SERVOS = ("mujoco", "position_control")  # dynamic-mode motor models (PyBulletGraspEnv's ``servo``)
