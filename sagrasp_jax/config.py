@@ -287,6 +287,8 @@ def _cpu_quick() -> Config:
 
 
 def _gpu() -> Config:
+    # Physics backend: none runs, the preset trains in kinematic mode (env.control.impl stays "jax"); a
+    # dynamic-mode GPU run adds env.control.mode=dynamic and env.control.impl=warp (pip install -e .[warp]).
     base = Config()
     return dataclasses.replace(
         base,
