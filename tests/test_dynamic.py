@@ -205,3 +205,27 @@ def test_nearest_slot_tie_break_is_the_lower_slot_in_numpy_and_jax():
         np.testing.assert_array_equal(got_np, got_jax)
         np.testing.assert_array_equal(got_np, np.arange(2) == np.argmin(row))  # argmin's first-minimum rule
         assert got_np.sum() == 1
+
+
+def test_reference_servo_is_the_mjx_servo_on_pybullet_dynamics(x64):
+    """servo="mujoco": the same servo law on PyBullet's own mass matrix, bias forces and integrator
+    follows MJX to float64 rounding (docs/parity.md, "Dynamic mode")."""
+    from sagrasp_jax.reference.pybullet_env import PyBulletGraspEnv
+
+    cfg = _cfg("dynamic")
+    env = GraspEnv(cfg.env)
+    ref = PyBulletGraspEnv(cfg.env)
+    try:
+        q0 = np.asarray(config.HOME_Q)
+        target = q0 + np.array([0.05, -0.05, 0.05, -0.05, 0.05, -0.05])  # large enough to hit the torque limits
+        pipeline = env._initial_pipeline(jnp.asarray(q0))
+        ref.reset(seed=0)
+        ref._set_joints(q0)
+        advance = jax.jit(lambda p, t: env._advance(p, t, t, None))
+        for _ in range(3):
+            pipeline, q = advance(pipeline, jnp.asarray(target))
+            ref._apply(target)
+            np.testing.assert_allclose(ref._measure()[0], np.asarray(q), atol=1e-10)
+        assert np.abs(np.asarray(q) - q0).max() > 0.02  # it moved
+    finally:
+        ref.close()
