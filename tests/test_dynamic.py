@@ -190,7 +190,7 @@ def test_warp_backend_matches_jax_over_a_few_steps():
         pytest.skip(f"MuJoCo Warp does not run on this machine's CPU: {type(exc).__name__}: {exc}")
     del warp_env
     _, j = _rollout(_cfg("dynamic"))
-    np.testing.assert_allclose(_q(w, "dynamic"), _q(j, "dynamic"), atol=1e-4)
+    np.testing.assert_allclose(_q(w, "dynamic"), _q(j, "dynamic"), atol=1e-5)
 
 
 # --------------------------------------------------------------------------------------- nearest obstacle
