@@ -28,7 +28,8 @@ from sagrasp_jax.fileio import atomic_write_json
 
 RANDOMIZE = ["env.randomize.servo_gain=0.2", "env.randomize.latency=1", "env.randomize.joint_offset=0.005",
              "env.randomize.joint_noise=0.005", "env.randomize.target_error=0.005"]
-ENVS = {"kinematic": ["env.control.mode=kinematic"], "dynamic": ["env.control.mode=dynamic"],
+OFF = [item.split("=")[0] + "=0" for item in RANDOMIZE]
+ENVS = {"kinematic": ["env.control.mode=kinematic", *OFF], "dynamic": ["env.control.mode=dynamic", *OFF],
         "dynamic+randomize": ["env.control.mode=dynamic", *RANDOMIZE]}
 
 
@@ -76,6 +77,14 @@ def main(argv: list[str] | None = None) -> int:
             entry["eval"][env] = {**split(mix), "blocking_scenes": blocking["overall"]["success_rate"]}
             print(f"{name} {env}: {entry['eval'][env]}", file=sys.stderr, flush=True)
         report["runs"][name] = entry
+    folders = {os.path.abspath(f): n for n, f in runs.items()}
+    for name, entry in report["runs"].items():  # a fine-tuned run's budget includes its starting run's
+        b = entry["budget"]
+        src = folders.get(os.path.abspath(b["init_from"])) if b["init_from"] else None
+        if src is not None:
+            s = report["runs"][src]["budget"]
+            b["total"] = {k: round(b[k] + s[k], 1) for k in ("env_steps", "train_s", "cpu_s") if k in b and k in s}
+            b["total"]["from"] = src
     atomic_write_json(args.out, report)
     pct = lambda v: "–" if v is None else f"{100 * v:.1f} %"  # noqa: E731
     print("| policy | budget | evaluated in | overall | obstacle | blocking (in mix) | blocking scenes | steps/success |")
@@ -84,6 +93,9 @@ def main(argv: list[str] | None = None) -> int:
         b = entry["budget"]
         cost = f"{b['env_steps'] / 1e6:.2f}M steps {b['mode']}, {b['train_s']:.0f} s" + (
             f" ({b['cpu_s']:.0f} s CPU)" if "cpu_s" in b else "")
+        if "total" in b:
+            t = b["total"]
+            cost = f"{t['from']} + {cost}: {t['train_s']:.0f} s" + (f" ({t['cpu_s']:.0f} s CPU)" if "cpu_s" in t else "")
         for env, e in entry["eval"].items():
             print(f"| {name} | {cost} | {env} | {pct(e['overall'])} | {pct(e['obstacle'])} | "
                   f"{pct(e['blocking_in_mix'])} (n={e['blocking_in_mix_n']}) | {pct(e['blocking_scenes'])} | "
