@@ -7,10 +7,13 @@ Levers (obstacle issue; SPEC §2 "Layouts" and "Near-miss term"), each a config 
 * ``near_miss`` env.reward.near_miss_mode: per_step (the paper's) → change (a potential);
 * ``geometry``  env.task.obstacle_geometry: cover (conservative, up to 2.5 cm off) → fine (±4 mm);
 * ``mix``       training scenes: the evaluation mix (0.2 obstacle, SPEC placement) → obstacle_prob
-                0.5 with 30 % of obstacle scenes placed on the approach path (train.obstacle_prob,
-                train.blocking_prob); evaluation always uses the SPEC mix.
+                0.8 with 60 % of obstacle scenes placed on the approach path (train.obstacle_prob,
+                train.blocking_prob); evaluation always uses the SPEC mix;
+* ``critic``    ppo.privileged_critic: off → on (the value net also reads progress, time left and
+                every obstacle's kind, size and position).
 
-Variants: ``base`` (all four off = the first landing), each lever alone, ``all``, and with
+Variants: ``base`` (all off = the first landing, with the calibrated SA tolerance), each lever
+alone, ``all`` (= the cpu-quick preset), and with
 ``--leave-one-out`` each lever removed from ``all``.  Every run trains ``--total-steps`` env steps
 of ``--preset`` (in process, ``train.run``), then is evaluated on ``--eval-episodes`` fixed-seed
 episodes of the evaluation mix and of blocking-only scenes (``evaluate.evaluate_run``), and its
@@ -18,7 +21,7 @@ exported policy is played seeing vs blind on ``--blind-episodes`` obstacle and b
 (``obstacle_blind_eval.blind_study``).  Re-running skips finished runs.  Prints a table and writes
 JSON with per-seed numbers, means and 95 % t-intervals across seeds.
 
-    python experiments/obstacle_ablation.py --seeds 3 --total-steps 3000000 \\
+    python experiments/obstacle_ablation.py --seeds 3 \\
         --runs-dir runs/obstacle_ablation --out experiments/results/obstacle_ablation_cpu.json
 """
 
@@ -48,7 +51,8 @@ LEVERS: dict[str, tuple[list[str], list[str]]] = {  # name -> (off, on) override
     "layout": (["env.task.obs_layout=paper"], ["env.task.obs_layout=relative"]),
     "near_miss": (["env.reward.near_miss_mode=per_step"], ["env.reward.near_miss_mode=change"]),
     "geometry": (["env.task.obstacle_geometry=cover"], ["env.task.obstacle_geometry=fine"]),
-    "mix": (["train.obstacle_prob=-1", "train.blocking_prob=-1"], ["train.obstacle_prob=0.5", "train.blocking_prob=0.3"]),
+    "mix": (["train.obstacle_prob=-1", "train.blocking_prob=-1"], ["train.obstacle_prob=0.8", "train.blocking_prob=0.6"]),
+    "critic": (["ppo.privileged_critic=false"], ["ppo.privileged_critic=true"]),
 }
 RESULT_FILE = "ablation_eval.json"
 
@@ -163,7 +167,7 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(prog="python experiments/obstacle_ablation.py", description=__doc__.split("\n\n")[0])
     p.add_argument("--preset", default="cpu-quick")
     p.add_argument("--algo", default="sa-ppo", choices=train.ALGOS)
-    p.add_argument("--total-steps", type=int, default=3_000_000)
+    p.add_argument("--total-steps", type=int, default=None, help="env steps per run (default: the preset's)")
     p.add_argument("--seeds", type=int, default=3, help="seeds 0..K-1")
     p.add_argument("--variants", default=None, help="comma list (default: every variant)")
     p.add_argument("--leave-one-out", action="store_true", help="also each lever removed from 'all'")
@@ -175,6 +179,10 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     p.add_argument("--out", default="experiments/results/obstacle_ablation_cpu.json")
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(argv)
+    if args.total_steps is None:
+        from sagrasp_jax.config import get_config
+
+        args.total_steps = get_config(args.preset).train.total_steps
     if args.seeds < 1 or args.total_steps < 1 or args.eval_episodes < 1 or args.blind_episodes < 1:
         p.error("--seeds, --total-steps, --eval-episodes and --blind-episodes must be >= 1")
     return args

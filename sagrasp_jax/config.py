@@ -228,7 +228,10 @@ class SAConfig:
     lr0: float = 3e-4  # SA-PPO's initial learning rate
     decay: float = 0.98  # lr ← max(lr·decay, lr_min) at a plateau
     lr_min: float = 1e-6  # the learning rate's floor
-    tol: float = 0.05  # a cycle within this of the accepted metric is accepted outright
+    # A cycle within this of the accepted metric is accepted outright.  Calibrated: on the fixed
+    # 128-episode evaluation set the metric moves by ≈ 0.10 (std) from cycle to cycle of a run that is
+    # still improving, so 0.05 rejected ≈ 40 % of cycles on noise; 0.2 (2 σ) rejects ≈ 5 %.
+    tol: float = 0.2
     min_delta: float = 0.02  # a gain over the best metric by more than this resets the stall counter
     patience: int = 5  # stalled cycles before the learning rate decays
     max_rollbacks: int = 3  # rejections in a row before the learning rate decays
@@ -268,8 +271,20 @@ def _paper() -> Config:
     return Config()
 
 
+def _obstacle_aware(base: Config) -> Config:
+    """What the obstacle ablation chose (docs/design.md, docs/results.md): the relative observation
+    layout, a training mix of 80 % obstacle scenes with 60 % of those on the approach path, and a
+    privileged critic.  Evaluation keeps the SPEC's mix (env.sampling)."""
+    return dataclasses.replace(
+        base,
+        env=dataclasses.replace(base.env, task=dataclasses.replace(base.env.task, obs_layout="relative")),
+        ppo=dataclasses.replace(base.ppo, privileged_critic=True),
+        train=dataclasses.replace(base.train, obstacle_prob=0.8, blocking_prob=0.6),
+    )
+
+
 def _cpu_quick() -> Config:
-    base = Config()
+    base = _obstacle_aware(Config())
     return dataclasses.replace(
         base,
         ppo=dataclasses.replace(
@@ -282,14 +297,14 @@ def _cpu_quick() -> Config:
             network=NetworkConfig(policy_hidden=(32, 32, 32, 32), value_hidden=(64, 64, 64)),
         ),
         sa=dataclasses.replace(base.sa, eval_episodes=128),
-        train=dataclasses.replace(base.train, total_steps=3_000_000),
+        train=dataclasses.replace(base.train, total_steps=10_000_000),
     )
 
 
 def _gpu() -> Config:
     # Physics backend: none runs, the preset trains in kinematic mode (env.control.impl stays "jax"); a
     # dynamic-mode GPU run adds env.control.mode=dynamic and env.control.impl=warp (pip install -e .[warp]).
-    base = Config()
+    base = _obstacle_aware(Config())
     return dataclasses.replace(
         base,
         ppo=dataclasses.replace(

@@ -2,12 +2,17 @@
 
 brax 0.14.2's ``ppo.train`` does not run on jax >= 0.10, so the loop lives here; brax supplies
 only the networks, the tanh-Gaussian distribution and the running observation statistics.
-Everything in one PPO iteration (rollout, normaliser update, GAE, minibatch epochs) is one
-jitted function; the host sets the learning rate and the training progress between calls.
+A PPO iteration (rollout, normaliser update, GAE, minibatch epochs) is a pure function;
+``make_cycle`` jits a ``lax.scan`` of several of them (a SA cycle's worth) so the host syncs
+once per cycle; the host sets the learning rate and the training progress between calls.
 
-Data parallelism: the env batch is sharded over a 1-D ``Mesh`` of local devices, params and
-optimizer state are replicated.  Losses are means over the *global* minibatch, so under jit the
-partitioner inserts the cross-device gradient reduction; on one device nothing changes.
+Data parallelism: the env batch is split over a 1-D ``Mesh`` of devices — the local ones, or
+every process's under ``jax.distributed`` — and params and optimizer state are replicated.
+Each device runs its share inside ``shard_map``: it steps and auto-resets its own envs, and
+the normaliser statistics, advantage statistics, gradients and metrics are averaged over the
+mesh (``axis_name``), so the maths is that of one global batch.  Sampling noise is drawn for
+the global batch and sliced, so the first iteration's gradients do not depend on the device
+count; on one device nothing changes.
 """
 
 from __future__ import annotations
@@ -26,6 +31,7 @@ from brax.envs.base import State
 from brax.training.acme import running_statistics
 from brax.training import networks as brax_networks
 from brax.training.agents.ppo import networks as ppo_networks
+from brax.training.distribution import TanhBijector
 from flax import linen
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
@@ -174,14 +180,16 @@ def set_learning_rate(opt_state: optax.OptState, lr: float) -> optax.OptState:
     old = inject.hyperparams["learning_rate"]
     hyper = dict(inject.hyperparams, learning_rate=jnp.asarray(lr, dtype=old.dtype))
     if isinstance(old, jax.Array):  # keep it where the rest of the state lives (replicated)
-        hyper["learning_rate"] = jax.device_put(hyper["learning_rate"], old.sharding)
+        hyper["learning_rate"] = jax.device_put(np.asarray(lr, dtype=old.dtype), old.sharding)
     return (opt_state[0], inject._replace(hyperparams=hyper), *opt_state[2:])
 
 
 # --------------------------------------------------------------------------- sharding
 
 def make_mesh(devices: list[jax.Device] | None = None) -> Mesh:
-    return Mesh(np.array(devices if devices is not None else jax.local_devices()), (BATCH_AXIS,))
+    """1-D mesh over ``devices`` (default: every device of every process; the local ones without
+    ``jax.distributed``)."""
+    return Mesh(np.array(devices if devices is not None else jax.devices()), (BATCH_AXIS,))
 
 
 def batch_sharding(mesh: Mesh) -> NamedSharding:
@@ -192,23 +200,69 @@ def replicated(mesh: Mesh) -> NamedSharding:
     return NamedSharding(mesh, PartitionSpec())
 
 
+def _placeable(tree: Any) -> Any:
+    """Under several processes ``device_put`` onto a global sharding wants host arrays (the same on
+    every process); each process keeps its own slices."""
+    if jax.process_count() == 1:
+        return tree
+    return jax.tree_util.tree_map(lambda x: np.asarray(x) if isinstance(x, jax.Array) and x.is_fully_addressable
+                                  else x, tree)
+
+
 def shard_batch(tree: Any, mesh: Mesh) -> Any:
     """Place a pytree whose leaves all lead with the env-batch axis, split over the mesh."""
-    return jax.device_put(tree, batch_sharding(mesh))
+    return jax.device_put(_placeable(tree), batch_sharding(mesh))
 
 
 def replicate(tree: Any, mesh: Mesh) -> Any:
-    return jax.device_put(tree, replicated(mesh))
+    return jax.device_put(_placeable(tree), replicated(mesh))
+
+
+def to_host(tree: Any) -> Any:
+    """NumPy copy of a pytree of arrays.  Leaves split over several processes are gathered from all
+    of them, so under ``jax.distributed`` every process must call this at the same point."""
+
+    def get(x: Any) -> Any:
+        if not isinstance(x, jax.Array) or jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key):
+            return x
+        if x.is_fully_addressable:
+            return np.asarray(x)
+        if x.is_fully_replicated:
+            return np.asarray(x.addressable_data(0))
+        from jax.experimental import multihost_utils
+
+        return np.asarray(multihost_utils.process_allgather(x, tiled=True))
+
+    return jax.tree_util.tree_map(get, tree)
+
+
+def _pmean(x: Any, axis_name: str | None) -> Any:
+    return x if axis_name is None else jax.lax.pmean(x, axis_name)
+
+
+def _psum(x: Any, axis_name: str | None) -> Any:
+    return x if axis_name is None else jax.lax.psum(x, axis_name)
 
 
 # --------------------------------------------------------------------------- policy maths
 
+def _normal(key: jax.Array, shape: tuple[int, ...], axis_name: str | None = None) -> jax.Array:
+    """Standard normals for this device's rows of a batch split over ``axis_name``: its slice of one
+    draw for the whole batch, so a sample does not depend on how many devices share the batch."""
+    if axis_name is None:
+        return jax.random.normal(key, shape)
+    n = jax.lax.axis_size(axis_name)
+    full = jax.random.normal(key, (n * shape[0],) + tuple(shape[1:]))
+    return jax.lax.dynamic_slice_in_dim(full, jax.lax.axis_index(axis_name) * shape[0], shape[0])
+
+
 def sample_action(networks: PPONetworks, params: Params, normaliser: Normaliser, obs: jax.Array,
-                  key: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+                  key: jax.Array, axis_name: str | None = None) -> tuple[jax.Array, jax.Array, jax.Array]:
     """(action in [-1, 1], pre-tanh sample, its log-prob under the tanh-Gaussian)."""
     dist = networks.parametric_action_distribution
     logits = networks.policy_network.apply(normaliser, params.policy, obs)
-    raw = dist.sample_no_postprocessing(logits, key)
+    gauss = dist.create_dist(logits)
+    raw = _normal(key, gauss.loc.shape, axis_name) * gauss.scale + gauss.loc  # brax's sample_no_postprocessing
     return dist.postprocess(raw), raw, dist.log_prob(logits, raw)
 
 
@@ -228,6 +282,14 @@ def mean_policy_entropy(networks: PPONetworks, params: Params, normaliser: Norma
                         obs: jax.Array) -> jax.Array:
     logits = networks.policy_network.apply(normaliser, params.policy, obs)
     return jnp.mean(gaussian_entropy_from_logits(networks, logits))
+
+
+def tanh_gaussian_entropy(networks: PPONetworks, logits: jax.Array, key: jax.Array,
+                          axis_name: str | None = None) -> jax.Array:
+    """brax's one-sample estimate of the tanh-Gaussian entropy (``dist.entropy``), per row."""
+    gauss = networks.parametric_action_distribution.create_dist(logits)
+    sample = _normal(key, gauss.loc.shape, axis_name) * gauss.scale + gauss.loc
+    return jnp.sum(gauss.entropy() + TanhBijector().forward_log_det_jacobian(sample), axis=-1)
 
 
 def compute_gae(rewards: jax.Array, values: jax.Array, dones: jax.Array, bootstrap_value: jax.Array,
@@ -251,8 +313,12 @@ def compute_gae(rewards: jax.Array, values: jax.Array, dones: jax.Array, bootstr
 
 
 def ppo_loss(params: Params, normaliser: Normaliser, batch: Batch, key: jax.Array, networks: PPONetworks,
-             cfg: PPOConfig) -> tuple[jax.Array, dict[str, jax.Array]]:
-    """Clipped surrogate + value MSE (SB3 weighting) − entropy bonus (brax tanh-corrected estimate)."""
+             cfg: PPOConfig, axis_name: str | None = None) -> tuple[jax.Array, dict[str, jax.Array]]:
+    """Clipped surrogate + value MSE (SB3 weighting) − entropy bonus (brax tanh-corrected estimate).
+
+    With ``axis_name`` the batch is this device's share of a global batch: the advantage
+    normalisation uses the global mean and std; the returned loss is the local mean (the
+    caller averages gradients over devices)."""
     dist = networks.parametric_action_distribution
     logits = networks.policy_network.apply(normaliser, params.policy, batch.obs)
     log_prob = dist.log_prob(logits, batch.raw_action)
@@ -260,12 +326,14 @@ def ppo_loss(params: Params, normaliser: Normaliser, batch: Batch, key: jax.Arra
     ratio = jnp.exp(log_ratio)
     adv = batch.advantage
     if cfg.normalize_advantages:
-        adv = (adv - adv.mean()) / (adv.std() + 1e-8)
+        mean = _pmean(jnp.mean(adv), axis_name)
+        std = jnp.sqrt(_pmean(jnp.mean(jnp.square(adv - mean)), axis_name))
+        adv = (adv - mean) / (std + 1e-8)
     clipped = jnp.clip(ratio, 1.0 - cfg.clip_eps, 1.0 + cfg.clip_eps)
     policy_loss = -jnp.mean(jnp.minimum(ratio * adv, clipped * adv))
     value = networks.value_network.apply(normaliser, params.value, critic_input(batch.obs, batch.critic_extra))
     value_loss = jnp.mean(jnp.square(batch.target - value))
-    entropy = jnp.mean(dist.entropy(logits, key))
+    entropy = jnp.mean(tanh_gaussian_entropy(networks, logits, key, axis_name))
     total = policy_loss + cfg.value_coef * value_loss - cfg.entropy_coef * entropy
     return total, {
         "loss": total,
@@ -278,8 +346,12 @@ def ppo_loss(params: Params, normaliser: Normaliser, batch: Batch, key: jax.Arra
 
 
 def loss_and_grad(params: Params, normaliser: Normaliser, batch: Batch, key: jax.Array,
-                  networks: PPONetworks, cfg: PPOConfig) -> tuple[tuple[jax.Array, dict[str, jax.Array]], Params]:
-    return jax.value_and_grad(ppo_loss, has_aux=True)(params, normaliser, batch, key, networks, cfg)
+                  networks: PPONetworks, cfg: PPOConfig,
+                  axis_name: str | None = None) -> tuple[tuple[jax.Array, dict[str, jax.Array]], Params]:
+    """Loss and gradients of the (global) batch: local values averaged over ``axis_name``."""
+    (loss, metrics), grads = jax.value_and_grad(ppo_loss, has_aux=True)(params, normaliser, batch, key, networks,
+                                                                       cfg, axis_name)
+    return (_pmean(loss, axis_name), _pmean(metrics, axis_name)), _pmean(grads, axis_name)
 
 
 # --------------------------------------------------------------------------- rollout and update
@@ -291,23 +363,32 @@ def set_progress(env_state: State, progress: jax.Array) -> State:
     return env_state.replace(info=info)
 
 
+RESET_STATS = ("reset_overflow", "reset_replays")  # per-step auto-reset counters, when the env reports them
+# per-iteration scalars that ``make_cycle`` returns (plus finite, episodes_finished, RESET_STATS, window)
+CYCLE_METRICS = ("loss", "policy_loss", "value_loss", "entropy_bonus", "approx_kl", "clip_fraction", "grad_norm",
+                 "entropy", "reward_mean")
+
+
 def rollout(env: Env, networks: PPONetworks, params: Params, normaliser: Normaliser, env_state: State,
-            key: jax.Array, unroll_length: int, critic_extra: int = 0) -> tuple[State, Transition, dict[str, jax.Array]]:
+            key: jax.Array, unroll_length: int, axis_name: str | None = None,
+            critic_extra: int = 0) -> tuple[State, Transition, dict[str, jax.Array]]:
     """Run the vmapped, auto-resetting env for ``unroll_length`` steps.
 
     Returns the final env state, [T, B] transitions, and [T, B] episode metrics (env's
-    ``info["episode"]`` plus ``done``) to be read only where ``done == 1``.  A wrapper that
+    ``info["episode"]`` plus ``done``) to be read only where ``done == 1``, plus the
+    auto-reset counters of ``RESET_STATS`` where the env reports them.  A wrapper that
     declares ``batched = True`` is stepped through its ``batch_step`` (whole batch at once,
     so it can amortise reset sampling); otherwise ``step`` is vmapped.
     """
     step_fn = env.batch_step if getattr(env, "batched", False) else jax.vmap(env.step)
 
     def one_step(state: State, k: jax.Array) -> tuple[State, tuple[Transition, dict[str, jax.Array]]]:
-        action, raw, log_prob = sample_action(networks, params, normaliser, state.obs, k)
+        action, raw, log_prob = sample_action(networks, params, normaliser, state.obs, k, axis_name)
         nxt = step_fn(state, action)
         trans = Transition(obs=state.obs, critic_extra=critic_extra_of(state, critic_extra), raw_action=raw,
                            log_prob=log_prob, reward=nxt.reward, done=nxt.done)
         episode = dict(nxt.info["episode"], done=nxt.done)
+        episode.update({name: nxt.metrics[name] for name in RESET_STATS if name in nxt.metrics})
         return nxt, (trans, episode)
 
     env_state, (data, episodes) = jax.lax.scan(one_step, env_state, jax.random.split(key, unroll_length))
@@ -330,21 +411,26 @@ def make_batch(networks: PPONetworks, params: Params, normaliser: Normaliser, da
 
 def sgd_epochs(params: Params, opt_state: optax.OptState, normaliser: Normaliser, batch: Batch, key: jax.Array,
                networks: PPONetworks, optimizer: optax.GradientTransformation,
-               cfg: PPOConfig) -> tuple[Params, optax.OptState, dict[str, jax.Array]]:
-    """``num_epochs`` passes over the batch in ``num_minibatches`` shuffled minibatches."""
+               cfg: PPOConfig, axis_name: str | None = None) -> tuple[Params, optax.OptState, dict[str, jax.Array]]:
+    """``num_epochs`` passes over the batch in ``num_minibatches`` shuffled minibatches.
+
+    With ``axis_name`` each device shuffles its own share (a minibatch is the union of the
+    devices' minibatches) and the gradients are averaged over devices."""
     n = batch.obs.shape[0]
     mb = n // cfg.num_minibatches
 
     def minibatch_step(carry: tuple[Params, optax.OptState], xs: tuple[Batch, jax.Array]):
         params, opt_state = carry
         minibatch, k = xs
-        (_, metrics), grads = loss_and_grad(params, normaliser, minibatch, k, networks, cfg)
+        (_, metrics), grads = loss_and_grad(params, normaliser, minibatch, k, networks, cfg, axis_name)
         updates, opt_state = optimizer.update(grads, opt_state, params)
         metrics["grad_norm"] = optax.tree.norm(grads)
         return (optax.apply_updates(params, updates), opt_state), metrics
 
     def epoch(carry: tuple[Params, optax.OptState], k: jax.Array):
         k_perm, k_mb = jax.random.split(k)
+        if axis_name is not None:
+            k_perm = jax.random.fold_in(k_perm, jax.lax.axis_index(axis_name))
         perm = jax.random.permutation(k_perm, n)
         shuffled = jax.tree_util.tree_map(lambda x: x[perm].reshape((cfg.num_minibatches, mb) + x.shape[1:]), batch)
         return jax.lax.scan(minibatch_step, carry, (shuffled, jax.random.split(k_mb, cfg.num_minibatches)))
@@ -360,11 +446,11 @@ def _all_finite(tree: Any) -> jax.Array:
 
 
 def update_normaliser(normaliser: Normaliser, obs: jax.Array, cfg: PPOConfig,
-                      hand_scaled: np.ndarray | None = None) -> Normaliser:
+                      hand_scaled: np.ndarray | None = None, axis_name: str | None = None) -> Normaliser:
     """Running mean/std update (std floored at ``obs_std_floor``); ``hand_scaled`` entries stay at
     mean 0, std 1 — observation entries already scaled by hand (and 0 when absent), which a
     normaliser fitted on mostly obstacle-free data would turn into outliers (SPEC §2, Layouts)."""
-    normaliser = running_statistics.update(normaliser, obs, std_min_value=cfg.obs_std_floor)
+    normaliser = running_statistics.update(normaliser, obs, std_min_value=cfg.obs_std_floor, pmap_axis_name=axis_name)
     if hand_scaled is None or not np.any(hand_scaled):
         return normaliser
     mask = jnp.asarray(hand_scaled)
@@ -374,44 +460,180 @@ def update_normaliser(normaliser: Normaliser, obs: jax.Array, cfg: PPOConfig,
 
 def iteration(train_state: TrainingState, env_state: State, key: jax.Array, progress: jax.Array, *,
               env: Env, networks: PPONetworks, optimizer: optax.GradientTransformation,
-              cfg: PPOConfig, hand_scaled: np.ndarray | None = None,
+              cfg: PPOConfig, axis_name: str | None = None, hand_scaled: np.ndarray | None = None,
               critic_extra: int = 0) -> tuple[TrainingState, State, dict[str, Any]]:
     """One PPO iteration; if the loss or new params are non-finite the old train state is kept.
 
-    ``metrics["finite"]`` tells the host to count the rollback (the envs keep running).
+    ``metrics["finite"]`` tells the host to count the rollback (the envs keep running).  With
+    ``axis_name`` (inside ``shard_map``) ``env_state`` is this device's share of the env batch;
+    normaliser statistics, advantage statistics, gradients and metrics are global.
     """
     k_roll, k_sgd = jax.random.split(key)
     env_state = set_progress(env_state, progress)
     params = train_state.params
     env_state, data, episodes = rollout(env, networks, params, train_state.normaliser, env_state, k_roll,
-                                        cfg.unroll_length, critic_extra)
-    entropy = mean_policy_entropy(networks, params, train_state.normaliser, data.obs)
-    normaliser = update_normaliser(train_state.normaliser, data.obs, cfg, hand_scaled)
+                                        cfg.unroll_length, axis_name, critic_extra)
+    entropy = _pmean(mean_policy_entropy(networks, params, train_state.normaliser, data.obs), axis_name)
+    normaliser = update_normaliser(train_state.normaliser, data.obs, cfg, hand_scaled, axis_name)
     batch = make_batch(networks, params, normaliser, data, env_state.obs, cfg, critic_extra_of(env_state, critic_extra))
     new_params, opt_state, sgd_metrics = sgd_epochs(params, train_state.opt_state, normaliser, batch, k_sgd,
-                                                    networks, optimizer, cfg)
+                                                    networks, optimizer, cfg, axis_name)
     new_state = TrainingState(params=new_params, opt_state=opt_state, normaliser=normaliser)
     finite = _all_finite(sgd_metrics["loss"]) & _all_finite(new_state)
+    if axis_name is not None:  # every device must take the same branch
+        finite = jax.lax.pmin(finite.astype(jnp.int32), axis_name) > 0
     kept = jax.tree_util.tree_map(lambda new, old: jnp.where(finite, new, old), new_state, train_state)
     metrics: dict[str, Any] = {k: jnp.mean(v) for k, v in sgd_metrics.items()}
-    metrics.update(entropy=entropy, finite=finite, reward_mean=jnp.mean(data.reward), episodes=episodes)
+    metrics.update(entropy=entropy, finite=finite, reward_mean=_pmean(jnp.mean(data.reward), axis_name),
+                   episodes=episodes)
     return kept, env_state, metrics
+
+
+def _sharded(fn: Callable[..., Any], mesh: Mesh, in_specs: Any, out_specs: Any) -> Callable[..., Any]:
+    return jax.shard_map(fn, mesh=mesh, in_specs=in_specs, out_specs=out_specs, check_vma=False)
 
 
 def make_iteration(env: Env, networks: PPONetworks, optimizer: optax.GradientTransformation, cfg: PPOConfig,
                    mesh: Mesh, hand_scaled: np.ndarray | None = None,
                    critic_extra: int = 0) -> Callable[..., tuple[TrainingState, State, dict[str, Any]]]:
-    """Jit ``iteration`` with env-batch sharding on the env state and replicated params."""
-    repl, shard = replicated(mesh), batch_sharding(mesh)
+    """Jitted ``iteration``: each device runs its share of the env batch (``shard_map``), params
+    replicated; ``metrics["episodes"]`` stays split over the devices."""
+    rep, shard = PartitionSpec(), PartitionSpec(BATCH_AXIS)
 
-    def fn(train_state: TrainingState, env_state: State, key: jax.Array, progress: jax.Array):
+    def local(train_state: TrainingState, env_state: State, key: jax.Array, progress: jax.Array):
         ts, es, metrics = iteration(train_state, env_state, key, progress, env=env, networks=networks,
-                                    optimizer=optimizer, cfg=cfg, hand_scaled=hand_scaled, critic_extra=critic_extra)
-        ts = jax.lax.with_sharding_constraint(ts, repl)
-        es = jax.lax.with_sharding_constraint(es, shard)
-        return ts, es, metrics
+                                    optimizer=optimizer, cfg=cfg, axis_name=BATCH_AXIS, hand_scaled=hand_scaled,
+                                    critic_extra=critic_extra)
+        episodes = metrics.pop("episodes")
+        return ts, es, metrics, episodes
 
-    return jax.jit(fn)
+    fn = _sharded(local, mesh, (rep, shard, rep, rep), (rep, shard, rep, PartitionSpec(None, BATCH_AXIS)))
+
+    def wrapped(train_state: TrainingState, env_state: State, key: jax.Array, progress: jax.Array):
+        ts, es, metrics, episodes = fn(train_state, env_state, key, progress)
+        return ts, es, dict(metrics, episodes=episodes)
+
+    return jax.jit(wrapped)
+
+
+def make_first_gradients(env: Env, networks: PPONetworks, cfg: PPOConfig,
+                         mesh: Mesh) -> Callable[..., tuple[jax.Array, Params]]:
+    """Jitted (loss, gradients) of the first iteration's whole batch, by the training code path
+    (rollout, normaliser update, GAE; devices average): the multi-device / multi-process check."""
+    rep, shard = PartitionSpec(), PartitionSpec(BATCH_AXIS)
+
+    def local(train_state: TrainingState, env_state: State, key: jax.Array):
+        k_roll, k_loss = jax.random.split(key)
+        es, data, _ = rollout(env, networks, train_state.params, train_state.normaliser, env_state, k_roll,
+                              cfg.unroll_length, BATCH_AXIS)
+        norm = running_statistics.update(train_state.normaliser, data.obs, std_min_value=cfg.obs_std_floor,
+                                         pmap_axis_name=BATCH_AXIS)
+        batch = make_batch(networks, train_state.params, norm, data, es.obs, cfg)
+        # env-major rows, so that each device's rows are one slice of the global batch (its envs): the
+        # entropy estimate's noise (``_normal``) then does not depend on the device count either
+        t, b = data.reward.shape
+        batch = jax.tree_util.tree_map(lambda x: x.reshape((t, b) + x.shape[1:]).swapaxes(0, 1).reshape(x.shape),
+                                       batch)
+        (loss, _), grads = loss_and_grad(train_state.params, norm, batch, k_loss, networks, cfg, BATCH_AXIS)
+        return loss, grads
+
+    return jax.jit(_sharded(local, mesh, (rep, shard, rep), (rep, rep)))
+
+
+# --------------------------------------------------------------------------- training-episode window
+
+def init_window(keys: tuple[str, ...], size: int) -> dict[str, Any]:
+    """Device-side ring buffer of the last ``size`` finished training episodes' metrics."""
+    return {"values": {k: jnp.zeros((size,), jnp.float32) for k in keys},
+            "count": jnp.zeros((), jnp.int32), "ptr": jnp.zeros((), jnp.int32)}
+
+
+def update_window(window: dict[str, Any], episodes: dict[str, jax.Array]) -> tuple[dict[str, Any], dict[str, jax.Array]]:
+    """Append the episodes that finished in [T, B] ``episodes`` (time-major, then env order) and
+    return the window means: every metric but ``steps``, ``episode_steps``, ``steps_to_success``
+    (NaN without a success) and ``window_episodes``."""
+    size = next(iter(window["values"].values())).shape[0]
+    done = episodes["done"].reshape(-1) > 0.5
+    rank = jnp.cumsum(done.astype(jnp.int32)) - 1
+    n_new = jnp.sum(done.astype(jnp.int32))
+    keep = done & (rank >= n_new - size)
+    pos = jnp.where(keep, (window["ptr"] + rank) % size, size)
+    values = {k: buf.at[pos].set(episodes[k].reshape(-1).astype(buf.dtype), mode="drop")
+              for k, buf in window["values"].items()}
+    count = jnp.minimum(window["count"] + n_new, size)
+    new = {"values": values, "count": count, "ptr": (window["ptr"] + n_new) % size}
+    valid = (jnp.arange(size) < count).astype(jnp.float32)
+    n = jnp.maximum(count, 1).astype(jnp.float32)
+    means = {k: jnp.sum(v * valid) / n for k, v in values.items() if k != "steps"}
+    steps = values.get("steps", jnp.zeros((size,), jnp.float32))
+    success = values.get("success", jnp.zeros((size,), jnp.float32)) * valid
+    n_success = jnp.sum(success)
+    means["episode_steps"] = jnp.sum(steps * valid) / n
+    means["steps_to_success"] = jnp.where(n_success > 0, jnp.sum(steps * success) / jnp.maximum(n_success, 1.0),
+                                          jnp.nan)
+    means["window_episodes"] = count
+    return new, means
+
+
+# --------------------------------------------------------------------------- several iterations per call
+
+def make_cycle(env: Env, networks: PPONetworks, optimizer: optax.GradientTransformation, cfg: PPOConfig,
+               mesh: Mesh, length: int, hand_scaled: np.ndarray | None = None,
+               critic_extra: int = 0) -> Callable[..., tuple[TrainingState, State, dict[str, Any], dict[str, Any]]]:
+    """Jitted run of up to ``length`` PPO iterations in one call (a ``lax.while_loop``), one host sync.
+
+    ``cycle(train_state, env_state, window, train_key, first, count, progress)`` runs iterations
+    ``first … first + count - 1`` (``count ≤ length``; iteration i uses ``fold_in(train_key, i)``
+    and ``progress[i - first]``), stopping after a non-finite one (its state is not kept, see
+    ``iteration``).  Each iteration appends its finished episodes to ``window``
+    (``init_window``).  Returns the new states and per-iteration metrics of shape [length]:
+    ``executed`` marks the iterations that ran; ``window`` holds the window means.
+    """
+    rep, shard = PartitionSpec(), PartitionSpec(BATCH_AXIS)
+
+    def local(train_state: TrainingState, env_state: State, window: dict[str, Any], train_key: jax.Array,
+              first: jax.Array, count: jax.Array, progress: jax.Array):
+        f32 = lambda: jnp.zeros((), jnp.float32)
+        i32 = lambda: jnp.zeros((), jnp.int32)
+        # the per-iteration outputs, spelled out so their buffers need no second trace of ``run``
+        skipped = {**{k: f32() for k in (*CYCLE_METRICS, *RESET_STATS)}, "finite": jnp.zeros((), bool),
+                   "episodes_finished": i32(),
+                   "window": {**{k: f32() for k in window["values"] if k != "steps"}, "episode_steps": f32(),
+                              "steps_to_success": f32(), "window_episodes": i32()}}
+
+        def run(carry: tuple[TrainingState, State, dict[str, Any]], j: jax.Array):
+            ts, es, win = carry
+            key = jax.random.fold_in(train_key, first + j)
+            ts, es, metrics = iteration(ts, es, key, progress[j], env=env, networks=networks, optimizer=optimizer,
+                                        cfg=cfg, axis_name=BATCH_AXIS, hand_scaled=hand_scaled,
+                                        critic_extra=critic_extra)
+            episodes = metrics["episodes"]
+            out = {k: metrics[k].astype(jnp.float32) for k in CYCLE_METRICS}
+            out.update({name: jax.lax.psum(jnp.sum(episodes.get(name, jnp.zeros(()))), BATCH_AXIS).astype(jnp.float32)
+                        for name in RESET_STATS})
+            out["finite"] = metrics["finite"]
+            out["episodes_finished"] = jax.lax.psum(jnp.sum(episodes["done"] > 0.5, dtype=jnp.int32), BATCH_AXIS)
+            kept = {k: episodes[k] for k in (*win["values"], "done")}
+            win, out["window"] = update_window(win, jax.lax.all_gather(kept, BATCH_AXIS, axis=1, tiled=True))
+            return (ts, es, win), out
+
+        def cond(carry: tuple[Any, ...]) -> jax.Array:
+            j, _, _, _, stopped, _ = carry
+            return (j < count) & ~stopped
+
+        def body(carry: tuple[Any, ...]) -> tuple[Any, ...]:
+            j, ts, es, win, _, outs = carry
+            (ts, es, win), out = run((ts, es, win), j)
+            outs = jax.tree_util.tree_map(lambda buf, x: buf.at[j].set(x), outs, out)
+            return j + 1, ts, es, win, ~out["finite"], outs
+
+        outs = jax.tree_util.tree_map(lambda x: jnp.zeros((length,) + x.shape, x.dtype), skipped)
+        init = (jnp.zeros((), jnp.int32), train_state, env_state, window, jnp.zeros((), bool), outs)
+        ran, ts, es, win, _, outs = jax.lax.while_loop(cond, body, init)
+        outs["executed"] = jnp.arange(length) < ran
+        return ts, es, win, outs
+
+    return jax.jit(_sharded(local, mesh, (rep, shard, rep, rep, rep, rep, rep), (rep, shard, rep, rep)))
 
 
 def make_reset(env: Env, mesh: Mesh) -> Callable[[jax.Array], State]:
@@ -423,52 +645,86 @@ def make_reset(env: Env, mesh: Mesh) -> Callable[[jax.Array], State]:
 # --------------------------------------------------------------------------- evaluation
 
 def evaluate_policy(networks: PPONetworks, params: Params, normaliser: Normaliser, env: Env, keys: jax.Array,
-                    max_steps: int) -> EvalResult:
+                    max_steps: int, slots: int | None = None, axis_name: str | None = None) -> EvalResult:
     """Deterministic policy on one episode per key, reward weights frozen at p = 1, no auto-reset.
 
-    Counting stops at each env's first ``done``; the loop ends when all are done (or at
-    ``max_steps``), so a converged policy evaluates in a fraction of the step budget.
+    Counting stops at each episode's first ``done`` (or after ``max_steps`` steps: unfinished,
+    counted as a timeout).  ``slots`` episodes run at a time (default: all); when one ends, its
+    slot takes the next episode, so with few slots finished episodes are not stepped for
+    nothing while a few long ones run on — a converged policy evaluates in a fraction of the
+    step budget.  The loop ends when every episode has ended.  Per-episode results come back in
+    key order.  With ``axis_name`` (inside ``shard_map``) ``keys`` are this device's share and
+    the rates are global.
     """
     n = keys.shape[0]
-    state = set_progress(jax.vmap(env.reset)(keys), 1.0)
+    s = n if slots is None else max(1, min(slots, n))
+    starts = set_progress(jax.vmap(env.reset)(keys), 1.0)
     step_fn = jax.vmap(env.step)
-    record = jax.tree_util.tree_map(jnp.zeros_like, state.info["episode"])
-    zeros = jnp.zeros((n,), jnp.float32)
+    take = lambda idx: jax.tree_util.tree_map(lambda x: x[idx], starts)
+    record = jax.tree_util.tree_map(jnp.zeros_like, starts.info["episode"])
+    zeros, zeros_s = jnp.zeros((n,), jnp.float32), jnp.zeros((s,), jnp.float32)
 
     def cond(carry):
-        t, _, alive, _, _, _ = carry
-        return (t < max_steps) & jnp.any(alive)
+        return jnp.any(carry[1] < n)
 
     def body(carry):
-        t, st, alive, rec, ret, steps = carry
+        st, ep, ret_s, steps_s, next_ep, rec, ret, steps, finished = carry
+        active = ep < n
         action = deterministic_action(networks, params, normaliser, st.obs)
         nxt = step_fn(st, action)
-        ret = ret + jnp.where(alive, nxt.reward, 0.0)
-        steps = steps + alive.astype(jnp.float32)
-        ended = alive & (nxt.done > 0)
-        rec = jax.tree_util.tree_map(lambda r, e: jnp.where(ended, e, r), rec, nxt.info["episode"])
-        return t + 1, nxt, alive & ~ended, rec, ret, steps
+        ret_s = ret_s + jnp.where(active, nxt.reward, 0.0)
+        steps_s = steps_s + active.astype(jnp.float32)
+        done = active & (nxt.done > 0)
+        end = done | (active & (steps_s >= max_steps))
+        at_done, at_end = jnp.where(done, ep, n), jnp.where(end, ep, n)
+        rec = jax.tree_util.tree_map(lambda r, e: r.at[at_done].set(e, mode="drop"), rec, nxt.info["episode"])
+        ret = ret.at[at_end].set(ret_s, mode="drop")
+        steps = steps.at[at_end].set(steps_s, mode="drop")
+        finished = finished.at[at_done].set(True, mode="drop")
+        # an ended slot takes the next episode (or idles when none is left)
+        new_ep = next_ep + jnp.cumsum(end.astype(jnp.int32)) - 1
+        load = end & (new_ep < n)
+        ep = jnp.where(end, jnp.where(load, new_ep, n), ep)
+        st = _select_rows(load, take(jnp.minimum(new_ep, n - 1)), nxt)
+        ret_s, steps_s = jnp.where(end, 0.0, ret_s), jnp.where(end, 0.0, steps_s)
+        return st, ep, ret_s, steps_s, next_ep + jnp.sum(end.astype(jnp.int32)), rec, ret, steps, finished
 
-    init = (jnp.array(0), state, jnp.ones((n,), bool), record, zeros, zeros)
-    _, _, alive, rec, ret, steps = jax.lax.while_loop(cond, body, init)
-    finished = ~alive
+    init = (take(jnp.arange(s)), jnp.arange(s), zeros_s, zeros_s, jnp.asarray(s, jnp.int32), record, zeros, zeros,
+            jnp.zeros((n,), bool))
+    *_, rec, ret, steps, finished = jax.lax.while_loop(cond, body, init)
     success = rec["success"] * finished
     collision = rec["collision"] * finished
     timeout = jnp.where(finished, rec["timeout"], 1.0)
-    n_success = jnp.sum(success)
-    steps_to_success = jnp.where(n_success > 0, jnp.sum(steps * success) / jnp.maximum(n_success, 1.0), jnp.nan)
+    n_success = _psum(jnp.sum(success), axis_name)
+    steps_to_success = jnp.where(n_success > 0, _psum(jnp.sum(steps * success), axis_name) / jnp.maximum(n_success, 1.0),
+                                 jnp.nan)
     episodes = dict(rec, success=success, collision=collision, timeout=timeout)
     episodes.update({"return": ret, "steps": steps, "finished": finished.astype(jnp.float32)})
-    return EvalResult(mean_return=jnp.mean(ret), success_rate=jnp.mean(success),
-                      steps_to_success=steps_to_success, collision_rate=jnp.mean(collision),
-                      timeout_rate=jnp.mean(timeout), episodes=episodes)
+    mean = lambda x: _pmean(jnp.mean(x), axis_name)
+    return EvalResult(mean_return=mean(ret), success_rate=mean(success), steps_to_success=steps_to_success,
+                      collision_rate=mean(collision), timeout_rate=mean(timeout), episodes=episodes)
 
 
-def make_evaluator(networks: PPONetworks, env: Env, max_steps: int) -> Callable[[Params, Normaliser, jax.Array], EvalResult]:
-    def fn(params: Params, normaliser: Normaliser, keys: jax.Array) -> EvalResult:
-        return evaluate_policy(networks, params, normaliser, env, keys, max_steps)
+def _select_rows(mask: jax.Array, a: Any, b: Any) -> Any:
+    """Per-row where over two pytrees whose leaves lead with the row axis."""
+    return jax.tree_util.tree_map(lambda x, y: jnp.where(mask.reshape(mask.shape + (1,) * (x.ndim - 1)), x, y), a, b)
 
-    return jax.jit(fn)
+
+def make_evaluator(networks: PPONetworks, env: Env, max_steps: int, mesh: Mesh | None = None,
+                   slots: int | None = None) -> Callable[[Params, Normaliser, jax.Array], EvalResult]:
+    """Jitted ``evaluate_policy``.  With ``mesh``, keys split over it: each device runs its share
+    (``slots`` is then per device) and only the rates are combined; per-episode arrays stay split."""
+    if mesh is None:
+        return jax.jit(lambda params, normaliser, keys: evaluate_policy(networks, params, normaliser, env, keys,
+                                                                         max_steps, slots))
+    rep, shard = PartitionSpec(), PartitionSpec(BATCH_AXIS)
+
+    def local(params: Params, normaliser: Normaliser, keys: jax.Array) -> EvalResult:
+        return evaluate_policy(networks, params, normaliser, env, keys, max_steps, slots, BATCH_AXIS)
+
+    specs = EvalResult(mean_return=rep, success_rate=rep, steps_to_success=rep, collision_rate=rep,
+                       timeout_rate=rep, episodes=shard)
+    return jax.jit(_sharded(local, mesh, (rep, rep, shard), specs))
 
 
 def eval_keys(seed: int, episodes: int) -> jax.Array:

@@ -351,7 +351,7 @@ def init_policy_state(ts: ppo.TrainingState, cfg: Config, obs_size: int, action_
 
 def export_policy(file: str, cfg: Config, params: ppo.Params, normaliser: ppo.Normaliser, obs_size: int) -> str:
     """Write the deterministic policy (weights + normaliser) as ``runtime``'s ``policy.npz``."""
-    layers = jax.device_get(params.policy["params"])
+    layers = ppo.to_host(params.policy["params"])
     weights = [(np.asarray(layers[f"hidden_{i}"]["kernel"]), np.asarray(layers[f"hidden_{i}"]["bias"]))
                for i in range(len(layers))]
     names = observation.layout_of(cfg.env)

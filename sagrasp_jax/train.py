@@ -18,7 +18,10 @@ from __future__ import annotations
 import sagrasp_jax  # noqa: F401  (sets XLA_FLAGS and the compile-cache dir before jax is imported)
 
 import argparse
+import bisect
+import contextlib
 import dataclasses
+import math
 import os
 import sys
 import time
@@ -26,10 +29,9 @@ from dataclasses import dataclass
 from typing import Any, Callable, TextIO
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
-from sagrasp_jax import checkpoint, observation, ppo, run_dir, sa_schedule
+from sagrasp_jax import checkpoint, distributed, observation, ppo, run_dir, sa_schedule
 from sagrasp_jax.checkpoint import CheckpointError
 from sagrasp_jax.config import (
     PRESETS, SEED_RANGE, Config, ConfigError, apply_overrides, check_range, get_config, training_env_config, validate,
@@ -43,6 +45,10 @@ ALGOS = ("sa-ppo", "ppo")
 TIME_FIELDS = ("time_s", "steps_per_s", "compile_s", "compile_iteration_s", "compile_eval_s", "eval_s", "eta_s")
 
 EnvFactory = Callable[[Config], tuple[ppo.Env, ppo.Env]]  # config -> (auto-reset train env, eval env)
+# On CPU the SA evaluation runs this many episodes at a time per device, each slot taking the next
+# episode when its own ends (ppo.evaluate_policy): ≈ 2x faster than all 128 at once, the same
+# numbers.  Accelerators evaluate all episodes at once.
+CPU_EVAL_SLOTS = 32
 
 
 def enable_compilation_cache() -> None:
@@ -80,19 +86,40 @@ def build_config(preset: str = "cpu-quick", algo: str = "sa-ppo", seed: int | No
 class Schedule:
     steps_per_iteration: int
     num_iterations: int
-    iterations_per_cycle: int
+    cycle_ends: tuple[int, ...]  # completed iterations at the end of each SA cycle; the last is num_iterations
+
+    @property
+    def num_cycles(self) -> int:
+        return len(self.cycle_ends)
+
+    @property
+    def iterations_per_cycle(self) -> int:
+        """The longest cycle: the iterations one jitted call runs at most."""
+        return max(end - start for start, end in zip((0,) + self.cycle_ends[:-1], self.cycle_ends))
 
     @property
     def cycle_steps(self) -> int:
         return self.steps_per_iteration * self.iterations_per_cycle
 
+    def cycle_end(self, iteration: int) -> int:
+        """Where the cycle containing iteration ``iteration`` (0-based) ends."""
+        return self.cycle_ends[bisect.bisect_right(self.cycle_ends, iteration)]
+
 
 def make_schedule(cfg: Config) -> Schedule:
-    """Cycles are whole iterations: ``sa.cycle_steps`` (0 → total / num_cycles), rounded."""
+    """Cycles of whole iterations.  By default exactly ``sa.num_cycles`` of them (fewer only when
+    there are fewer iterations): cycle k ends after round((k + 1)·N / num_cycles) of the N
+    iterations, so cycles differ by at most one iteration.  With ``sa.cycle_steps`` a cycle is
+    round(cycle_steps / steps per iteration) iterations, the last one possibly shorter."""
     per_iter = cfg.ppo.num_envs * cfg.ppo.unroll_length
-    cycle_steps = cfg.sa.cycle_steps or cfg.train.total_steps / cfg.sa.num_cycles
-    return Schedule(per_iter, ppo.num_iterations(cfg.train.total_steps, cfg.ppo),
-                    max(1, round(cycle_steps / per_iter)))
+    n = ppo.num_iterations(cfg.train.total_steps, cfg.ppo)
+    if cfg.sa.cycle_steps:
+        every = max(1, round(cfg.sa.cycle_steps / per_iter))
+        ends = tuple(range(every, n, every)) + (n,)
+    else:
+        c = min(cfg.sa.num_cycles, n)
+        ends = tuple(((k + 1) * n * 2 + c) // (2 * c) for k in range(c))  # round half up, in integers
+    return Schedule(per_iter, n, ends)
 
 
 @dataclass
@@ -111,30 +138,40 @@ class Trainer:
     """One training run bound to a run folder."""
 
     def __init__(self, cfg: Config, out_dir: str, *, env_factory: EnvFactory | None = None, resume: bool = False,
-                 progress: bool = True, stream: TextIO | None = None) -> None:
+                 progress: bool = True, stream: TextIO | None = None, devices: list[Any] | None = None) -> None:
         enable_compilation_cache()
         self.cfg = cfg
         self.out_dir = out_dir
         self.progress = progress
         self.stream = stream if stream is not None else sys.stderr
-        self.mesh = ppo.make_mesh()
+        self.mesh = ppo.make_mesh(devices)  # default: every device (of every process)
+        self.primary = jax.process_index() == 0  # under jax.distributed only process 0 writes files
         if cfg.ppo.num_envs % self.mesh.size:
-            raise ConfigError(f"ppo.num_envs={cfg.ppo.num_envs} must be divisible by the {self.mesh.size} local devices")
+            raise ConfigError(f"ppo.num_envs={cfg.ppo.num_envs} must be divisible by the {self.mesh.size} devices")
         self.train_env, self.eval_env = (env_factory or default_envs)(cfg)
         self.obs_size, self.action_size = self.train_env.observation_size, self.train_env.action_size
         self.schedule = make_schedule(cfg)
         self.critic_extra = observation.critic_extra_size(cfg)  # privileged critic inputs (0: none)
+        provided = getattr(getattr(self.train_env, "env", self.train_env), "privileged_size", 0)
+        if self.critic_extra and provided != self.critic_extra:
+            raise ConfigError(f"ppo.privileged_critic needs an env that reports {self.critic_extra} privileged inputs "
+                              f"(GraspEnv(privileged=True)); the training env reports {provided}")
         self.networks = ppo.make_networks(cfg.ppo.network, self.obs_size, self.action_size, cfg.ppo.obs_clip,
                                           self.critic_extra)
         self.optimizer = ppo.make_optimizer(cfg.ppo, cfg.sa.lr0 if cfg.sa.enabled else cfg.ppo.learning_rate)
         self.hand_scaled = getattr(self.eval_env, "hand_scaled_mask", None)  # normaliser leaves these entries alone
-        self._iteration = ppo.make_iteration(self.train_env, self.networks, self.optimizer, cfg.ppo, self.mesh,
-                                             self.hand_scaled, self.critic_extra)
-        self._evaluate = ppo.make_evaluator(self.networks, self.eval_env, cfg.env.task.max_steps)
+        self._cycle = ppo.make_cycle(self.train_env, self.networks, self.optimizer, cfg.ppo, self.mesh,
+                                     self.schedule.iterations_per_cycle, self.hand_scaled, self.critic_extra)
         keys = ppo.eval_keys(cfg.sa.eval_seed, cfg.sa.eval_episodes)
-        self.eval_keys = (ppo.shard_batch(keys, self.mesh) if cfg.sa.eval_episodes % self.mesh.size == 0
-                          else ppo.replicate(keys, self.mesh))
-        self._compiled_iteration: Any = None
+        split = cfg.sa.eval_episodes % self.mesh.size == 0
+        self.eval_keys = ppo.shard_batch(keys, self.mesh) if split else ppo.replicate(keys, self.mesh)
+        slots = CPU_EVAL_SLOTS if jax.default_backend() == "cpu" else None
+        evaluate = ppo.make_evaluator(self.networks, self.eval_env, cfg.env.task.max_steps,
+                                      self.mesh if split else None, slots)
+        self._evaluate = jax.jit(lambda params, normaliser, keys: evaluate(params, normaliser, keys)._replace(episodes={}))
+        episode = jax.eval_shape(self.train_env.reset, jax.random.PRNGKey(0)).info["episode"]
+        self.window_keys = tuple(episode)
+        self._compiled_cycle: Any = None
         self._compiled_eval: Any = None
         self.compile_s: dict[str, float] = {}
         self._resuming = resume
@@ -161,18 +198,21 @@ class Trainer:
         self.sa_state = sa_state
         self.sa_rng = np.random.default_rng([cfg.train.seed, 0x5A])
         self.host = HostState()
-        self.windows: dict[str, np.ndarray] = {}
+        self.window = ppo.replicate(ppo.init_window(self.window_keys, cfg.train.metrics_window), self.mesh)
 
     def _trees(self) -> dict[str, Any]:
         return {"train_state": self.train_state, "snapshot": self.snapshot, "env_state": self.env_state,
-                "train_key": self.train_key}
+                "train_key": self.train_key, "episode_window": self.window}
 
     def save_checkpoint(self) -> str:
-        """Atomically write everything an exact resume needs."""
+        """Atomically write everything an exact resume needs (under jax.distributed every process
+        gathers, process 0 writes)."""
         path = os.path.join(self.out_dir, CHECKPOINT_FILE)
         host = {"counters": dataclasses.asdict(self.host), "sa_state": self.sa_state.to_dict(),
                 "sa_rng": self.sa_rng.bit_generator.state}
-        checkpoint.save(path, trees={**self._trees(), "windows": self.windows}, host=host, config=self.cfg)
+        trees = ppo.to_host(self._trees())
+        if self.primary:
+            checkpoint.save(path, trees=trees, host=host, config=self.cfg)
         return path
 
     def _load(self, path: str) -> None:
@@ -187,12 +227,12 @@ class Trainer:
         except (KeyError, TypeError, ValueError) as exc:
             raise CheckpointError(f"{path}: incompatible checkpoint host state ({exc})") from None
         trees = {name: checkpoint.restore_tree(tmpl, ckpt.trees.get(name, {}), name, path)
-                 for name, tmpl in self._trees().items()}
+                 for name, tmpl in ppo.to_host(self._trees()).items()}
         self.train_state = ppo.replicate(trees["train_state"], self.mesh)
         self.snapshot = ppo.replicate(trees["snapshot"], self.mesh)
         self.env_state = ppo.shard_batch(trees["env_state"], self.mesh)
         self.train_key = ppo.replicate(trees["train_key"], self.mesh)
-        self.windows = {k[2:-2]: np.asarray(v) for k, v in ckpt.trees.get("windows", {}).items()}
+        self.window = ppo.replicate(trees["episode_window"], self.mesh)
         self.host, self.sa_state, self.sa_rng = counters, sa_state, rng
 
     @property
@@ -207,16 +247,19 @@ class Trainer:
 
     # ------------------------------------------------------------------ compiled steps
 
-    def _iteration_args(self) -> tuple[Any, ...]:
-        key = jax.random.fold_in(self.train_key, self.host.iteration)
-        progress = jnp.float32(min(1.0, self.host.env_steps / self.cfg.train.total_steps))
-        return (self.train_state, self.env_state, ppo.replicate(key, self.mesh), ppo.replicate(progress, self.mesh))
+    def _cycle_args(self, count: int) -> tuple[Any, ...]:
+        """Arguments of the jitted call running iterations ``host.iteration …`` (+ ``count``)."""
+        first, spi = self.host.iteration, self.schedule.steps_per_iteration
+        progress = np.array([min(1.0, (first + j) * spi / self.cfg.train.total_steps)
+                             for j in range(self.schedule.iterations_per_cycle)], np.float32)
+        scalars = ppo.replicate((np.int32(first), np.int32(count), progress), self.mesh)
+        return (self.train_state, self.env_state, self.window, self.train_key, *scalars)
 
     def compile(self) -> dict[str, float]:
-        """Compile the iteration and the evaluation ahead of time, timing each."""
-        if self._compiled_iteration is None:
+        """Compile the training call and the evaluation ahead of time, timing each."""
+        if self._compiled_cycle is None:
             t = time.perf_counter()
-            self._compiled_iteration = self._iteration.lower(*self._iteration_args()).compile()
+            self._compiled_cycle = self._cycle.lower(*self._cycle_args(1)).compile()
             self.compile_s["iteration"] = time.perf_counter() - t
             t = time.perf_counter()
             self._compiled_eval = self._evaluate.lower(self.train_state.params, self.train_state.normaliser,
@@ -226,60 +269,67 @@ class Trainer:
 
     def run_iteration(self) -> dict[str, Any]:
         """One PPO iteration (rollout + update); a non-finite result restores the snapshot."""
+        return self.run_iterations(1)[-1]
+
+    def run_iterations(self, count: int) -> list[dict[str, Any]]:
+        """Up to ``count`` (≤ ``schedule.iterations_per_cycle``) PPO iterations in one jitted call and
+        one host sync, one row each.  A non-finite iteration ends the call and restores the snapshot."""
+        if not 1 <= count <= self.schedule.iterations_per_cycle:
+            raise ValueError(f"run_iterations: count {count} outside 1 … {self.schedule.iterations_per_cycle}")
         self.compile()
+        spi, total = self.schedule.steps_per_iteration, self.cfg.train.total_steps
+        first = self.host.iteration
         t = time.perf_counter()
-        ts, env_state, metrics = self._compiled_iteration(*self._iteration_args())
-        metrics = jax.device_get(metrics)
+        ts, env_state, window, metrics = self._compiled_cycle(*self._cycle_args(count))
+        metrics = ppo.to_host(metrics)
         dt = time.perf_counter() - t
-        self.env_state = env_state
-        progress = self.host.env_steps / self.cfg.train.total_steps
-        self.host.iteration += 1
-        self.host.env_steps += self.schedule.steps_per_iteration
-        finished = self._update_windows(metrics.pop("episodes"))
-        row: dict[str, Any] = {"iteration": self.host.iteration - 1, "env_steps": self.host.env_steps,
-                               "progress": progress, "steps_per_s": self.schedule.steps_per_iteration / dt,
-                               "episodes_finished": finished}
-        row.update({k: float(v) for k, v in metrics.items() if k != "finite"})
-        row.update(self.window_means())
-        if bool(metrics["finite"]):
+        self.env_state, self.window = env_state, window
+        means, finite = metrics.pop("window"), metrics.pop("finite")
+        ran = int(metrics.pop("executed").sum())
+        rows: list[dict[str, Any]] = []
+        for j in range(ran):
+            progress = self.host.env_steps / total
+            self.host.iteration += 1
+            self.host.env_steps += spi
+            row: dict[str, Any] = {"iteration": first + j, "env_steps": self.host.env_steps, "progress": progress,
+                                   "steps_per_s": spi * ran / dt,
+                                   "episodes_finished": int(metrics["episodes_finished"][j])}
+            row.update({k: float(v[j]) for k, v in metrics.items() if k != "episodes_finished"})
+            row.update(self._window_row(means, j))
+            if finite[j]:
+                self.host.entropy_sum += float(metrics["entropy"][j])
+                self.host.entropy_n += 1
+            rows.append(row)
+        if finite[ran - 1]:
             self.train_state = ts
-            self.host.entropy_sum += float(metrics["entropy"])
-            self.host.entropy_n += 1
         else:
             self.host.nonfinite += 1
             self.sa_state, decision = sa_schedule.force_reject_and_decay(self.cfg.sa, self.sa_state)
             self.train_state = self.snapshot
             self._apply_lr()
             self._start_cycle()
-            row.update(event="nonfinite", sa_decision=decision.kind, sa_decayed=decision.decayed)
-        return row
+            rows[-1].update(event="nonfinite", sa_decision=decision.kind, sa_decayed=decision.decayed)
+        return rows
 
-    def _update_windows(self, episodes: dict[str, np.ndarray]) -> int:
-        """Append the episodes that finished this iteration to the recent-episode window."""
-        done = np.asarray(episodes.pop("done")) > 0
-        size = self.cfg.train.metrics_window
-        for key, values in episodes.items():
-            new = np.asarray(values, np.float32)[done]
-            old = self.windows.get(key, np.zeros((0,), np.float32))
-            self.windows[key] = np.concatenate([old, new])[-size:]
-        return int(done.sum())
-
-    def window_means(self) -> dict[str, Any]:
+    @staticmethod
+    def _window_row(means: dict[str, np.ndarray], j: int) -> dict[str, Any]:
         """Training-episode metrics over the last ``train.metrics_window`` finished episodes."""
-        if not self.windows or self.windows["success"].size == 0:
+        count = int(means["window_episodes"][j])
+        if count == 0:
             return {}
-        out: dict[str, Any] = {k: float(np.mean(v)) for k, v in self.windows.items() if k != "steps"}
-        out["episode_steps"] = float(np.mean(self.windows["steps"]))
-        ok = self.windows["success"] > 0
-        out["steps_to_success"] = float(np.mean(self.windows["steps"][ok])) if ok.any() else None
-        out["window_episodes"] = int(self.windows["success"].size)
+        out: dict[str, Any] = {k: float(v[j]) for k, v in means.items()
+                               if k not in ("episode_steps", "steps_to_success", "window_episodes")}
+        out["episode_steps"] = float(means["episode_steps"][j])
+        sts = float(means["steps_to_success"][j])
+        out["steps_to_success"] = sts if math.isfinite(sts) else None
+        out["window_episodes"] = count
         return out
 
     def evaluate(self) -> ppo.EvalResult:
         """The fixed-seed deterministic evaluation at p = 1 (the SA metric's source)."""
         self.compile()
         ts = self.train_state
-        return jax.device_get(self._compiled_eval(ts.params, ts.normaliser, self.eval_keys))
+        return ppo.to_host(self._compiled_eval(ts.params, ts.normaliser, self.eval_keys))
 
     def anneal(self, metric: float, entropy: float) -> sa_schedule.Decision:
         """SA decision for the cycle: accept → snapshot, reject → restore the snapshot; set the lr."""
@@ -297,8 +347,8 @@ class Trainer:
         self.host.entropy_sum, self.host.entropy_n = 0.0, 0
 
     def cycle_due(self) -> bool:
-        done = self.host.iteration - self.host.cycle_start
-        return done >= self.schedule.iterations_per_cycle or self.host.iteration >= self.schedule.num_iterations
+        """The current cycle's last iteration has run (a cycle ends at its fixed ``schedule.cycle_ends``)."""
+        return self.host.iteration in self.schedule.cycle_ends
 
     def end_cycle(self) -> dict[str, Any]:
         """Evaluate, anneal, start the next cycle; returns the row fields."""
@@ -323,11 +373,16 @@ class Trainer:
     # ------------------------------------------------------------------ run
 
     def train(self, stop_after_cycles: int | None = None) -> dict[str, Any]:
-        """Train to ``train.total_steps`` (or stop, checkpointed, after ``stop_after_cycles`` cycles)."""
-        os.makedirs(self.out_dir, exist_ok=True)
-        logger = RunLogger(self.out_dir, resume_iteration=self.host.iteration, resume_step=self.host.env_steps)
+        """Train to ``train.total_steps`` (or stop, checkpointed, after ``stop_after_cycles`` cycles).
+
+        One jitted call per SA cycle (``run_iterations``) runs the cycle's iterations; its rows are
+        written afterwards, the cycle's row carrying the evaluation and the SA decision."""
+        if self.primary:
+            os.makedirs(self.out_dir, exist_ok=True)
+        logger = (RunLogger(self.out_dir, resume_iteration=self.host.iteration, resume_step=self.host.env_steps)
+                  if self.primary else None)
         sched = self.schedule
-        bar = _progress_bar(self.progress, sched, self.host.env_steps, self.stream)
+        bar = _progress_bar(self.progress and self.primary, sched, self.host.env_steps, self.stream)
         last_row: dict[str, Any] = {}
         last_metric: float | None = None
         compile_s = sum(self.compile().values())
@@ -335,34 +390,42 @@ class Trainer:
         start_steps = self.host.env_steps
         if bar is not None:
             bar.write(f"compiled in {compile_s:.1f} s (iteration {self.compile_s['iteration']:.1f} s, "
-                      f"eval {self.compile_s['eval']:.1f} s); {sched.num_iterations} iterations, "
-                      f"{sched.iterations_per_cycle} per cycle, {self.mesh.size} device(s)")
+                      f"eval {self.compile_s['eval']:.1f} s); {sched.num_iterations} iterations in "
+                      f"{sched.num_cycles} cycles of <= {sched.iterations_per_cycle}, {self.mesh.size} device(s)")
         try:
             while self.host.iteration < sched.num_iterations:
-                row = self.run_iteration()
-                cycle_ended = False
-                if "event" not in row and self.cycle_due():
-                    row.update(self.end_cycle())
-                    cycle_ended = True
-                row["lr"] = self.lr
-                row.setdefault("temperature", self.sa_state.temperature)
-                elapsed = time.perf_counter() - t_start
-                rate = (self.host.env_steps - start_steps) / max(elapsed, 1e-9)
-                row.update(time_s=elapsed, compile_s=compile_s, compile_iteration_s=self.compile_s["iteration"],
-                           compile_eval_s=self.compile_s["eval"],
-                           eta_s=(sched.num_iterations - self.host.iteration) * sched.steps_per_iteration / rate)
-                if (cycle_ended or "event" in row or row["iteration"] % self.cfg.train.log_every == 0
-                        or self.host.iteration == sched.num_iterations):
-                    logger.write(row)
-                last_row = row
-                last_metric = row.get("sa_metric", last_metric)
-                if bar is not None:
-                    bar.update(sched.steps_per_iteration)
-                    bar.set_postfix(sps=f"{rate:,.0f}", success=_fmt(row.get("success")), lr=f"{self.lr:.2e}",
-                                    M=_fmt(last_metric), refresh=False)
-                    if "event" in row:
-                        bar.write(f"iteration {row['iteration']}: non-finite loss/params -> rolled back to the "
-                                  f"snapshot, lr {self.lr:.3g}")
+                lr, temperature = self.lr, self.sa_state.temperature  # during this call
+                t_call = time.perf_counter()
+                end = sched.cycle_end(self.host.iteration)
+                rows = self.run_iterations(end - self.host.iteration)
+                t_run = time.perf_counter()
+                cycle_ended = "event" not in rows[-1] and self.cycle_due()
+                if cycle_ended:
+                    rows[-1].update(self.end_cycle())
+                t_end = time.perf_counter()
+                for j, row in enumerate(rows):
+                    last = j == len(rows) - 1
+                    row["lr"] = self.lr if last else lr
+                    row.setdefault("temperature", self.sa_state.temperature if last else temperature)
+                    elapsed = (t_end if last else t_call + (j + 1) / len(rows) * (t_run - t_call)) - t_start
+                    done = row["iteration"] + 1
+                    rate = (done * sched.steps_per_iteration - start_steps) / max(elapsed, 1e-9)
+                    row.update(time_s=elapsed, compile_s=compile_s, compile_iteration_s=self.compile_s["iteration"],
+                               compile_eval_s=self.compile_s["eval"],
+                               eta_s=(sched.num_iterations - done) * sched.steps_per_iteration / max(rate, 1e-9))
+                    if logger is not None and ((cycle_ended and last) or "event" in row
+                                               or row["iteration"] % self.cfg.train.log_every == 0
+                                               or done == sched.num_iterations):
+                        logger.write(row)
+                    last_metric = row.get("sa_metric", last_metric)
+                    if bar is not None:
+                        bar.update(sched.steps_per_iteration)
+                        bar.set_postfix(sps=f"{rate:,.0f}", success=_fmt(row.get("success")), lr=f"{row['lr']:.2e}",
+                                        M=_fmt(last_metric), refresh=False)
+                        if "event" in row:
+                            bar.write(f"iteration {row['iteration']}: non-finite loss/params -> rolled back to the "
+                                      f"snapshot, lr {self.lr:.3g}")
+                last_row = rows[-1]
                 cycles = self.sa_state.cycle
                 finished = self.host.iteration >= sched.num_iterations
                 stop = cycle_ended and stop_after_cycles is not None and cycles >= stop_after_cycles
@@ -370,14 +433,15 @@ class Trainer:
                     self.save_checkpoint()
                 if stop and not finished:
                     return last_row
-            if self.host.iteration >= sched.num_iterations:
+            if self.host.iteration >= sched.num_iterations and self.primary:
                 export_policy(os.path.join(self.out_dir, POLICY_FILE), self.cfg, self.train_state.params,
                               self.train_state.normaliser, self.obs_size)
         finally:
-            logger.close()
+            if logger is not None:
+                logger.close()
             if bar is not None:
                 bar.close()
-        if last_row:
+        if last_row and self.primary:
             print(self.summary(last_row, self.host.env_steps - start_steps), file=self.stream)
         return last_row
 
@@ -441,6 +505,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--no-progress", action="store_true", help="no live progress bar")
     p.add_argument("--list-keys", nargs=0, action=_ListKeys,
                    help="list every config key with its meaning, its value in --preset (given before it) and its valid values; exit")
+    dist = p.add_argument_group("multi-process training (jax.distributed, one process per host; see sagrasp_jax.distributed)")
+    dist.add_argument("--coordinator", default=None, metavar="HOST:PORT", help="address of process 0")
+    dist.add_argument("--num-processes", type=int, default=1)
+    dist.add_argument("--process-id", type=int, default=0)
     return p
 
 
@@ -468,6 +536,30 @@ def resolve_config(args: argparse.Namespace) -> Config:
     return build_config(args.preset or "cpu-quick", args.algo or "sa-ppo", args.seed, args.total_steps, overrides)
 
 
+def cpu_devices_for(cfg: Config, processes: int = 1) -> int:
+    """CPU devices per process for a run: one per usable core (XLA:CPU runs most of one device's
+    program on one thread, so a single device leaves the other cores idle), such that the
+    ``processes`` × devices divide ``ppo.num_envs``."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    devices = max(1, min(cores, cfg.ppo.num_envs // processes))
+    while cfg.ppo.num_envs % (devices * processes):
+        devices -= 1
+    return devices
+
+
+def use_cpu_devices(cfg: Config, processes: int = 1) -> None:
+    """Split the CPU into ``cpu_devices_for`` devices for this run (the env batch is sharded over
+    them) unless the device count was chosen already (``JAX_NUM_CPU_DEVICES``, XLA_FLAGS'
+    ``--xla_force_host_platform_device_count``) or jax has started its backends."""
+    chosen = "JAX_NUM_CPU_DEVICES" in os.environ or "xla_force_host_platform_device_count" in os.environ.get(
+        "XLA_FLAGS", "")
+    if not chosen:
+        try:
+            jax.config.update("jax_num_cpu_devices", cpu_devices_for(cfg, processes))
+        except RuntimeError:  # jax already started: keep its devices
+            pass
+
+
 def run(cfg: Config, out: str, *, resume: bool = False, env_factory: EnvFactory | None = None,
         progress: bool = True, stop_after_cycles: int | None = None, stream: TextIO | None = None) -> Trainer:
     """Library entry point: validate, lock and check the folder, train; returns the finished trainer.
@@ -478,14 +570,22 @@ def run(cfg: Config, out: str, *, resume: bool = False, env_factory: EnvFactory 
     validate(cfg)
     if cfg.train.init_from and not resume:  # refuse an unusable --init-from before the run folder is touched
         run_dir.check_init_from(cfg)
-    with run_dir.FolderLock(out, create=True, what="run folder"):
-        mode = run_dir.prepare_training(out, cfg, resume)
+    primary = jax.process_index() == 0  # under jax.distributed process 0 owns the run folder
+    lock = run_dir.FolderLock(out, create=True, what="run folder") if primary else contextlib.nullcontext()
+    with lock:
+        try:
+            mode = run_dir.prepare_training(out, cfg, resume) if primary else ("resume" if resume else "fresh")
+        except (CheckpointError, RunDirError):
+            distributed.all_ok(False)  # under jax.distributed the other processes stop too
+            raise
+        if not distributed.all_ok(True):
+            raise CheckpointError(f"{out}: another process refused this run folder (see its error)")
         if mode == "restart":
-            print(f"{out}: no checkpoint yet (the run stopped before its first one): restarting it from the beginning",
-                  file=stream if stream is not None else sys.stderr)
+            print(f"{out}: no checkpoint yet (the run stopped before its first one): restarting it from the "
+                  "beginning", file=stream if stream is not None else sys.stderr)
         trainer = Trainer(cfg, out, env_factory=env_factory, resume=mode == "resume", progress=progress,
                           stream=stream)  # writes nothing
-        if mode != "resume":
+        if mode != "resume" and trainer.primary:
             run_dir.write_config(out, cfg)
         trainer.train(stop_after_cycles=stop_after_cycles)
     return trainer
@@ -496,6 +596,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         check_args(args)
         cfg = resolve_config(args)
+        use_cpu_devices(cfg, args.num_processes if args.coordinator else 1)
+        if args.coordinator:
+            distributed.initialize(args.coordinator, args.num_processes, args.process_id)
         run(cfg, args.out, resume=args.resume, progress=not args.no_progress,
             stop_after_cycles=args.stop_after_cycles)
     except (ConfigError, CheckpointError, RunDirError) as exc:

@@ -3,7 +3,10 @@
 brax's ``AutoResetWrapper`` restores each slot's first reset state, so a slot would
 replay one scene forever.  Here every env carries a *pending* start — a complete,
 never-used reset state — that replaces it the step it finishes; consumed pendings are
-then re-sampled.
+then re-sampled.  Every start of env ``i`` comes from its own key chain
+(``info["reset_key"]``, split once per sampled start), in the order it is used, so the
+sequence of scenes an env plays does not depend on when the refill ran (nor on how the
+batch is split over devices).
 
 Two ways to step:
 
@@ -11,11 +14,16 @@ Two ways to step:
   every step where the env finished; under ``vmap`` that select still computes a reset
   for every env every step (≈ the cost of a sampling pass per env-step).
 * ``batch_step(states, actions)``: the whole batch (leading axis = envs), for training.
-  At most ``refill`` consumed pendings are re-sampled per step (default: 1/16 of the
-  batch, rotating so none starves), and none when no env finished — the expensive
+  Per step it re-samples at most ``refill`` consumed pendings (default: 1/16 of the
+  batch, rotating so none starves), and none when none is consumed — the expensive
   obstacle-feasibility sampling then costs ~1/16 of a reset per env-step.  An env that
-  finishes again before its pending was refilled would replay it; that is counted in
-  ``metrics["stale_resets"]`` (0 in practice: episodes are longer than the refill lag).
+  finishes again before its pending was refilled (short episodes, few envs) is an
+  **overflow**: its pending is re-sampled before the swap, in the same batch-level
+  ``lax.while_loop`` (``refill`` envs per pass; one pass in the usual case, none when
+  nothing is consumed, more only while an overflow lasts).  So no scene is ever
+  replayed; ``metrics["reset_overflow"]`` counts the overflow starts and
+  ``metrics["reset_replays"]`` the replayed ones (0 by construction; the trainer logs
+  both).
 """
 
 from __future__ import annotations
@@ -29,6 +37,7 @@ import jax.numpy as jnp
 from brax.envs.base import State
 
 PENDING_KEYS = ("pending", "pending_fresh", "reset_key")
+RESET_METRICS = ("reset_overflow", "reset_replays")
 
 
 def _select(mask: jax.Array, a: Any, b: Any) -> Any:
@@ -64,13 +73,14 @@ class AutoReset:
         info["pending"] = self.env.reset(k_pending)
         info["pending_fresh"] = jnp.ones((), bool)
         info["reset_key"] = k_next
-        metrics = dict(state.metrics, stale_resets=jnp.zeros(()))
+        zero = jnp.zeros((), state.reward.dtype)
+        metrics = dict(state.metrics, **{k: zero for k in RESET_METRICS})
         return state.replace(info=info, metrics=metrics)
 
-    def _swap(self, nxt: State, pending: State, done: jax.Array) -> State:
-        """Where done: the pending start replaces the env; reward, done and the finished
+    def _swap(self, nxt: State, start: State, done: jax.Array) -> State:
+        """Where done: ``start`` replaces the env; reward, done and the finished
         episode's metrics stay those of the finishing step."""
-        swapped = _select(done, pending, nxt)
+        swapped = _select(done, start, nxt)
         info = dict(swapped.info)
         info["episode"] = nxt.info["episode"]
         info["progress"] = nxt.info["progress"]
@@ -88,38 +98,48 @@ class AutoReset:
         info["pending"] = _select(done, fresh_pending, pending)
         info["pending_fresh"] = jnp.ones((), bool)
         info["reset_key"] = jnp.where(done, k_next, state.info["reset_key"])
-        metrics = dict(out.metrics, stale_resets=jnp.zeros(()))
+        zero = jnp.zeros((), out.reward.dtype)
+        metrics = dict(out.metrics, **{k: zero for k in RESET_METRICS})
         return out.replace(info=info, metrics=metrics)
 
+    def _refill(self, pending: Any, keys: jax.Array, todo: jax.Array, chunk: int) -> tuple[Any, jax.Array]:
+        """Re-sample the pending start of every env in ``todo`` from its own key chain, ``chunk`` envs
+        per pass of a ``lax.while_loop`` (no pass when ``todo`` is empty)."""
+        n = todo.shape[0]
+
+        def one_pass(carry: tuple[Any, jax.Array, jax.Array]) -> tuple[Any, jax.Array, jax.Array]:
+            pend, ks, left = carry
+            idx = jnp.nonzero(left, size=chunk, fill_value=n)[0]
+            split = jax.vmap(jax.random.split)(ks[jnp.minimum(idx, n - 1)])  # (chunk, 2, key)
+            new_states = jax.vmap(self.env.reset)(split[:, 0])
+            pend = jax.tree_util.tree_map(lambda p, s: p.at[idx].set(s, mode="drop"), pend, new_states)
+            return pend, ks.at[idx].set(split[:, 1], mode="drop"), left.at[idx].set(False, mode="drop")
+
+        pending, keys, _ = jax.lax.while_loop(lambda c: jnp.any(c[2]), one_pass, (pending, keys, todo))
+        return pending, keys
+
     def batch_step(self, state: State, action: jax.Array) -> State:
-        """The whole batch; refills at most ``refill`` consumed pendings per step."""
+        """The whole batch: swaps in the pending starts of the envs that finished, after re-sampling
+        (one sampling pass of ``refill`` envs) the overflow plus up to ``refill`` stale pendings."""
         n = state.done.shape[0]
         refill = max(1, math.ceil(n * self.refill_fraction))
         pending, fresh, keys = state.info["pending"], state.info["pending_fresh"], state.info["reset_key"]
         nxt = jax.vmap(self.env.step)(_core(state), action)
         done = nxt.done > 0.5
-        stale = done & ~fresh
-        out = self._swap(nxt, pending, done)
-        consumed = ~fresh | done
-        # rotate the scan start so that a backlog is served round-robin
+        overflow = done & ~fresh  # finished again before its pending was refilled: must be served now
+        # up to ``refill`` of the other consumed pendings, scanning from a rotating start so none starves
+        stale = ~fresh & ~done
         offset = jnp.sum(state.info["steps"]) % n
         order = (jnp.arange(n) + offset) % n
-        picked = jnp.nonzero(consumed[order], size=refill, fill_value=n)[0]
-        idx = jnp.where(picked < n, order[jnp.minimum(picked, n - 1)], n)
-
-        def do_refill(args: tuple[Any, jax.Array, jax.Array]) -> tuple[Any, jax.Array, jax.Array]:
-            pend, fr, ks = args
-            safe = jnp.minimum(idx, n - 1)
-            split = jax.vmap(jax.random.split)(ks[safe])  # (refill, 2, key)
-            new_states = jax.vmap(self.env.reset)(split[:, 0])
-            pend = jax.tree_util.tree_map(lambda p, s: p.at[idx].set(s, mode="drop"), pend, new_states)
-            fr = fr.at[idx].set(True, mode="drop")
-            ks = ks.at[idx].set(split[:, 1], mode="drop")
-            return pend, fr, ks
-
-        fresh = fresh & ~done
-        pending, fresh, keys = jax.lax.cond(jnp.any(consumed), do_refill, lambda a: a, (pending, fresh, keys))
+        picked = jnp.nonzero(stale[order], size=refill, fill_value=n)[0]
+        routine = jnp.zeros((n,), bool).at[jnp.where(picked < n, order[jnp.minimum(picked, n - 1)], n)].set(
+            True, mode="drop")
+        todo = overflow | routine
+        pending, keys = self._refill(pending, keys, todo, refill)
+        replays = done & ~(fresh | todo)  # a used start swapped in again: impossible by construction
+        out = self._swap(nxt, pending, done)
         info = dict(out.info)
-        info.update(pending=pending, pending_fresh=fresh, reset_key=keys)
-        metrics = dict(out.metrics, stale_resets=stale.astype(out.reward.dtype))
+        info.update(pending=pending, pending_fresh=(fresh | todo) & ~done, reset_key=keys)
+        dtype = out.reward.dtype
+        metrics = dict(out.metrics, reset_overflow=overflow.astype(dtype), reset_replays=replays.astype(dtype))
         return out.replace(info=info, metrics=metrics)

@@ -42,7 +42,8 @@ def toy_config(cycles: int = 6, algo: str = "sa-ppo", extra: list[str] | None = 
     total = TOY_ITER_STEPS * iterations_per_cycle * cycles
     sets = ["ppo.num_envs=32", "ppo.unroll_length=16", "ppo.num_minibatches=4", "ppo.num_epochs=2",
             f"sa.num_cycles={cycles}", "sa.eval_episodes=32", "env.task.max_steps=30",
-            "train.checkpoint_every_cycles=2", "train.metrics_window=64"]
+            "train.checkpoint_every_cycles=2", "train.metrics_window=64",
+            "ppo.privileged_critic=false"]  # the toy env has no privileged critic inputs
     return train.build_config("cpu-quick", algo, 0, total, sets + list(extra or []))
 
 

@@ -56,7 +56,7 @@ def main() -> None:
     compile_once = train.Trainer.compile
 
     def compile(self):  # type: ignore[no-untyped-def]
-        first = self._compiled_iteration is None
+        first = self._compiled_cycle is None
         out = compile_once(self)
         if first:
             print("COMPILED", flush=True)
@@ -64,14 +64,14 @@ def main() -> None:
 
     train.Trainer.compile = compile
     if args.slow:
-        step = train.Trainer.run_iteration
+        step = train.Trainer.run_iterations
 
-        def run_iteration(self):  # type: ignore[no-untyped-def]
-            row = step(self)
-            time.sleep(args.slow)
-            return row
+        def run_iterations(self, count):  # type: ignore[no-untyped-def]
+            rows = step(self, count)
+            time.sleep(args.slow * len(rows))  # as slow as before, one sleep per iteration
+            return rows
 
-        train.Trainer.run_iteration = run_iteration
+        train.Trainer.run_iterations = run_iterations
     train.run(toy_config(), args.out, resume=True, env_factory=toy_factory(), progress=False)
     print("FINISHED", flush=True)
 

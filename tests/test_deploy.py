@@ -56,7 +56,7 @@ def constant_policy(tmp_path, action) -> object:
     weights = [(np.zeros((17, 8), np.float32), np.zeros(8, np.float32)),
                (np.zeros((8, 12), np.float32), np.concatenate([loc, np.zeros(6)]).astype(np.float32))]
     path = save_policy_npz(tmp_path / "const.npz", weights=weights, activation="tanh", obs_mean=np.zeros(17),
-                           obs_std=np.ones(17), config=get_config("cpu-quick"))
+                           obs_std=np.ones(17), config=get_config("paper"))
     return load_policy(path)
 
 

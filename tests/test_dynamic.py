@@ -166,11 +166,14 @@ def test_init_from_continues_policy_and_normaliser_with_a_fresh_optimizer(toy_ru
 
 @pytest.mark.parametrize("sets, message", [
     ([], "not a run folder"),
-    (["--set", "ppo.network.policy_hidden=16"], "its policy cannot start this run: networks"),
-    (["--set", "env.task.obs_layout=relative"], "observation layout 'paper' (17 entries)"),
+    (["--set", "ppo.privileged_critic=false", "--set", "ppo.network.policy_hidden=16"],
+     "its policy cannot start this run: networks"),
+    (["--set", "ppo.privileged_critic=false", "--set", "env.task.obs_layout=paper"],
+     "observation layout 'relative' ("),
+    ([], "ppo.privileged_critic=False vs this run's True"),  # cpu-quick has a privileged critic, the toy run none
 ])
 def test_init_from_refuses_an_unusable_run_with_exit_2(toy_run, tmp_path, capsys, sets, message):
-    source = str(tmp_path / "missing") if not sets else toy_run
+    source = str(tmp_path / "missing") if message == "not a run folder" else toy_run
     out = tmp_path / "out"
     assert train.main(["--out", str(out), "--init-from", source, *sets]) == 2
     assert message in capsys.readouterr().err

@@ -15,7 +15,8 @@ import pytest
 
 from sagrasp_jax import export
 from sagrasp_jax.config import config_from_dict, config_hash, get_config
-from sagrasp_jax.runtime import OBS_LAYOUT, load_policy, save_policy_npz
+from sagrasp_jax import observation
+from sagrasp_jax.runtime import load_policy, save_policy_npz
 from tiny_run import REPO, tiny_run
 
 onnx = pytest.importorskip("onnx")
@@ -43,7 +44,7 @@ def test_cli_writes_npz_onnx_and_manifest(exported: str, run_dir: str) -> None:
     with open(os.path.join(run_dir, "config.json")) as f:
         cfg = config_from_dict(json.load(f))
     policy = load_policy(os.path.join(exported, "policy.npz"))
-    assert policy.obs_layout == OBS_LAYOUT
+    assert policy.obs_layout == observation.layout_of(cfg.env) and len(policy.obs_layout) == 29  # relative layout
     assert policy.config_hash == config_hash(cfg)
     assert policy.package_version == sagrasp_jax.__version__
     assert policy.action_scale == cfg.env.control.q_max
@@ -52,7 +53,7 @@ def test_cli_writes_npz_onnx_and_manifest(exported: str, run_dir: str) -> None:
         manifest = json.load(f)
     assert manifest["config_hash"] == policy.config_hash
     assert manifest["finished"] is True and manifest["checkpoint_env_steps"] == 1024
-    assert manifest["obs_layout"] == list(OBS_LAYOUT)
+    assert manifest["obs_layout"] == list(policy.obs_layout)
     assert manifest["onnx_check"]["observations"] == 1000
     assert manifest["onnx_check"]["max_abs_action_diff"] < 1e-5
     for name in ("policy.npz", "policy.onnx"):
@@ -65,11 +66,11 @@ def test_onnx_graph_is_plain_opset17_with_metadata(exported: str) -> None:
     assert {o.domain: o.version for o in model.opset_import}[""] >= 17
     assert [i.name for i in model.graph.input] == ["obs"] and [o.name for o in model.graph.output] == ["action"]
     dims = [d.dim_value for d in model.graph.input[0].type.tensor_type.shape.dim]
-    assert dims[1] == 17
+    assert dims[1] == 29
     meta = {p.key: p.value for p in model.metadata_props}
     policy = load_policy(os.path.join(exported, "policy.npz"))
     assert meta["config_hash"] == policy.config_hash
-    assert meta["obs_layout"].split(",") == list(OBS_LAYOUT)
+    assert meta["obs_layout"].split(",") == list(policy.obs_layout)
     ops = {n.op_type for n in model.graph.node}
     assert {"Sub", "Div", "Clip", "MatMul", "Add", "Tanh"} == ops
 
@@ -106,7 +107,7 @@ def test_onnx_matches_npz_for_every_activation(tmp_path, activation: str) -> Non
     weights = [(rng.normal(0, 1 / np.sqrt(i), (i, o)).astype(np.float32), rng.normal(0, 0.2, o).astype(np.float32))
                for i, o in zip(sizes[:-1], sizes[1:])]
     path = save_policy_npz(tmp_path / "p.npz", weights=weights, activation=activation, obs_mean=rng.normal(0, 0.5, 17),
-                           obs_std=rng.uniform(0.0, 1.0, 17), config=get_config("cpu-quick"))
+                           obs_std=rng.uniform(0.0, 1.0, 17), config=get_config("paper"))
     policy = load_policy(path)
     onnx_path = export.write_onnx(policy, str(tmp_path / "p.onnx"))
     obs = export.check_observations(policy, 500, seed=1)

@@ -110,7 +110,7 @@ def write_policy(path: str, cfg: config_mod.Config | None = None) -> str:
     weights = [(np.zeros((17, 8), np.float32), np.zeros(8, np.float32)),
                (np.zeros((8, 12), np.float32), np.zeros(12, np.float32))]
     return runtime.save_policy_npz(path, weights=weights, activation="tanh", obs_mean=np.zeros(17), obs_std=np.ones(17),
-                                   config=cfg or get_config("cpu-quick"))
+                                   config=cfg or get_config("paper"))
 
 
 @pytest.fixture(scope="module")

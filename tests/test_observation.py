@@ -190,9 +190,9 @@ def test_privileged_critic_inputs():
                                [0.0, 0.0, -0.15 / 0.25], atol=1e-9)
     assert extra["obstacle0_distance"] == pytest.approx(float(col.obstacle_dist[0]) / 0.25)
     assert all(extra[n] == 0.0 for n in names if n.startswith("obstacle1_"))  # empty slot
-    full = config.apply_overrides(config.get_config("cpu-quick"), ["ppo.privileged_critic=true"])
+    full = config.apply_overrides(config.get_config("paper"), ["ppo.privileged_critic=true"])
     assert observation.critic_extra_size(full) == 25
-    assert observation.critic_extra_size(config.get_config("cpu-quick")) == 0
+    assert observation.critic_extra_size(config.get_config("paper")) == 0
 
 
 def test_privileged_critic_trains_and_exports_a_policy_without_it(tmp_path):

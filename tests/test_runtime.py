@@ -62,7 +62,7 @@ def _reference_forward(parts: dict, activation: str, obs: np.ndarray, floor: flo
 def policy_file(tmp_path):
     rng = np.random.default_rng(0)
     parts = _random_policy(rng)
-    cfg = get_config("cpu-quick")
+    cfg = get_config("paper")  # a 17-number policy: the paper layout
     path = save_policy_npz(tmp_path / "policy.npz", activation="tanh", config=cfg, **parts)
     return path, parts, cfg
 
@@ -112,7 +112,7 @@ def test_metadata_and_env_config(policy_file):
     np.testing.assert_allclose(policy.obs_std[:11], parts["obs_std"][:11])
     assert policy.config_hash == config_hash(cfg)
     assert policy.env_config() == cfg.env
-    assert policy.config().ppo.network.policy_hidden == (32, 32, 32, 32)
+    assert policy.config().ppo.network.policy_hidden == cfg.ppo.network.policy_hidden
     assert policy.package_version
     with np.load(path) as data:
         assert int(data["format_version"]) == FORMAT_VERSION

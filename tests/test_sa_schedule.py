@@ -12,7 +12,7 @@ import pytest
 from sagrasp_jax import sa_schedule as sa
 from sagrasp_jax.config import SAConfig
 
-CFG = SAConfig()  # lr0 3e-4, decay 0.98, lr_min 1e-6, tol 0.05, min_delta 0.02, patience 5, rollbacks 3, T0 0.1
+CFG = SAConfig(tol=0.05)  # the rules on hand-made numbers: lr0 3e-4, decay 0.98, lr_min 1e-6, tol 0.05, min_delta 0.02, patience 5, rollbacks 3, T0 0.1
 H = 1.0  # a fixed entropy keeps T = T0
 REJECT = 0.999999  # a uniform draw that rejects any exp(-ΔE/T) < 1 - 1e-6
 

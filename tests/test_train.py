@@ -5,6 +5,7 @@ from __future__ import annotations
 import sagrasp_jax  # noqa: F401  (sets XLA_FLAGS before jax is imported)
 
 import json
+import math
 import os
 
 import jax
@@ -158,13 +159,35 @@ def test_resume_refuses_a_corrupt_checkpoint_and_changes_nothing(toy_run, tmp_pa
                   resume=True)
 
 
-def test_cycle_length_rounds_to_whole_iterations():
-    cfg = train.build_config("cpu-quick")
-    sched = train.make_schedule(cfg)
-    assert sched.steps_per_iteration == 256 * 16
-    assert sched.iterations_per_cycle == round(3_000_000 / 200 / 4096)
+@pytest.mark.parametrize("preset", ["cpu-quick", "gpu", "paper"])
+def test_every_preset_anneals_over_exactly_num_cycles_cycles(preset):
+    """Cycle k ends after round((k + 1)·N / num_cycles) of the N iterations: exactly 200 cycles
+    (or sa.num_cycles) whatever the batch shape, lengths differing by at most one iteration."""
+    for cycles, sets in ((200, []), (37, ["sa.num_cycles=37"])):
+        sched = train.make_schedule(train.build_config(preset, overrides=sets))
+        n = sched.num_iterations
+        assert sched.num_cycles == cycles and sched.cycle_ends[-1] == n
+        assert list(sched.cycle_ends) == [math.floor((k + 1) * n / cycles + 0.5) for k in range(cycles)]
+        lengths = np.diff((0,) + sched.cycle_ends)
+        assert lengths.min() >= 1 and lengths.max() - lengths.min() <= 1
+        assert sched.iterations_per_cycle == lengths.max()
+        assert [sched.cycle_end(i) for i in range(n)] == list(np.repeat(sched.cycle_ends, lengths))
     explicit = train.make_schedule(train.build_config("cpu-quick", overrides=["sa.cycle_steps=20000"]))
-    assert explicit.iterations_per_cycle == 5
+    assert explicit.iterations_per_cycle == 5 and set(np.diff((0,) + explicit.cycle_ends)[:-1]) == {5}
+
+
+def test_uneven_cycles_run_one_call_each_and_log_every_iteration(tmp_path):
+    """12 iterations in 5 cycles (2, 3, 2, 3, 2 iterations): five SA decisions, one row per
+    iteration, the cycle rows at the fixed ends."""
+    cfg = toy_config(cycles=6, extra=["sa.num_cycles=5"])
+    sched = train.make_schedule(cfg)
+    assert sched.cycle_ends == (2, 5, 7, 10, 12) and sched.iterations_per_cycle == 3
+    tr = train.run(cfg, str(tmp_path / "run"), env_factory=toy_factory(), progress=False)
+    rows = train.read_metrics(os.path.join(str(tmp_path / "run"), train.METRICS_FILE))
+    assert [r["iteration"] for r in rows] == list(range(12))
+    assert [r["iteration"] + 1 for r in rows if "sa_decision" in r] == list(sched.cycle_ends)
+    assert tr.sa_state.cycle == 5
+    assert all(r["reset_replays"] == 0.0 for r in rows)
 
 
 @pytest.mark.slow

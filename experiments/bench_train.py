@@ -1,0 +1,579 @@
+"""Training speed of the README command, in one run: env, trainer, compile, memory, time to success.
+
+    python experiments/bench_train.py --out experiments/results/bench_train_cpu.json
+
+Sections (``--sections``, default all; each prints as it goes, then one table and one JSON):
+
+* ``env``: env-steps/s of (a) the bare env step (``jax.vmap(GraspEnv.step)``) and (b) env +
+  auto-reset (``AutoReset.batch_step``), at the preset's batch, random actions, inside a jitted
+  ``lax.scan``; (b) also with 30-step episodes (``--reset-steps``), about a trained policy's
+  episode length, so the auto-reset samples as often as it does in training.
+* ``profile``: where one PPO iteration of the preset goes — every piece jitted and timed alone
+  on the iteration's shapes (FK, control step, collision, reward/observation, auto-reset
+  sampling, policy forward and sampling, normaliser + value + GAE, minibatch SGD, the
+  training-episode window, host sync) next to the real training call and the SA evaluation.
+  The pieces are separate programs, so they do not add up exactly to the fused iteration.
+* ``run``: the README command (``python -m sagrasp_jax.train --preset cpu-quick --algo sa-ppo
+  --seed S``) in a subprocess with a **fresh** persistent compilation cache (cold compile),
+  polled while it runs: (c) the median per-iteration env-steps/s, (d) the overall rate
+  including the SA evaluations, peak RSS, and the wall time from launch (compile included)
+  at which the fixed-seed evaluation success first reaches 90 / 95 / 98 %.  A run stops once
+  98 % is reached or after ``--budget-s``.  More ``--seeds`` run after the first, warm.
+  Then the same command again with the now warm cache, stopped after one cycle: warm compile.
+* ``sb3``: when Stable-Baselines3 imports (this interpreter or ``--sb3-python``), SB3 PPO on
+  the PyBullet reference env for ``--sb3-seconds`` (``bench_vs_paper_stack.py``'s worker,
+  the paper's Table 2 settings from ``sb3_baseline.py``) and the ratio of training rates; the
+  raw stepping rate of the PyBullet env (no learning) is measured either way.
+
+The machine's load average is recorded beside every measurement: on a shared machine rates
+drop in proportion, so compare runs made at the same load.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import os
+import platform
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from typing import Any, Callable
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+SECTIONS = ("env", "profile", "run", "sb3")
+LEVELS = (0.90, 0.95, 0.98)
+
+
+def load() -> float:
+    return round(os.getloadavg()[0], 2)
+
+
+# ---------------------------------------------------------------------- timing helpers
+
+def time_jitted(fn: Callable[..., Any], *args: Any, reps: int = 7) -> dict[str, float]:
+    """Compile ``fn`` (jitted), then the median wall and CPU seconds of ``reps`` calls."""
+    import jax
+    import numpy as np
+
+    f = jax.jit(fn)
+    t = time.perf_counter()
+    jax.block_until_ready(f(*args))
+    compile_s = time.perf_counter() - t
+    walls, cpus = [], []
+    for _ in range(reps):
+        c, t = time.process_time(), time.perf_counter()
+        jax.block_until_ready(f(*args))
+        walls.append(time.perf_counter() - t)
+        cpus.append(time.process_time() - c)
+    return {"wall_s": float(np.median(walls)), "cpu_s": float(np.median(cpus)), "compile_s": compile_s}
+
+
+# ---------------------------------------------------------------------- (a), (b): the env
+
+def bench_env(cfg: Any, steps: int, reset_steps: int) -> dict[str, Any]:
+    import jax
+    import jax.numpy as jnp
+    from jax.sharding import PartitionSpec
+
+    from sagrasp_jax import ppo
+    from sagrasp_jax.env import GraspEnv
+    from sagrasp_jax.wrappers import AutoReset
+
+    n = cfg.ppo.num_envs
+    out: dict[str, Any] = {"batch": n, "steps_per_call": steps}
+
+    def scan_of(step: Callable[..., Any], m: int) -> Callable[..., Any]:
+        def run(state: Any, key: jax.Array) -> Any:
+            def body(st: Any, k: jax.Array) -> Any:
+                st = step(st, jax.random.uniform(k, (m, 6), minval=-1.0, maxval=1.0))
+                return st, st.done
+            return jax.lax.scan(body, state, jax.random.split(key, steps))
+        return run
+
+    cases = [("env_step", cfg.env, False), ("env_autoreset", cfg.env, True),
+             (f"env_autoreset_{reset_steps}_step_episodes",
+              dataclasses.replace(cfg.env, task=dataclasses.replace(cfg.env.task, max_steps=reset_steps)), True)]
+    devices = jax.devices()
+    for name, env_cfg, auto in cases:
+        base = GraspEnv(env_cfg)
+        env = AutoReset(base) if auto else base
+        step = env.batch_step if auto else jax.vmap(base.step)
+        state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), n))
+        state, dones = jax.jit(scan_of(step, n))(state, jax.random.PRNGKey(1))
+        row: dict[str, Any] = {"episodes_per_env_step": float(dones.sum()) / (n * steps)}
+        for d in sorted({1, len(devices)}):
+            mesh = ppo.make_mesh(devices[:d])
+            fn = ppo._sharded(scan_of(step, n // d), mesh, (PartitionSpec(ppo.BATCH_AXIS), PartitionSpec()),
+                              (PartitionSpec(ppo.BATCH_AXIS), PartitionSpec(None, ppo.BATCH_AXIS)))
+            timing = time_jitted(fn, ppo.shard_batch(state, mesh), ppo.replicate(jax.random.PRNGKey(2), mesh), reps=5)
+            row[f"{d}_device"] = {"env_steps_per_s": n * steps / timing["wall_s"],
+                                  "cpu_us_per_env_step": 1e6 * timing["cpu_s"] / (n * steps),
+                                  "compile_s": timing["compile_s"], "load": load()}
+            print(f"  {name:36s} {d} device(s) {row[f'{d}_device']['env_steps_per_s']:>10,.0f} env-steps/s  "
+                  f"({row[f'{d}_device']['cpu_us_per_env_step']:.2f} CPU-µs/step, load {load()})", flush=True)
+        row["env_steps_per_s"] = row[f"{len(devices)}_device"]["env_steps_per_s"]
+        out[name] = row
+    return out
+
+
+# ---------------------------------------------------------------------- profile of one iteration
+
+def bench_profile(cfg: Any) -> dict[str, Any]:
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+    from brax.training.acme import running_statistics
+
+    from sagrasp_jax import collision, control, ppo, robot, train
+    from sagrasp_jax.env import GraspEnv
+    from sagrasp_jax.wrappers import AutoReset
+
+    n, t_len = cfg.ppo.num_envs, cfg.ppo.unroll_length
+    env = GraspEnv(cfg.env)
+    auto = AutoReset(env)
+    rob = env.robot
+    key = jax.random.PRNGKey(0)
+    states = jax.jit(jax.vmap(auto.reset))(jax.random.split(key, n))
+    specs = states.info["reset"]
+    qs = jnp.asarray(cfg.env.task.home_q) + 0.3 * jax.random.normal(key, (t_len, n, 6))
+    actions = jax.random.uniform(key, (t_len, n, 6), minval=-1.0, maxval=1.0)
+    fk = jax.vmap(jax.vmap(lambda q: robot.forward_kinematics(jnp, rob, q)))
+    kins = jax.jit(fk)(qs)
+    pieces: dict[str, dict[str, float]] = {}
+
+    def timed(name: str, fn: Callable[..., Any], *args: Any) -> None:
+        pieces[name] = time_jitted(fn, *args)
+        print(f"  {name:44s} {1e3 * pieces[name]['wall_s']:8.2f} ms/iteration (CPU {1e3 * pieces[name]['cpu_s']:.2f})",
+              flush=True)
+
+    def over_steps(step_fn: Callable[..., Any]) -> Callable[..., Any]:
+        def run(xs: Any, *extra: Any) -> Any:
+            def body(acc: Any, x: Any) -> Any:
+                out = step_fn(x, *extra)
+                return acc + sum(jnp.sum(v.astype(jnp.float32)) for v in jax.tree_util.tree_leaves(out)), None
+            return jax.lax.scan(body, jnp.zeros(()), xs)[0]
+        return run
+
+    timed("forward kinematics (one pass)", over_steps(lambda q: jax.vmap(lambda x: robot.forward_kinematics(jnp, rob, x))(q)), qs)
+    timed("control step (incl. one FK pass)", over_steps(
+        lambda x, sp: control.control_step(jnp, rob, cfg.env.control, x[0], x[0], sp.target_pos, x[1]).q_target),
+        (qs, actions), specs)
+    timed("collision check", over_steps(lambda k, sp: jax.vmap(lambda kk, s: collision.check(jnp, rob, kk, s, cfg.env))(
+        k, sp)), kins, specs)
+
+    def env_steps(step: Callable[..., Any]) -> Callable[..., Any]:
+        def run(state: Any, acts: jax.Array) -> Any:
+            return jax.lax.scan(lambda s, a: (step(s, a), None), state, acts)[0].reward
+        return run
+
+    core = jax.jit(jax.vmap(env.reset))(jax.random.split(key, n))
+    timed("env step (vmap GraspEnv.step)", env_steps(jax.vmap(env.step)), core, actions)
+    short = AutoReset(GraspEnv(dataclasses.replace(cfg.env, task=dataclasses.replace(cfg.env.task, max_steps=30))))
+    short_states = jax.jit(jax.vmap(short.reset))(jax.random.split(key, n))
+    short_states = jax.jit(lambda s, a: jax.lax.scan(lambda st, x: (short.batch_step(st, x), None), s, a)[0])(
+        short_states, actions)  # past the synchronous start: resets spread as in training
+    timed("env step + auto-reset (30-step episodes)", env_steps(short.batch_step), short_states, actions)
+
+    nets = ppo.make_networks(cfg.ppo.network, env.observation_size, env.action_size, cfg.ppo.obs_clip)
+    opt = ppo.make_optimizer(cfg.ppo, 3e-4)
+    ts = ppo.init_training_state(key, nets, opt, env.observation_size)
+    obs = jax.random.normal(key, (t_len, n, env.observation_size))
+    timed("policy forward + sampling", over_steps(
+        lambda x, tr: ppo.sample_action(nets, tr.params, tr.normaliser, x[0], x[1])[:2]),
+        (obs, jax.random.split(key, t_len)), ts)
+    data = ppo.Transition(obs=obs, raw_action=actions, log_prob=actions[..., 0], reward=actions[..., 1],
+                          done=(actions[..., 2] > 0.9).astype(jnp.float32))
+
+    def gae(tr: Any, d: Any) -> Any:
+        norm = running_statistics.update(tr.normaliser, d.obs, std_min_value=cfg.ppo.obs_std_floor)
+        entropy = ppo.mean_policy_entropy(nets, tr.params, tr.normaliser, d.obs)
+        return ppo.make_batch(nets, tr.params, norm, d, d.obs[-1], cfg.ppo), entropy
+
+    timed("normaliser + entropy + value net + GAE", gae, ts, data)
+    batch = jax.jit(gae)(ts, data)[0]
+    timed("minibatch SGD (epochs x minibatches)",
+          lambda tr, b, k: ppo.sgd_epochs(tr.params, tr.opt_state, tr.normaliser, b, k, nets, opt, cfg.ppo)[:2],
+          ts, batch, key)
+    if hasattr(ppo, "update_window"):
+        win = ppo.init_window(tuple(states.info["episode"]), cfg.train.metrics_window)
+        episodes = dict(jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (t_len,) + x.shape), states.info["episode"]),
+                        done=data.done)
+        timed("training-episode window (device side)", ppo.update_window, win, episodes)
+
+    # the real thing: the trainer's jitted call on the preset and the SA evaluation, on 1 device and
+    # on all devices, the two trainers' calls interleaved so that both see the same load
+    devices = jax.devices()
+    trainers = {d: train.Trainer(cfg, tempfile.mkdtemp(prefix="bench_train_profile."), progress=False,
+                                 devices=devices[:d]) for d in sorted({1, len(devices)})}
+    timing: dict[int, dict[str, list[float]]] = {d: {"wall": [], "cpu": [], "sync": [], "eval": []} for d in trainers}
+    for tr in trainers.values():
+        tr.compile()
+        tr.run_iterations(tr.schedule.iterations_per_cycle)  # warm-up
+    for rep in range(8):
+        for d, tr in trainers.items():
+            k = tr.schedule.iterations_per_cycle
+            c, t = time.process_time(), time.perf_counter()
+            tr.run_iterations(k)
+            timing[d]["wall"].append((time.perf_counter() - t) / k)
+            timing[d]["cpu"].append((time.process_time() - c) / k)
+            if rep % 2 == 0:
+                t = time.perf_counter()
+                tr.evaluate()
+                timing[d]["eval"].append(time.perf_counter() - t)
+    for d, tr in trainers.items():
+        k = tr.schedule.iterations_per_cycle
+        out = jax.block_until_ready(tr._compiled_cycle(*tr._cycle_args(k)))
+        for _ in range(5):
+            t = time.perf_counter()
+            ppo.to_host(out[3])
+            timing[d]["sync"].append((time.perf_counter() - t) / k)
+        cycle_iters = tr.schedule.num_iterations / tr.schedule.num_cycles
+        pieces[f"training call per iteration, {d} device(s) (the real fused program)"] = {
+            "wall_s": float(np.median(timing[d]["wall"])), "cpu_s": float(np.median(timing[d]["cpu"])),
+            "compile_s": tr.compile_s["iteration"]}
+        pieces[f"host sync of a cycle's metrics, per iteration, {d} device(s)"] = {
+            "wall_s": float(np.median(timing[d]["sync"])), "cpu_s": math.nan, "compile_s": 0.0}
+        pieces[f"SA evaluation per iteration (untrained: 200-step episodes), {d} device(s)"] = {
+            "wall_s": float(np.median(timing[d]["eval"])) / cycle_iters, "cpu_s": math.nan,
+            "compile_s": tr.compile_s["eval"]}
+        for name in list(pieces)[-3:]:
+            print(f"  {name:44s} {1e3 * pieces[name]['wall_s']:8.2f} ms/iteration", flush=True)
+    iteration_s = pieces[f"training call per iteration, {len(devices)} device(s) (the real fused program)"]["wall_s"]
+    steps = n * t_len
+    return {"iteration_env_steps": steps, "iterations_per_cycle_mean": cycle_iters, "reference_piece":
+            f"training call per iteration, {len(devices)} device(s) (the real fused program)",
+            "devices": len(jax.devices()), "pieces": pieces,
+            "iteration_env_steps_per_s": steps / iteration_s, "load": load()}
+
+
+# ---------------------------------------------------------------------- the README command
+
+def _vm_hwm_kb(pid: int) -> int | None:
+    try:
+        with open(f"/proc/{pid}/status", encoding="utf-8") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1])
+    except OSError:
+        return None
+    return None
+
+
+def train_run(args_extra: list[str], work: str, name: str, cache_dir: str, budget_s: float,
+              stop_level: float | None, env_extra: dict[str, str] | None = None, root: str = ROOT) -> dict[str, Any]:
+    """Run ``python -m sagrasp_jax.train`` and watch its metrics; stop at ``stop_level`` or the budget."""
+    from sagrasp_jax.train import METRICS_FILE, read_metrics
+
+    out = os.path.join(work, name)
+    cmd = [sys.executable, "-m", "sagrasp_jax.train", "--out", out, "--no-progress", *args_extra]
+    env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=cache_dir, **(env_extra or {}))
+    log_path = os.path.join(work, f"{name}.log")
+    metrics = os.path.join(out, METRICS_FILE)
+    loads, offset, reached, stopped, peak_kb = [], math.inf, {}, None, 0
+    t0 = time.perf_counter()
+    with open(log_path, "w", encoding="utf-8") as log:
+        proc = subprocess.Popen(cmd, cwd=root, stdout=log, stderr=subprocess.STDOUT, env=env)
+        try:
+            while proc.poll() is None:
+                time.sleep(0.25)
+                now = time.perf_counter() - t0
+                peak_kb = max(peak_kb, _vm_hwm_kb(proc.pid) or 0)
+                rows = read_metrics(metrics) if os.path.exists(metrics) else []
+                if rows:
+                    offset = min(offset, now - rows[-1]["time_s"])  # launch -> start of training
+                    loads.append(load())
+                for r in rows:
+                    s = r.get("eval_success")
+                    for level in LEVELS:
+                        if s is not None and s >= level and f"{level:g}" not in reached:
+                            reached[f"{level:g}"] = {"wall_s": offset + r["time_s"], "env_steps": r["env_steps"],
+                                                     "train_s": r["time_s"]}
+                if stop_level is not None and f"{stop_level:g}" in reached:
+                    stopped = f"reached {stop_level:.0%}"
+                elif now > budget_s:
+                    stopped = f"budget of {budget_s:.0f} s"
+                if stopped:
+                    proc.send_signal(signal.SIGTERM)
+                    break
+            proc.wait(timeout=120)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+    wall = time.perf_counter() - t0
+    rows = read_metrics(metrics) if os.path.exists(metrics) else []
+    if not rows:
+        with open(log_path, encoding="utf-8") as f:
+            raise RuntimeError(f"{name}: the trainer logged nothing (exit {proc.returncode}):\n{f.read()[-3000:]}")
+    last = rows[-1]
+    rates = sorted(r["steps_per_s"] for r in rows)
+    evals = [r["eval_s"] for r in rows if "eval_s" in r]
+    return {
+        "command": "python -m sagrasp_jax.train " + " ".join(args_extra),
+        "stopped_by": stopped or "finished",
+        "wall_s": wall,
+        "startup_s": offset if math.isfinite(offset) else None,  # launch -> first training step (import, build, compile)
+        "compile_s": last.get("compile_s"),
+        "compile_iteration_s": last.get("compile_iteration_s"),
+        "compile_eval_s": last.get("compile_eval_s"),
+        "env_steps": last["env_steps"],
+        "train_s": last["time_s"],
+        "median_iteration_env_steps_per_s": rates[len(rates) // 2],
+        "overall_env_steps_per_s": last["env_steps"] / last["time_s"],
+        "eval_s_mean": sum(evals) / len(evals) if evals else None,
+        "eval_share": sum(evals) / last["time_s"] if evals else None,
+        "cycles": sum(1 for r in rows if "sa_decision" in r),
+        "last_eval_success": next((r["eval_success"] for r in reversed(rows) if "eval_success" in r), None),
+        "reset_overflow": sum(r.get("reset_overflow", 0.0) for r in rows),
+        "reset_replays": sum(r.get("reset_replays", 0.0) for r in rows) if "reset_replays" in last else None,
+        "time_to_eval_success": {f"{lv:g}": reached.get(f"{lv:g}", "not reached") for lv in LEVELS},
+        "peak_rss_mb": peak_kb / 1024,
+        "load_during": [min(loads), max(loads)] if loads else None,
+    }
+
+
+def bench_run(preset: str, seeds: list[int], overrides: list[str], budget_s: float, work: str,
+              root: str = ROOT) -> dict[str, Any]:
+    cache = os.path.join(work, "jax_cache")  # fresh: the first run compiles cold
+    sets = [a for o in overrides for a in ("--set", o)]
+    runs = {}
+    for i, seed in enumerate(seeds):
+        label = f"seed {seed}" + (" (cold compile)" if i == 0 else " (warm cache)")
+        print(f"  README command, {label}, budget {budget_s:.0f} s ...", flush=True)
+        r = train_run(["--preset", preset, "--algo", "sa-ppo", "--seed", str(seed), *sets], work, f"seed{seed}",
+                      cache, budget_s, max(LEVELS), root=root)
+        runs[f"seed{seed}"] = r
+        print(f"    {r['median_iteration_env_steps_per_s']:,.0f} env-steps/s per iteration, "
+              f"{r['overall_env_steps_per_s']:,.0f} overall, compile {r['compile_s']:.1f} s, start-up "
+              f"{r['startup_s']:.1f} s, time to 90/95/98 %: "
+              + ", ".join(_fmt_reach(r["time_to_eval_success"][f"{lv:g}"]) for lv in LEVELS)
+              + f" (load {r['load_during']})", flush=True)
+    print("  warm compile: the same command again, stopped after one cycle ...", flush=True)
+    warm = train_run(["--preset", preset, "--algo", "sa-ppo", "--seed", str(seeds[0]), *sets, "--stop-after-cycles", "1"],
+                     work, "warm", cache, budget_s, None, root=root)
+    print(f"    compile {warm['compile_s']:.1f} s, start-up {warm['startup_s']:.1f} s", flush=True)
+    return {"runs": runs, "warm": {k: warm[k] for k in ("compile_s", "compile_iteration_s", "compile_eval_s",
+                                                         "startup_s", "peak_rss_mb", "load_during")}}
+
+
+def _fmt_reach(value: Any) -> str:
+    return f"{value['wall_s']:.0f} s" if isinstance(value, dict) else str(value)
+
+
+# ---------------------------------------------------------------------- SB3 and the raw PyBullet env
+
+def bench_bare_pybullet(steps: int = 20_000) -> dict[str, Any] | None:
+    """Raw stepping of a bare PyBullet AUBO-i5 chain (SPEC §6's anchor, no learning): per step
+    resetJointState of the 6 arm joints, the gripper link's pose, one closest-point query to an
+    obstacle, a 17-number observation."""
+    try:
+        import pybullet as pb
+    except ImportError:
+        return None
+    import numpy as np
+
+    from sagrasp_jax import config, robot
+
+    cid = pb.connect(pb.DIRECT)
+    try:
+        arm = pb.loadURDF(robot.URDF_PATH, useFixedBase=True, physicsClientId=cid)
+        joints = [j for j in range(pb.getNumJoints(arm, physicsClientId=cid))
+                  if pb.getJointInfo(arm, j, physicsClientId=cid)[2] == pb.JOINT_REVOLUTE][:6]
+        tip = pb.getNumJoints(arm, physicsClientId=cid) - 1
+        shape = pb.createCollisionShape(pb.GEOM_SPHERE, radius=0.05, physicsClientId=cid)
+        obstacle = pb.createMultiBody(0, shape, basePosition=[0.0, -0.45, 0.2], physicsClientId=cid)
+        rng = np.random.default_rng(0)
+        actions = rng.uniform(-1, 1, (steps, 6))
+        q = np.array(config.HOME_Q)
+        target = np.array([0.1, -0.45, 0.025])
+        t = time.perf_counter()
+        for a in actions:
+            q = np.clip(q + 0.05 * a, -config.Q_LIMIT, config.Q_LIMIT)
+            for j, qj in zip(joints, q):
+                pb.resetJointState(arm, j, qj, physicsClientId=cid)
+            pos = pb.getLinkState(arm, tip, physicsClientId=cid)[0]
+            close = pb.getClosestPoints(arm, obstacle, 1.0, physicsClientId=cid)
+            d = min((c[8] for c in close), default=1.0)
+            np.concatenate([q, pos, target, [0.0, -0.45, 0.2, d, 0.0]])
+        elapsed = time.perf_counter() - t
+    finally:
+        pb.disconnect(physicsClientId=cid)
+    return {"what": "bare PyBullet AUBO-i5 chain: resetJointState x6, link pose, one closest-point query, "
+                    "17-d observation", "steps": steps, "env_steps_per_s": steps / elapsed}
+
+
+def bench_sb3_section(sb3_python: str | None, seconds: float, work: str) -> dict[str, Any]:
+    sys.path.insert(0, HERE)
+    import bench_env
+    import bench_vs_paper_stack as stack
+
+    out: dict[str, Any] = {}
+    raw = bench_env.bench_pybullet("kinematic", 2000)
+    out["pybullet_raw"] = raw if raw is not None else {"status": "skipped (reference extra missing)"}
+    if raw is not None:
+        print(f"  raw PyBullet reference env stepping: {raw['env_steps_per_s']:,.0f} env-steps/s (load {load()})", flush=True)
+    bare = bench_bare_pybullet()
+    out["pybullet_bare_chain"] = bare if bare is not None else {"status": "skipped (pybullet missing)"}
+    if bare is not None:
+        print(f"  raw bare PyBullet AUBO chain stepping: {bare['env_steps_per_s']:,.0f} env-steps/s (load {load()})",
+              flush=True)
+    python = sb3_python
+    if python is None:
+        probe = subprocess.run([sys.executable, "-c", "import stable_baselines3, torch"], capture_output=True)
+        python = sys.executable if probe.returncode == 0 else None
+    if python is None:
+        out["sb3"] = {"status": "skipped", "reason": "stable-baselines3 is not importable here (pip install -e .[baseline]) "
+                                                     "and no --sb3-python was given"}
+    else:
+        print(f"  SB3 PPO on the PyBullet reference env for {seconds:.0f} s ...", flush=True)
+        out["sb3"] = stack.bench_sb3(python, seconds, 16, list(LEVELS), 256, work, timeout_s=seconds + 900)
+    print(f"  SB3: {out['sb3'].get('status')}"
+          + (f", {out['sb3']['env_steps_per_s']:,.0f} env-steps/s" if out["sb3"].get("status") == "ok" else ""), flush=True)
+    out["load"] = load()
+    return out
+
+
+# ---------------------------------------------------------------------- report
+
+def table(result: dict[str, Any]) -> str:
+    lines = [f"bench_train on {result['machine']['cpus']} CPU(s), {result['machine']['devices']} jax device(s); "
+             f"load {result['load_start']} at start, {result['load_end']} at end", ""]
+    env = result.get("env")
+    if env:
+        for key, label in (("env_step", "(a) env step"), ("env_autoreset", "(b) env + auto-reset (random actions)")):
+            lines.append(f"{label:58s} {env[key]['env_steps_per_s']:>12,.0f} env-steps/s"
+                         + f"   (1 device: {env[key]['1_device']['env_steps_per_s']:,.0f})")
+        short = next(k for k in env if k.startswith("env_autoreset_"))
+        lines.append(f"{'(b) env + auto-reset, ' + short.split('_')[2] + '-step episodes':58s} "
+                     f"{env[short]['env_steps_per_s']:>12,.0f} env-steps/s")
+    run = result.get("run")
+    if run:
+        for name, r in run["runs"].items():
+            lines.append(f"{'(c) rollout + PPO update, median per iteration, ' + name:58s} "
+                         f"{r['median_iteration_env_steps_per_s']:>12,.0f} env-steps/s")
+            lines.append(f"{'(d) overall incl. SA evaluations, ' + name:58s} {r['overall_env_steps_per_s']:>12,.0f} env-steps/s")
+            lines.append(f"{'    time to 90 / 95 / 98 % eval success (wall incl. compile)':58s} "
+                         + " / ".join(_fmt_reach(r["time_to_eval_success"][f"{lv:g}"]) for lv in LEVELS)
+                         + f"  [{r['stopped_by']}, last eval {r['last_eval_success']}]")
+            lines.append(f"{'    peak RSS':58s} {r['peak_rss_mb']:>12,.0f} MB")
+            if r.get("reset_replays") is not None:
+                lines.append(f"{'    auto-reset replays / overflow starts':58s} {r['reset_replays']:>12,.0f} / "
+                             f"{r['reset_overflow']:,.0f}")
+        first = next(iter(run["runs"].values()))
+        lines.append(f"{'compile, cold (fresh cache): compile_s / launch to training':58s} "
+                     f"{first['compile_s']:>10.1f} s / {first['startup_s']:.1f} s")
+        lines.append(f"{'compile, warm (cached): compile_s / launch to training':58s} "
+                     f"{run['warm']['compile_s']:>10.1f} s / {run['warm']['startup_s']:.1f} s")
+    prof = result.get("profile")
+    if prof:
+        it = prof["pieces"][prof["reference_piece"]]["wall_s"]
+        lines += ["", f"profile: one iteration = {prof['iteration_env_steps']} env steps, "
+                      f"{1e3 * it:.1f} ms in the fused training call ({prof['devices']} device(s))"]
+        for name, p in prof["pieces"].items():
+            share = f"{100 * p['wall_s'] / it:5.0f} %" if math.isfinite(p["wall_s"]) else ""
+            lines.append(f"  {name:62s} {1e3 * p['wall_s']:8.2f} ms {share}")
+    sb3 = result.get("sb3")
+    if sb3:
+        raw = sb3["pybullet_raw"].get("env_steps_per_s")
+        bare = sb3["pybullet_bare_chain"].get("env_steps_per_s")
+        s = sb3["sb3"]
+        ours = next(iter(run["runs"].values()))["overall_env_steps_per_s"] if run else None
+        if bare:
+            lines.append(f"{'raw bare PyBullet AUBO chain stepping (no learning)':58s} {bare:>12,.0f} env-steps/s"
+                         + (f"   ours (d) / bare = {ours / bare:.1f}x" if ours else ""))
+        if raw:
+            lines.append(f"{'raw PyBullet reference env stepping (no learning)':58s} {raw:>12,.0f} env-steps/s"
+                         + (f"   ours (d) / raw = {ours / raw:.1f}x" if ours else ""))
+        if s.get("status") == "ok":
+            lines.append(f"{'SB3 PPO + PyBullet (paper stack), training':58s} {s['env_steps_per_s']:>12,.0f} env-steps/s"
+                         + (f"   ours (d) / SB3 = {ours / s['env_steps_per_s']:.1f}x" if ours else ""))
+        else:
+            lines.append(f"SB3: {s.get('status')} ({s.get('reason')})")
+    return "\n".join(lines)
+
+
+def _finite(value: Any) -> Any:
+    """NaN / inf -> None, recursively (strict JSON)."""
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite(v) for v in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--sections", default=",".join(SECTIONS), help=f"comma-separated subset of {', '.join(SECTIONS)}")
+    p.add_argument("--preset", default="cpu-quick")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="config override for every section, repeatable")
+    p.add_argument("--seeds", type=int, nargs="+", default=[0], help="README-command seeds (the first compiles cold)")
+    p.add_argument("--budget-s", type=float, default=600.0, help="wall-clock budget per training run")
+    p.add_argument("--env-steps", type=int, default=64, help="env steps per timed env call (x the preset's batch)")
+    p.add_argument("--reset-steps", type=int, default=30, help="episode cap for the training-like auto-reset rate")
+    p.add_argument("--sb3-python", default=None, help="interpreter with stable-baselines3 (default: this one, if it has it)")
+    p.add_argument("--sb3-seconds", type=float, default=120.0)
+    p.add_argument("--out", default="experiments/results/bench_train_cpu.json")
+    p.add_argument("--trainer-root", default=ROOT, help="source tree whose trainer the run section starts "
+                   "(e.g. an older checkout, for before/after; put it first on PYTHONPATH too)")
+    args = p.parse_args(argv)
+    sections = [s for s in args.sections.split(",") if s]
+    unknown = set(sections) - set(SECTIONS)
+    if unknown:
+        p.error(f"unknown sections {sorted(unknown)}; choose from {', '.join(SECTIONS)}")
+    sys.path.insert(0, ROOT)
+    import sagrasp_jax
+    import jax
+
+    from sagrasp_jax import train
+    from sagrasp_jax.fileio import atomic_write_json
+
+    cfg = train.build_config(args.preset, "sa-ppo", 0, None, args.overrides)
+    if hasattr(train, "use_cpu_devices"):
+        train.use_cpu_devices(cfg)  # the devices the training command uses
+    result: dict[str, Any] = {
+        "command": "python experiments/bench_train.py " + " ".join(sys.argv[1:] if argv is None else argv),
+        "machine": {"node": platform.node(), "processor": platform.processor() or platform.machine(),
+                    "cpus": os.cpu_count(), "devices": len(jax.devices()), "backend": jax.default_backend(),
+                    "xla_flags": os.environ.get("XLA_FLAGS", "")},
+        "versions": {"jax": jax.__version__, "sagrasp_jax": sagrasp_jax.__version__,
+                     "sagrasp_jax_path": os.path.dirname(sagrasp_jax.__file__)},
+        "preset": args.preset, "overrides": args.overrides, "load_start": load(),
+    }
+    work = tempfile.mkdtemp(prefix="bench_train.")
+    try:
+        if "env" in sections:
+            print("[env] env-steps/s of the env step and env + auto-reset", flush=True)
+            result["env"] = bench_env(cfg, args.env_steps, args.reset_steps)
+        if "profile" in sections:
+            print("[profile] where an iteration's time goes", flush=True)
+            result["profile"] = bench_profile(cfg)
+        if "run" in sections:
+            print("[run] the README command", flush=True)
+            result["run"] = bench_run(args.preset, args.seeds, args.overrides, args.budget_s, work,
+                                      os.path.abspath(args.trainer_root))
+        if "sb3" in sections:
+            print("[sb3] the paper's stack", flush=True)
+            result["sb3"] = bench_sb3_section(args.sb3_python, args.sb3_seconds, work)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    result["load_end"] = load()
+    text = table(result)
+    print("\n" + text)
+    result["table"] = text.splitlines()
+    atomic_write_json(args.out, _finite(result), default=float)
+    print(f"\nwritten to {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
