@@ -332,8 +332,12 @@ def check_init_from(cfg: Config) -> tuple[Config, checkpoint.Checkpoint]:
                         f"{cfg.env.task.obs_layout!r} ({len(mine)} entries)")
     if src.ppo.network != cfg.ppo.network:
         problems.append(f"networks {config_to_dict(src.ppo.network)} vs this run's {config_to_dict(cfg.ppo.network)}")
-    if observation.critic_extra_size(src) != observation.critic_extra_size(cfg):
+    if src.ppo.privileged_critic != cfg.ppo.privileged_critic:
         problems.append(f"ppo.privileged_critic={src.ppo.privileged_critic} vs this run's {cfg.ppo.privileged_critic}")
+    elif cfg.ppo.privileged_critic and observation.privileged_layout(src.env) != observation.privileged_layout(cfg.env):
+        problems.append(f"privileged critic inputs for env.sampling.obstacle_kinds={list(src.env.sampling.obstacle_kinds)}"
+                        f", max_obstacles={src.env.sampling.max_obstacles} vs this run's "
+                        f"{list(cfg.env.sampling.obstacle_kinds)}, {cfg.env.sampling.max_obstacles}")
     if problems:
         raise RunDirError(f"--init-from {run}: its policy cannot start this run: " + "; ".join(problems))
     return src, ckpt

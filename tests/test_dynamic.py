@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from conftest import toy_config, toy_factory
-from sagrasp_jax import config, robot, run_dir, train
+from sagrasp_jax import config, observation, robot, run_dir, train
 from sagrasp_jax.env import GraspEnv
 
 N, T = 8, 4  # envs, steps
@@ -164,6 +164,24 @@ def test_init_from_continues_policy_and_normaliser_with_a_fresh_optimizer(toy_ru
     assert run_dir.load_config(str(tmp_path / "run")).train.init_from == toy_run
 
 
+def test_init_from_carries_a_privileged_critic(tmp_path):
+    """A run with a privileged critic (cpu-quick's) starts another one: the value network, whose first
+    layer also reads the privileged inputs, comes across with the policy and the normaliser."""
+    sets = ["ppo.privileged_critic=true"]
+    source = str(tmp_path / "source")
+    train.run(toy_config(cycles=2, extra=sets), source, env_factory=toy_factory(), progress=False)
+    cfg = toy_config(cycles=2, extra=[*sets, f"train.init_from={source}", "env.control.mode=dynamic"])
+    trainer = train.Trainer(cfg, str(tmp_path / "ft"), env_factory=toy_factory(), progress=False)
+    assert trainer.critic_extra == observation.critic_extra_size(cfg) > 0
+    _, params, normaliser, _ = run_dir.load_policy_state(source, trainer.obs_size, trainer.action_size)
+    ts = jax.device_get(trainer.train_state)
+    widths = {leaf.shape[0] for leaf in jax.tree_util.tree_leaves(ts.params.value) if leaf.ndim == 2}
+    assert trainer.obs_size + trainer.critic_extra in widths  # the critic's input layer
+    for got, want in zip(jax.tree_util.tree_leaves((ts.params, ts.normaliser)),
+                         jax.tree_util.tree_leaves((params, normaliser))):
+        np.testing.assert_array_equal(got, want)
+
+
 @pytest.mark.parametrize("sets, message", [
     ([], "not a run folder"),
     (["--set", "ppo.privileged_critic=false", "--set", "ppo.network.policy_hidden=16"],
@@ -178,6 +196,20 @@ def test_init_from_refuses_an_unusable_run_with_exit_2(toy_run, tmp_path, capsys
     assert train.main(["--out", str(out), "--init-from", source, *sets]) == 2
     assert message in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_init_from_refuses_other_privileged_inputs(monkeypatch):
+    """Same critic width is not enough: the privileged inputs must mean the same (the kinds' one-hot)."""
+    def with_kinds(kinds: str) -> config.Config:
+        return config.apply_overrides(config.get_config("cpu-quick"), [f"env.sampling.obstacle_kinds={kinds}",
+                                                                       "train.init_from=/somewhere"])
+
+    source = with_kinds("sphere,cylinder,box")
+    monkeypatch.setattr(run_dir, "load_config", lambda run: source)
+    monkeypatch.setattr(run_dir, "load_checkpoint", lambda run, cfg=None: None)
+    run_dir.check_init_from(with_kinds("sphere,cylinder,box"))  # the same: accepted
+    with pytest.raises(run_dir.RunDirError, match="privileged critic inputs"):
+        run_dir.check_init_from(with_kinds("sphere,capsule,box"))
 
 
 # --------------------------------------------------------------------------------------- physics backend
