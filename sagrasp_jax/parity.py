@@ -81,10 +81,12 @@ def parity_configs(
     max_steps: int | None = None,
     reference_overrides: list[str] | None = None,
 ) -> tuple[EnvConfig, EnvConfig]:
-    """(JAX env config, reference env config): ``mode``, observation noise off, optional episode
-    length; ``reference_overrides`` (``env.…=value``) change the reference env only — how a test
-    proves that the harness can fail."""
+    """(JAX env config, reference env config): ``mode``, observation noise and every ``env.randomize``
+    knob off (a policy trained with randomisation is compared on the plain simulators: the
+    reference env does not randomise), optional episode length; ``reference_overrides``
+    (``env.…=value``) change the reference env only — how a test proves that the harness can fail."""
     sets = [f"env.control.mode={mode}", "env.task.obs_noise_std=0.0", "env.task.obs_noise_growth=0.0"]
+    sets += [f"env.randomize.{f.name}=0" for f in dataclasses.fields(base.env.randomize)]
     if max_steps is not None:
         sets.append(f"env.task.max_steps={max_steps}")
     cfg = apply_overrides(base, sets)

@@ -264,3 +264,16 @@ def test_reference_servo_is_the_mjx_servo_on_pybullet_dynamics(x64):
         assert np.abs(np.asarray(q) - q0).max() > 0.02  # it moved
     finally:
         ref.close()
+
+
+@pytest.mark.parametrize("mode", ["kinematic", "dynamic"])
+def test_parity_compares_the_plain_simulators_for_a_randomised_policy(mode):
+    """A policy trained with randomisation (its config has the knobs on) is compared with every knob off:
+    the reference env does not randomise (and the kinematic mode refuses the servo knobs)."""
+    from sagrasp_jax import parity
+
+    trained = _cfg("dynamic", "env.randomize.servo_gain=0.2", "env.randomize.latency=1",
+                   "env.randomize.target_error=0.005")
+    jax_cfg, ref_cfg = parity.parity_configs(trained, mode)
+    assert jax_cfg.control.mode == ref_cfg.control.mode == mode
+    assert not config.randomization_enabled(jax_cfg) and not config.randomization_enabled(ref_cfg)
