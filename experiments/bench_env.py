@@ -2,8 +2,12 @@
 
 Measures (a) the bare env (``jax.vmap(env.step)``, no auto-reset) and (b) the training
 path (``AutoReset.batch_step``, fresh-sample resets) inside a jitted ``lax.scan`` of
-random actions; compile time is reported separately.  With ``--pybullet`` it also times
-the PyBullet reference env (raw stepping, one env, kinematic and dynamic) when the
+random actions; compile time is reported separately.  The machine may be shared: every row
+records the 1-minute load average before and after it and the process CPU time per env step
+beside the wall-clock rate (under contention the wall clock suffers, the CPU time much less).
+Every cell runs on 1 jax device and, split over them with ``shard_map`` as the trainer does, on
+all CPU devices (one per core, ``train.use_cpu_devices``; ``--devices`` picks the counts).  With
+``--pybullet`` it also times the PyBullet reference env (raw stepping, one env, kinematic and dynamic) when the
 ``reference`` extra is installed.  Prints a table and writes JSON.
 
     python experiments/bench_env.py --out experiments/results/bench_env_cpu.json
@@ -21,48 +25,70 @@ import time
 import sagrasp_jax  # noqa: F401  (XLA flags)
 import jax
 
-from sagrasp_jax import config
+from jax.sharding import PartitionSpec
+
+from sagrasp_jax import config, ppo, train
 from sagrasp_jax.env import GraspEnv
 from sagrasp_jax.fileio import atomic_write_json
 from sagrasp_jax.wrappers import AutoReset
 
 
-def bench_jax(mode: str, batch: int, steps: int, auto_reset: bool) -> dict:
-    cfg = config.get_config("paper").env
-    cfg = dataclasses.replace(cfg, control=dataclasses.replace(cfg.control, mode=mode))
+def bench_jax(mode: str, batch: int, steps: int, auto_reset: bool, overrides: list[str] | None = None,
+              devices: int = 1) -> dict:
+    cfg = config.apply_overrides(config.get_config("paper"), [f"env.control.mode={mode}"] + list(overrides or [])).env
     base = GraspEnv(cfg)
     env = AutoReset(base) if auto_reset else base
     step = env.batch_step if auto_reset else jax.vmap(base.step)
 
+    local = batch // devices
+
     def rollout(state, key):
         def body(st, k):
-            st = step(st, jax.random.uniform(k, (batch, 6), minval=-1.0, maxval=1.0))
+            st = step(st, jax.random.uniform(k, (local, 6), minval=-1.0, maxval=1.0))
             return st, st.done.sum()
 
         return jax.lax.scan(body, state, jax.random.split(key, steps))
 
     reset = jax.jit(jax.vmap(env.reset))
-    run = jax.jit(rollout)
+    if devices == 1:
+        run = jax.jit(rollout)
+    else:  # each device steps its share of the batch (its own random actions), as in training
+        mesh = ppo.make_mesh(jax.devices()[:devices])
+        shard, rep = PartitionSpec(ppo.BATCH_AXIS), PartitionSpec()
+
+        def per_device(state, key):
+            return rollout(state, jax.random.fold_in(key, jax.lax.axis_index(ppo.BATCH_AXIS)))
+
+        sharded = jax.jit(ppo._sharded(per_device, mesh, (shard, rep), (shard, shard)))
+        run = lambda state, key: sharded(state, ppo.replicate(key, mesh))  # noqa: E731
     t0 = time.perf_counter()
     state = reset(jax.random.split(jax.random.PRNGKey(0), batch))
     jax.block_until_ready(state.obs)
+    if devices > 1:
+        state = ppo.shard_batch(state, mesh)
     out = run(state, jax.random.PRNGKey(1))
     jax.block_until_ready(out)
     compile_s = time.perf_counter() - t0
     state = out[0]
-    best = float("inf")
-    for rep in range(2):
-        t0 = time.perf_counter()
+    best = best_cpu = float("inf")
+    load_before = os.getloadavg()[0]
+    for rep in range(3):
+        t0, c0 = time.perf_counter(), time.process_time()
         state, dones = run(state, jax.random.PRNGKey(2 + rep))
         jax.block_until_ready(dones)
         best = min(best, time.perf_counter() - t0)
+        best_cpu = min(best_cpu, time.process_time() - c0)
     return {
         "mode": mode,
         "auto_reset": auto_reset,
         "batch": batch,
+        "devices": devices,
         "steps": steps,
+        "overrides": list(overrides or []),
         "compile_s": round(compile_s, 2),
         "env_steps_per_s": round(batch * steps / best, 1),
+        "cpu_us_per_env_step": round(1e6 * best_cpu / (batch * steps), 2),
+        "load_1min": [round(load_before, 2), round(os.getloadavg()[0], 2)],
     }
 
 
@@ -96,8 +122,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--max-steps", type=int, default=200, help="max scan length per cell")
     parser.add_argument("--dynamic-max-batch", type=int, default=1024, help="largest batch for dynamic mode on CPU")
     parser.add_argument("--pybullet", action="store_true", help="also time the PyBullet reference env")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                        help="config override of the env for every JAX row (e.g. env.control.substeps=2)")
+    parser.add_argument("--no-auto-reset", action="store_true", help="time the bare env only")
+    parser.add_argument("--devices", default="1,all",
+                        help="comma-separated jax device counts per cell; 'all' = one CPU device per core")
     parser.add_argument("--out", default="experiments/results/bench_env.json")
     args = parser.parse_args(argv)
+    train.use_cpu_devices(config.get_config("cpu-quick"))  # one CPU device per core, as the trainer
+    try:
+        counts = sorted({len(jax.devices()) if d == "all" else int(d) for d in args.devices.split(",")})
+    except ValueError:
+        parser.error(f"--devices must be comma-separated integers or 'all', got {args.devices!r}")
+    if not counts or counts[0] < 1 or counts[-1] > len(jax.devices()):
+        parser.error(f"--devices must be in [1, {len(jax.devices())}], got {args.devices!r}")
     try:
         batches = [int(b) for b in args.batches.split(",")]
     except ValueError:
@@ -107,24 +145,27 @@ def main(argv: list[str] | None = None) -> int:
         if m not in ("kinematic", "dynamic"):
             parser.error(f"unknown mode {m!r}; choose kinematic, dynamic")
     rows = []
-    print(f"{'mode':10s} {'reset':>6s} {'batch':>6s} {'steps':>6s} {'compile s':>10s} {'env-steps/s':>12s}")
+    print(f"{'mode':10s} {'reset':>6s} {'batch':>6s} {'dev':>4s} {'steps':>6s} {'compile s':>10s} {'env-steps/s':>12s}")
     for mode in modes:
         for batch in batches:
             if mode == "dynamic" and jax.default_backend() == "cpu" and batch > args.dynamic_max_batch:
                 continue
             steps = max(5, min(args.max_steps, args.env_steps // batch))
             if mode == "dynamic":
-                steps = max(5, steps // 10)
-            for auto in (False, True):
-                row = bench_jax(mode, batch, steps, auto)
-                rows.append(row)
-                print(f"{mode:10s} {'auto' if auto else 'none':>6s} {batch:6d} {steps:6d} {row['compile_s']:10.1f} {row['env_steps_per_s']:12.0f}", flush=True)
+                steps = max(5, steps // 2)
+            for auto in (False,) if args.no_auto_reset else (False, True):
+                for devices in (d for d in counts if batch % d == 0):
+                    row = bench_jax(mode, batch, steps, auto, args.overrides, devices)
+                    rows.append(row)
+                    print(f"{mode:10s} {'auto' if auto else 'none':>6s} {batch:6d} {devices:4d} {steps:6d} "
+                          f"{row['compile_s']:10.1f} {row['env_steps_per_s']:12.0f} {row['cpu_us_per_env_step']:8.1f} us cpu"
+                          f"  load {row['load_1min']}", flush=True)
     if args.pybullet:
         for mode in modes:
             row = bench_pybullet(mode, 2000 if mode == "kinematic" else 500)
             if row:
                 rows.append(row)
-                print(f"{mode:10s} {'pyb':>6s} {1:6d} {row['steps']:6d} {'-':>10s} {row['env_steps_per_s']:12.0f}")
+                print(f"{mode:10s} {'pyb':>6s} {1:6d} {1:4d} {row['steps']:6d} {'-':>10s} {row['env_steps_per_s']:12.0f}")
     result = {
         "machine": {"platform": platform.platform(), "processor": platform.processor(), "cpus": os.cpu_count(),
                     "jax_backend": jax.default_backend(), "devices": [str(d) for d in jax.devices()]},

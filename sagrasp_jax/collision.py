@@ -332,6 +332,17 @@ def _link_slice(cover: SphereCover, first: int, last: int) -> slice:
     return slice(int(sel[0]), int(sel[-1]) + 1)
 
 
+def nearest_slot(xp: Any, per_slot: Any) -> Any:
+    """One-hot (slots,) of the nearest obstacle slot: the lowest-index slot at the minimum distance.
+
+    The tie-break both simulators share: on equal distances (e.g. two identical obstacles) the lower
+    slot wins, in NumPy and JAX alike, whatever either library's argmin or sort does with ties.  (A
+    tolerance would not make the choice more stable: it only moves the switch point, and the two
+    simulators' distances differ by the same amount on either side of it.)"""
+    at_min = per_slot <= xp.min(per_slot)
+    return at_min & (xp.cumsum(at_min.astype(xp.int32)) == 1)
+
+
 def check(xp: Any, robot: RobotModel, kin: Kinematics, reset: Any, cfg: EnvConfig) -> CollisionResult:
     """Collision flags and obstacle distances for one env at one pose (SPEC §2)."""
     cover = _cover(robot)
@@ -367,8 +378,7 @@ def check(xp: Any, robot: RobotModel, kin: Kinematics, reset: Any, cfg: EnvConfi
     per_slot = xp.where(active, slot_min, xp.inf)
     hit_obstacle = xp.any(per_slot < 0.0)
     any_active = xp.any(active)
-    nearest = xp.argmin(per_slot)
-    onehot = (xp.arange(per_slot.shape[0]) == nearest)[:, None]
+    onehot = nearest_slot(xp, per_slot)[:, None]
     nearest_pos = xp.where(any_active, xp.sum(xp.where(onehot, o_pos, 0.0), axis=0), xp.asarray(cfg.task.no_obstacle_pos, dtype=dtype))
     nearest_dist = xp.minimum(xp.min(per_slot), clip)
     obstacle_dist = xp.minimum(per_slot, clip)

@@ -59,6 +59,9 @@ class ControlConfig:
     control_dt: float = 0.05  # s: control period (20 Hz)
     physics_dt: float = 0.01  # s: physics step of the dynamic mode
     substeps: int = 5  # physics steps per control step in the dynamic mode
+    # Physics backend of the dynamic mode: "jax" (MJX's JAX implementation, any device) or "warp" (MuJoCo
+    # Warp through MJX: needs the warp extra, pip install -e .[warp], and is meant for CUDA GPUs)
+    impl: str = "jax"
 
 
 @dataclass(frozen=True)
@@ -154,11 +157,32 @@ class SamplingConfig:
 
 
 @dataclass(frozen=True)
+class RandomizeConfig:
+    """Domain randomisation for transfer to the real arm: every knob off (0) by default; each episode
+    draws its own values at reset (docs/design.md, "Dynamic mode and domain randomisation")."""
+
+    # Servo gains: each arm joint's kp and kv are scaled by their own factors, uniform in [1 − this, 1 + this]
+    # per episode (0.2 = ±20 %); dynamic mode only
+    servo_gain: float = 0.0
+    # Command latency in control steps: per episode uniform in [0, this]; the previous joint target holds for
+    # that fraction of the control period's physics substeps (1 = a whole step late); dynamic mode only
+    latency: float = 0.0
+    joint_offset: float = 0.0  # rad: per-episode offset of each joint reading, uniform in ±this (calibration error)
+    # rad: extra Gaussian noise on the joint readings, its std drawn per episode uniformly in [0, this] (on top of
+    # env.task.obs_noise_std)
+    joint_noise: float = 0.0
+    # m: per-episode error of the detected target position, uniform in ±this on each axis: the policy and the
+    # control step's slow-down and fine-tuning see it, the reward and the success test use the true target
+    target_error: float = 0.0
+
+
+@dataclass(frozen=True)
 class EnvConfig:
     control: ControlConfig = field(default_factory=ControlConfig)
     reward: RewardConfig = field(default_factory=RewardConfig)
     task: TaskConfig = field(default_factory=TaskConfig)
     sampling: SamplingConfig = field(default_factory=SamplingConfig)
+    randomize: RandomizeConfig = field(default_factory=RandomizeConfig)
 
 
 @dataclass(frozen=True)
@@ -249,6 +273,9 @@ class TrainConfig:
     log_every: int = 1  # iterations between JSONL rows
     checkpoint_every_cycles: int = 10  # SA cycles between checkpoints
     metrics_window: int = 256  # finished episodes in the training-episode window
+    # Run folder whose final checkpoint's policy, value network and observation normaliser start this run (train
+    # --init-from; e.g. a kinematic run fine-tuned in dynamic mode); optimizer and SA schedule start fresh.  "" = none
+    init_from: str = ""
 
 
 @dataclass(frozen=True)
@@ -299,6 +326,8 @@ def _cpu_quick() -> Config:
 
 
 def _gpu() -> Config:
+    # Physics backend: none runs, the preset trains in kinematic mode (env.control.impl stays "jax"); a
+    # dynamic-mode GPU run adds env.control.mode=dynamic and env.control.impl=warp (pip install -e .[warp]).
     base = _obstacle_aware(Config())
     return dataclasses.replace(
         base,
@@ -371,6 +400,7 @@ def _parse_value(text: str, annotation: Any, key: str) -> Any:
 
 _CHOICES = {
     "env.control.mode": ("kinematic", "dynamic"),
+    "env.control.impl": ("jax", "warp"),
     "env.reward.rc_mode": ("entry", "per_step"),
     "env.reward.near_miss_mode": ("change", "per_step"),
     "env.task.obs_layout": ("paper", "relative"),
@@ -492,6 +522,11 @@ _RANGES: dict[str, tuple[float | str, float]] = {
     "train.metrics_window": (1, 10**7),
     "train.obstacle_prob": (-1.0, 1.0),  # −1 = env.sampling's; validate also refuses (−1, 0)
     "train.blocking_prob": (-1.0, 1.0),
+    "env.randomize.servo_gain": (0.0, 0.9),
+    "env.randomize.latency": (0.0, 1.0),
+    "env.randomize.joint_offset": (0.0, 0.2),
+    "env.randomize.joint_noise": (0.0, 0.2),
+    "env.randomize.target_error": (0.0, 0.05),
 }
 
 
@@ -723,6 +758,9 @@ def validate(cfg: Config) -> None:
     for key, ok in checks:
         if not ok:
             raise ConfigError(f"invalid value for {key}: {get_key(cfg, key)!r}")
+    for key in ("env.randomize.servo_gain", "env.randomize.latency", "env.control.impl"):  # servo physics only
+        if get_key(cfg, key) != get_key(Config(), key) and cfg.env.control.mode != "dynamic":
+            raise ConfigError(f"{key}={get_key(cfg, key)!r} needs env.control.mode=dynamic (the kinematic mode has no servos)")
     if (cfg.ppo.num_envs * cfg.ppo.unroll_length) % cfg.ppo.num_minibatches:
         raise ConfigError(f"ppo.num_minibatches={cfg.ppo.num_minibatches} must divide ppo.num_envs × ppo.unroll_length "
                           f"= {cfg.ppo.num_envs} × {cfg.ppo.unroll_length}")
@@ -838,6 +876,11 @@ def training_env_config(cfg: Config) -> EnvConfig:
     obstacle_prob = s.obstacle_prob if cfg.train.obstacle_prob < 0 else cfg.train.obstacle_prob
     blocking_prob = s.blocking_prob if cfg.train.blocking_prob < 0 else cfg.train.blocking_prob
     return dataclasses.replace(cfg.env, sampling=blocking_sampling(s, obstacle_prob, blocking_prob))
+
+
+def randomization_enabled(env: EnvConfig) -> bool:
+    """Whether any ``env.randomize`` knob is on (then each episode draws its values at reset)."""
+    return any(getattr(env.randomize, f.name) != 0 for f in dataclasses.fields(env.randomize))
 
 
 def config_hash(cfg: Config) -> str:

@@ -23,9 +23,11 @@ import jax.numpy as jnp
 from brax.envs.base import State
 
 from sagrasp_jax import collision, control, episode, observation, robot, sampling
+from sagrasp_jax import config as config_mod
 from sagrasp_jax.config import EnvConfig
 
 MJCF_SCENE = os.path.join(os.path.dirname(robot.URDF_PATH), "..", "mjcf", "scene.xml")
+MJCF_ROBOT = os.path.join(os.path.dirname(robot.URDF_PATH), "..", "mjcf", "aubo_i5_eg2.xml")  # the dynamic mode's model
 
 EPISODE_KEYS = episode.EPISODE_KEYS
 
@@ -51,43 +53,106 @@ class GraspEnv:
         self.robot = robot.load_robot()
         self.n_uniforms = sampling.uniforms_needed(cfg.sampling)
         self._mjx_model = None
+        self.randomized = config_mod.randomization_enabled(cfg)  # env.randomize: per-episode draws in info["randomize"]
         if cfg.control.mode == "dynamic":
             self._mjx_model = self._load_mjx_model()
 
     # -- physics ---------------------------------------------------------------------------
     def _load_mjx_model(self) -> Any:
+        """The dynamic mode's model: the robot alone, lean (docs/parity.md, "Dynamic mode").
+
+        The cell is static and contacts are off, so it adds cost and nothing else; the geoms and sites
+        only matter to contacts and rendering (inertias are explicit); the fingers, held open during
+        episodes, are welded open (their servo held them rigid) and every joint-less body is fused into
+        its parent.  No constraints either: collisions are analytic and the servo targets are clipped
+        to the joint limits, so no joint-limit solver runs.  What is left is the 6-DoF arm, its position
+        servos (with armature, damping and actuator gravity compensation) and implicitfast."""
         import mujoco
         from mujoco import mjx
 
-        model = mujoco.MjModel.from_xml_path(os.path.normpath(MJCF_SCENE))
+        spec = mujoco.MjSpec.from_file(os.path.normpath(MJCF_ROBOT))
+        for geom in list(spec.geoms):
+            spec.delete(geom)
+        for site in list(spec.sites):
+            spec.delete(site)
+        finger_joints = [spec.joint(name) for name in robot.FINGER_JOINTS]
+        for body in spec.bodies:
+            for joint in body.joints:
+                if joint.name in robot.FINGER_JOINTS:
+                    body.pos = [p + self.robot.finger_open * a for p, a in zip(body.pos, joint.axis)]
+        for act in list(spec.actuators):
+            if act.target in robot.FINGER_JOINTS:
+                spec.delete(act)
+        for joint in finger_joints:
+            spec.delete(joint)
+        spec.compiler.fusestatic = True
+        model = spec.compile()
         model.opt.timestep = self.cfg.control.physics_dt
-        model.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_CONTACT
-        return mjx.put_model(model)
+        model.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_CONTACT | mujoco.mjtDisableBit.mjDSBL_CONSTRAINT
+        if model.nq != 6 or model.nu != 6:
+            raise RuntimeError(f"{MJCF_ROBOT}: expected the 6-joint arm after welding the fingers, got nq={model.nq}")
+        self._mj_model = model  # Warp's make_data takes the MuJoCo model
+        self._servo_kp = jnp.asarray(model.actuator_gainprm[:, 0])  # for the servo-gain randomisation
+        self._servo_kv = jnp.asarray(-model.actuator_biasprm[:, 2])
+        return mjx.put_model(model, impl=self.cfg.control.impl)
 
     def _initial_pipeline(self, q0: jax.Array) -> Any:
         if self._mjx_model is None:
             return None
         from mujoco import mjx
 
-        qpos = jnp.concatenate([q0, jnp.full(2, self.robot.finger_open, q0.dtype)])
-        data = mjx.make_data(self._mjx_model)
-        data = data.replace(qpos=qpos.astype(data.qpos.dtype), ctrl=qpos.astype(data.ctrl.dtype))
-        return data
+        impl = self.cfg.control.impl
+        data = mjx.make_data(self._mj_model if impl == "warp" else self._mjx_model, impl=impl)
+        return data.replace(qpos=q0.astype(data.qpos.dtype), ctrl=q0.astype(data.ctrl.dtype))
 
-    def _advance(self, pipeline: Any, q_target: jax.Array) -> tuple[Any, jax.Array]:
-        """Apply q_target; returns the new pipeline state and the measured joints."""
+    def _advance(self, pipeline: Any, q_target: jax.Array, q_previous: jax.Array,
+                 randomize: dict[str, Any] | None) -> tuple[Any, jax.Array]:
+        """Apply q_target; returns the new pipeline state and the measured joints.
+
+        With randomisation (``env.randomize``): this episode's servo gains, and a command latency —
+        the previous target ``q_previous`` holds for the first ``latency × substeps`` substeps."""
         if self._mjx_model is None:
             return None, q_target
         from mujoco import mjx
 
-        ctrl = jnp.concatenate([q_target, jnp.full(2, self.robot.finger_open, q_target.dtype)]).astype(pipeline.ctrl.dtype)
-        pipeline = pipeline.replace(ctrl=ctrl)
+        model = self._mjx_model
+        delay = jnp.zeros((), jnp.int32)
+        if randomize is not None:
+            kp, kv = self._servo_kp * randomize["kp_scale"], self._servo_kv * randomize["kv_scale"]
+            model = model.replace(actuator_gainprm=model.actuator_gainprm.at[:, 0].set(kp.astype(model.actuator_gainprm.dtype)),
+                                  actuator_biasprm=model.actuator_biasprm.at[:, 1].set(-kp.astype(model.actuator_biasprm.dtype))
+                                  .at[:, 2].set(-kv.astype(model.actuator_biasprm.dtype)))
+            delay = jnp.round(randomize["latency"] * self.cfg.control.substeps).astype(jnp.int32)
+        dtype = pipeline.ctrl.dtype
 
-        def substep(data: Any, _: Any) -> tuple[Any, None]:
-            return mjx.step(self._mjx_model, data), None
+        def substep(data: Any, i: Any) -> tuple[Any, None]:
+            ctrl = q_target if randomize is None else jnp.where(i < delay, q_previous, q_target)
+            return mjx.step(model, data.replace(ctrl=ctrl.astype(dtype))), None
 
-        pipeline, _ = jax.lax.scan(substep, pipeline, None, length=self.cfg.control.substeps)
+        pipeline, _ = jax.lax.scan(substep, pipeline, jnp.arange(self.cfg.control.substeps))
         return pipeline, pipeline.qpos[:6].astype(q_target.dtype)
+
+    # -- domain randomisation (env.randomize; off by default: no draw, no state) --------------
+    def _draw_randomization(self, key: jax.Array, dtype: Any) -> dict[str, jax.Array]:
+        """One episode's draws: servo-gain factors, command latency, joint-reading offset and noise
+        level, detected-target error (each 0 or 1 when its knob is 0)."""
+        r = self.cfg.randomize
+        k = jax.random.split(key, 6)
+        u = lambda kk, shape, half: half * jax.random.uniform(kk, shape, dtype, -1.0, 1.0)  # noqa: E731
+        return {
+            "kp_scale": 1.0 + u(k[0], (6,), r.servo_gain),
+            "kv_scale": 1.0 + u(k[1], (6,), r.servo_gain),
+            "latency": r.latency * jax.random.uniform(k[2], (), dtype),
+            "joint_offset": u(k[3], (6,), r.joint_offset),
+            "joint_noise": r.joint_noise * jax.random.uniform(k[4], (), dtype),
+            "target_error": u(k[5], (3,), r.target_error),
+        }
+
+    def _seen(self, spec: sampling.ResetSpec, randomize: dict[str, Any] | None) -> sampling.ResetSpec:
+        """The scene as the robot's sensors report it: the detected target carries this episode's error."""
+        if randomize is None:
+            return spec
+        return spec._replace(target_pos=spec.target_pos + randomize["target_error"].astype(spec.target_pos.dtype))
 
     # -- API -------------------------------------------------------------------------------
     def reset(self, rng: jax.Array) -> State:
@@ -107,9 +172,13 @@ class GraspEnv:
         tilt = robot.tilt(jnp, kin.approach_axis)
         d0 = jnp.linalg.norm(kin.gripper_centre - spec.target_pos)
         blocking = sampling.is_blocking(jnp, self.robot, self.cfg.sampling, self.cfg.task, spec)
+        randomize = None
+        if self.randomized:
+            rng, key_randomize = jax.random.split(rng)
+            randomize = self._draw_randomization(key_randomize, dtype)
         rng, key_noise = jax.random.split(rng)
         zero = jnp.zeros((), dtype)
-        obs = self._observe(q0, kin, spec, col, tilt, key_noise, zero)
+        obs = self._observe(q0, kin, spec, col, tilt, key_noise, zero, randomize)
         info = {
             "rng": rng,
             "progress": zero,
@@ -119,6 +188,8 @@ class GraspEnv:
             "tracker": episode.start(jnp, d0, col, blocking),
             "episode": {k: zero for k in EPISODE_KEYS},
         }
+        if randomize is not None:
+            info["randomize"] = randomize
         if self.privileged:
             info["privileged"] = observation.privileged(jnp, self.cfg, spec, col, kin.gripper_centre, info["steps"], zero,
                                                         blocking)
@@ -132,18 +203,24 @@ class GraspEnv:
             info=info,
         )
 
-    def _observe(self, q: Any, kin: Any, spec: Any, col: Any, tilt: Any, key: Any, progress: Any) -> jax.Array:
+    def _observe(self, q: Any, kin: Any, spec: Any, col: Any, tilt: Any, key: Any, progress: Any,
+                 randomize: dict[str, Any] | None = None) -> jax.Array:
+        if randomize is not None:  # joint readings with this episode's offset and extra noise; the detected target
+            key, key_extra = jax.random.split(key)
+            q = q + randomize["joint_offset"] + randomize["joint_noise"] * jax.random.normal(key_extra, q.shape, q.dtype)
         noisy_q = observation.noisy_joints(self.cfg.task, q, progress, jax.random.normal(key, q.shape, q.dtype))
-        return observation.assemble(jnp, self.cfg, noisy_q, kin.gripper_centre, spec, col, tilt)
+        return observation.assemble(jnp, self.cfg, noisy_q, kin.gripper_centre, self._seen(spec, randomize), col, tilt)
 
     def step(self, state: State, action: jax.Array) -> State:
         cfg, info = self.cfg, state.info
         spec = info["reset"]
         dtype = info["q_target"].dtype
         action = action.astype(dtype)
+        randomize = info.get("randomize")
         q_now = info["q_target"] if self._mjx_model is None else state.pipeline_state.qpos[:6].astype(dtype)
-        ctl = control.control_step(jnp, self.robot, cfg.control, info["q_target"], q_now, spec.target_pos, action)
-        pipeline, q_meas = self._advance(state.pipeline_state, ctl.q_target)
+        ctl = control.control_step(jnp, self.robot, cfg.control, info["q_target"], q_now,
+                                   self._seen(spec, randomize).target_pos, action)
+        pipeline, q_meas = self._advance(state.pipeline_state, ctl.q_target, info["q_target"], randomize)
         kin = robot.forward_kinematics(jnp, self.robot, q_meas)
         col = collision.check(jnp, self.robot, kin, spec, cfg)
         tilt = robot.tilt(jnp, kin.approach_axis)
@@ -151,7 +228,7 @@ class GraspEnv:
         step = episode.advance(jnp, cfg, info["tracker"], spec, progress=info["progress"], d_now=d_now, col=col,
                                gripper_centre=kin.gripper_centre, tilt=tilt)
         rng, key_noise = jax.random.split(info["rng"])
-        obs = self._observe(q_meas, kin, spec, col, tilt, key_noise, info["progress"])
+        obs = self._observe(q_meas, kin, spec, col, tilt, key_noise, info["progress"], randomize)
         new_info = dict(info)
         new_info.update(rng=rng, steps=step.tracker.steps, q_target=ctl.q_target, tracker=step.tracker,
                         episode=step.episode)

@@ -12,7 +12,9 @@ seed, step cap, physical check) or with ``--force``.  The output folder is locke
 evaluation runs, and checked to be writable before it starts.
 
 ``--physical`` also replays every kinematic success through the physical grasp check
-(``evaluate_physical``, ``sagrasp_jax.physical``).
+(``evaluate_physical``, ``sagrasp_jax.physical``).  ``--set env.KEY=VALUE`` evaluates the run's
+policy in another env than it was trained in (e.g. ``env.control.mode=dynamic`` for a kinematic
+policy, or ``env.randomize.*``); the result file's name then carries a short hash of those changes.
 """
 
 from __future__ import annotations
@@ -92,6 +94,31 @@ def summarise(episodes: dict[str, np.ndarray], mask: np.ndarray) -> dict[str, An
     }
 
 
+def env_overrides(cfg: Config, overrides: list[str] | None) -> Config:
+    """``cfg`` with ``--set`` changes of the evaluated env (``env.*`` keys only; the policy's
+    observation layout must stay the same)."""
+    from sagrasp_jax import observation
+    from sagrasp_jax.config import apply_overrides
+
+    overrides = list(overrides or [])
+    bad = [o for o in overrides if not o.strip().startswith("env.")]
+    if bad:
+        raise ConfigError(f"--set changes the evaluated env only (env.* keys), not {', '.join(bad)}")
+    out = apply_overrides(cfg, overrides)
+    if observation.layout_of(out.env) != observation.layout_of(cfg.env):
+        raise ConfigError(f"--set {' '.join(overrides)} changes the observation layout the policy was trained with")
+    return out
+
+
+def overrides_tag(overrides: list[str] | None) -> str | None:
+    """A short, stable name for a set of ``--set`` changes (None: none)."""
+    import hashlib
+
+    if not overrides:
+        return None
+    return "set" + hashlib.sha256("\n".join(sorted(o.strip() for o in overrides)).encode()).hexdigest()[:8]
+
+
 def check_options(episodes: int, seed: int | None, max_steps: int | None) -> None:
     check_range("--episodes", episodes, 1, MAX_EPISODES)
     if seed is not None:
@@ -107,13 +134,15 @@ def resolve_options(cfg: Config, seed: int | None, max_steps: int | None) -> tup
 
 
 def evaluate_run(run: str, episodes: int = 1000, seed: int | None = None, max_steps: int | None = None,
-                 env_factory: EvalEnvFactory | None = None, scenes: str = "mix") -> dict[str, Any]:
-    """Play ``episodes`` fixed-seed episodes with the run's policy and summarise them."""
+                 env_factory: EvalEnvFactory | None = None, scenes: str = "mix",
+                 overrides: list[str] | None = None) -> dict[str, Any]:
+    """Play ``episodes`` fixed-seed episodes with the run's policy and summarise them (in the run's env,
+    or with ``overrides`` of it)."""
     check_options(episodes, seed, max_steps)
     cfg = run_dir.load_config(run)
     ckpt = run_dir.load_checkpoint(run, cfg)  # verified before the env is built
     counters = run_dir.checkpoint_counters(ckpt)
-    env = (env_factory or default_eval_env)(scene_config(cfg, scenes))
+    env = (env_factory or default_eval_env)(scene_config(env_overrides(cfg, overrides), scenes))
     params, normaliser = run_dir.restore_policy(cfg, ckpt, env.observation_size, env.action_size)
     networks = ppo.make_networks(cfg.ppo.network, env.observation_size, env.action_size, cfg.ppo.obs_clip)
     seed, steps = resolve_options(cfg, seed, max_steps)
@@ -128,6 +157,7 @@ def evaluate_run(run: str, episodes: int = 1000, seed: int | None = None, max_st
         "run": os.path.abspath(run),
         "episodes": episodes,
         "scenes": scenes,
+        **({"env_overrides": list(overrides)} if overrides else {}),
         "seed": seed,
         "max_steps": steps,
         "progress_weights": 1.0,
@@ -147,7 +177,8 @@ def write_results(path: str, results: dict[str, Any]) -> str:
     return run_dir.write_json(path, results)
 
 
-def evaluate_physical(run: str, episodes: int, seed: int, max_steps: int, lift: float | None = None) -> dict[str, Any]:
+def evaluate_physical(run: str, episodes: int, seed: int, max_steps: int, lift: float | None = None,
+                      overrides: list[str] | None = None) -> dict[str, Any]:
     """Replay ``evaluate_run``'s episodes (same keys, same jitted evaluator) recording each final
     pose, and run the physical grasp check (``physical.physical_grasp_check``) on every kinematic
     success.
@@ -162,7 +193,7 @@ def evaluate_physical(run: str, episodes: int, seed: int, max_steps: int, lift: 
 
     lift = physical.LIFT_HEIGHT if lift is None else lift
     cfg = run_dir.load_config(run)
-    env = _FinalPoseRecorder(GraspEnv(cfg.env))
+    env = _FinalPoseRecorder(GraspEnv(env_overrides(cfg, overrides).env))
     cfg, params, normaliser, _ = run_dir.load_policy_state(run, env.observation_size, env.action_size)
     networks = ppo.make_networks(cfg.ppo.network, env.observation_size, env.action_size, cfg.ppo.obs_clip)
     keys = ppo.eval_keys(seed, episodes)
@@ -261,26 +292,30 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--force", action="store_true", help="replace an existing result file that holds another evaluation")
     p.add_argument("--physical", action="store_true",
                    help="also replay each kinematic success through the MuJoCo physical grasp check (close, lift 5 cm)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="env.KEY=VALUE",
+                   help="evaluate in a changed env, repeatable (e.g. env.control.mode=dynamic, env.randomize.latency=1)")
     args = p.parse_args(argv)
     try:
         check_options(args.episodes, args.seed, args.max_steps)
         cfg = run_dir.load_config(args.run)
         counters = run_dir.checkpoint_counters(run_dir.load_checkpoint(args.run, cfg))
+        env_overrides(cfg, args.overrides)  # refused before any work
         seed, steps = resolve_options(cfg, args.seed, args.max_steps)
         path = args.out or run_dir.path(args.run, run_dir.evaluation_file(
-            args.episodes, seed, None if steps == cfg.env.task.max_steps else steps, args.scenes))
+            args.episodes, seed, None if steps == cfg.env.task.max_steps else steps, args.scenes,
+            overrides_tag(args.overrides)))
         identity = {"run": os.path.abspath(args.run), "episodes": args.episodes, "seed": seed, "max_steps": steps,
                     "checkpoint_iteration": counters.get("iteration"),
                     "checkpoint_env_steps": counters.get("env_steps"), "physical_check": args.physical,
-                    "scenes": args.scenes}
+                    "scenes": args.scenes, **({"env_overrides": list(args.overrides)} if args.overrides else {})}
         folder = os.path.dirname(os.path.abspath(path))
         with run_dir.FolderLock(folder, create=True, what="output folder"):
             run_dir.check_writable(folder, "output folder")  # before the evaluation, not after it
             run_dir.check_replace(path, identity, args.force)
-            results = evaluate_run(args.run, args.episodes, seed, steps, scenes=args.scenes)
+            results = evaluate_run(args.run, args.episodes, seed, steps, scenes=args.scenes, overrides=args.overrides)
             results["physical_check"] = args.physical
             if args.physical:
-                results["physical"] = evaluate_physical(args.run, args.episodes, seed, steps)
+                results["physical"] = evaluate_physical(args.run, args.episodes, seed, steps, overrides=args.overrides)
             write_results(path, results)
     except (ConfigError, CheckpointError, RunDirError) as exc:
         print(f"error: {exc}", file=sys.stderr)

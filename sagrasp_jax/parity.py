@@ -81,10 +81,12 @@ def parity_configs(
     max_steps: int | None = None,
     reference_overrides: list[str] | None = None,
 ) -> tuple[EnvConfig, EnvConfig]:
-    """(JAX env config, reference env config): ``mode``, observation noise off, optional episode
-    length; ``reference_overrides`` (``env.…=value``) change the reference env only — how a test
-    proves that the harness can fail."""
+    """(JAX env config, reference env config): ``mode``, observation noise and every ``env.randomize``
+    knob off (a policy trained with randomisation is compared on the plain simulators: the
+    reference env does not randomise), optional episode length; ``reference_overrides``
+    (``env.…=value``) change the reference env only — how a test proves that the harness can fail."""
     sets = [f"env.control.mode={mode}", "env.task.obs_noise_std=0.0", "env.task.obs_noise_growth=0.0"]
+    sets += [f"env.randomize.{f.name}=0" for f in dataclasses.fields(base.env.randomize)]
     if max_steps is not None:
         sets.append(f"env.task.max_steps={max_steps}")
     cfg = apply_overrides(base, sets)
@@ -207,10 +209,10 @@ class JaxSide:
         return state, self.jax.device_get(out)
 
 
-def _pybullet_env(cfg: EnvConfig) -> Any:
+def _pybullet_env(cfg: EnvConfig, servo: str = "mujoco") -> Any:
     from sagrasp_jax.reference.pybullet_env import PyBulletGraspEnv
 
-    return PyBulletGraspEnv(cfg)
+    return PyBulletGraspEnv(cfg, servo=servo)
 
 
 # --------------------------------------------------------------------------------------------
@@ -457,6 +459,7 @@ def run_parity(
     log: Callable[[str], None] = lambda s: None,
     preset: str = "paper",
     overrides: list[str] | None = None,
+    reference_servo: str = "mujoco",
 ) -> dict[str, Any]:
     """Run the comparison and return the report (``report["passed"]`` says whether it met the tolerances)."""
     import jax
@@ -485,8 +488,8 @@ def run_parity(
     progress = rng.uniform(0.0, 1.0, episodes)
     t0 = time.perf_counter()
     jax_side = JaxSide(jax_cfg, batch)
-    pb_envs = [_pybullet_env(ref_cfg) for _ in range(batch)]
-    probes = [_pybullet_env(ref_cfg) for _ in range(batch)] if single_step else None
+    pb_envs = [_pybullet_env(ref_cfg, reference_servo) for _ in range(batch)]
+    probes = [_pybullet_env(ref_cfg, reference_servo) for _ in range(batch)] if single_step else None
     report: dict[str, Any] = {
         "mode": mode,
         "episodes_per_source": episodes,
@@ -496,6 +499,7 @@ def run_parity(
         "jax_x64": True,
         "obs_noise": 0.0,
         "reference_overrides": list(reference_overrides or []),
+        **({"reference_servo": reference_servo} if mode == "dynamic" else {}),
         "policy": policy_path,
         "preset": preset if policy_path is None else None,
         "obs_layout": jax_cfg.task.obs_layout,
@@ -591,6 +595,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="config override for both envs, e.g. env.task.obs_layout=relative")
     parser.add_argument("--reference-set", action="append", default=[], metavar="KEY=VALUE",
                         help="config override for the reference env only (e.g. env.reward.ratio=10.5): a deliberate mismatch")
+    parser.add_argument("--reference-servo", choices=("mujoco", "position_control"), default="mujoco",
+                        help="dynamic mode: the reference env's motor model (position_control: PyBullet's own "
+                             "POSITION_CONTROL motor with the fitted gains; docs/parity.md)")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
     args = parser.parse_args(argv)
 
@@ -619,6 +626,7 @@ def main(argv: list[str] | None = None) -> int:
             mode=args.mode, episodes=episodes, seed=args.seed, sources=sources, policy_path=args.policy,
             max_steps=max_steps, batch=args.batch, single_step=args.single_step,
             reference_overrides=args.reference_set, log=log, preset=args.preset, overrides=args.overrides,
+            reference_servo=args.reference_servo,
         )
     except (ConfigError, ValueError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)

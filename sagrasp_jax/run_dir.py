@@ -317,6 +317,42 @@ def load_policy_state(run: str, obs_size: int | None = None, action_size: int = 
     return cfg, params, normaliser, checkpoint_counters(ckpt)
 
 
+def check_init_from(cfg: Config) -> tuple[Config, checkpoint.Checkpoint]:
+    """The config and verified checkpoint of ``cfg.train.init_from`` (``train --init-from RUN``), if its
+    networks can start this run.  Refused (RunDirError / CheckpointError, naming the run) when RUN is
+    no run folder, has no readable checkpoint, or has another observation layout, network shape or
+    critic input."""
+    run = cfg.train.init_from
+    src = load_config(run)
+    ckpt = load_checkpoint(run, src)
+    problems = []
+    mine, theirs = observation.layout_of(cfg.env), observation.layout_of(src.env)
+    if mine != theirs:
+        problems.append(f"observation layout {src.env.task.obs_layout!r} ({len(theirs)} entries) vs this run's "
+                        f"{cfg.env.task.obs_layout!r} ({len(mine)} entries)")
+    if src.ppo.network != cfg.ppo.network:
+        problems.append(f"networks {config_to_dict(src.ppo.network)} vs this run's {config_to_dict(cfg.ppo.network)}")
+    if src.ppo.privileged_critic != cfg.ppo.privileged_critic:
+        problems.append(f"ppo.privileged_critic={src.ppo.privileged_critic} vs this run's {cfg.ppo.privileged_critic}")
+    elif cfg.ppo.privileged_critic and observation.privileged_layout(src.env) != observation.privileged_layout(cfg.env):
+        problems.append(f"privileged critic inputs for env.sampling.obstacle_kinds={list(src.env.sampling.obstacle_kinds)}"
+                        f", max_obstacles={src.env.sampling.max_obstacles} vs this run's "
+                        f"{list(cfg.env.sampling.obstacle_kinds)}, {cfg.env.sampling.max_obstacles}")
+    if problems:
+        raise RunDirError(f"--init-from {run}: its policy cannot start this run: " + "; ".join(problems))
+    return src, ckpt
+
+
+def init_policy_state(ts: ppo.TrainingState, cfg: Config, obs_size: int, action_size: int = ACTION_SIZE
+                      ) -> ppo.TrainingState:
+    """``ts`` with the policy, value network and normaliser of ``cfg.train.init_from``'s checkpoint: a
+    fine-tuning start, e.g. a kinematic run continued in dynamic mode.  The optimizer state stays
+    ``ts``'s (fresh), and so does everything else of the run (SA schedule, envs, counters)."""
+    src, ckpt = check_init_from(cfg)
+    params, normaliser = restore_policy(src, ckpt, obs_size, action_size)
+    return ts._replace(params=params, normaliser=normaliser)
+
+
 def export_policy(file: str, cfg: Config, params: ppo.Params, normaliser: ppo.Normaliser, obs_size: int) -> str:
     """Write the deterministic policy (weights + normaliser) as ``runtime``'s ``policy.npz``."""
     layers = ppo.to_host(params.policy["params"])
@@ -378,11 +414,13 @@ def prepare_training(out: str, cfg: Config, resume: bool) -> str:
 
 # ---------------------------------------------------------------------- evaluation outputs
 
-def evaluation_file(episodes: int, seed: int, max_steps: int | None = None, scenes: str = "mix") -> str:
+def evaluation_file(episodes: int, seed: int, max_steps: int | None = None, scenes: str = "mix",
+                    variant: str | None = None) -> str:
     """File name of an evaluation in the run folder: by scene set (if not the evaluation mix), episodes
-    and seed (and a non-default step cap)."""
+    and seed (and a non-default step cap, and a tag of a changed env: ``evaluate --set``)."""
     kind = "" if scenes == "mix" else f"{scenes}-"
-    return f"{EVALUATION_PREFIX}{kind}{episodes}ep-seed{seed}" + (f"-{max_steps}steps" if max_steps else "") + ".json"
+    return (f"{EVALUATION_PREFIX}{kind}{episodes}ep-seed{seed}" + (f"-{max_steps}steps" if max_steps else "")
+            + (f"-{variant}" if variant else "") + ".json")
 
 
 def check_replace(file: str, identity: dict[str, Any], force: bool = False) -> None:

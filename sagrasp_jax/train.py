@@ -188,6 +188,7 @@ class Trainer:
         self._compiled_cycle: Any = None
         self._compiled_eval: Any = None
         self.compile_s: dict[str, float] = {}
+        self._resuming = resume
         self._fresh_state()
         if resume:
             self._load(os.path.join(out_dir, CHECKPOINT_FILE))
@@ -198,6 +199,8 @@ class Trainer:
         cfg = self.cfg
         k_params, k_env, k_train = jax.random.split(jax.random.PRNGKey(cfg.train.seed), 3)
         ts = ppo.init_training_state(k_params, self.networks, self.optimizer, self.obs_size)
+        if cfg.train.init_from and not self._resuming:  # --init-from: another run's policy and normaliser
+            ts = run_dir.init_policy_state(ts, cfg, self.obs_size, self.action_size)
         self.train_state: ppo.TrainingState = ppo.replicate(ts, self.mesh)
         self.snapshot: ppo.TrainingState = self.train_state
         reset = ppo.make_reset(self.train_env, self.mesh)
@@ -541,6 +544,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="config override, repeatable (e.g. ppo.num_envs=512)")
     p.add_argument("--total-steps", type=int, default=None)
+    p.add_argument("--init-from", default=None, metavar="RUN",
+                   help="start from RUN's final policy, value network and normaliser (fresh optimizer and SA state), "
+                        "e.g. a kinematic run fine-tuned with --set env.control.mode=dynamic; sets train.init_from")
     p.add_argument("--resume", action="store_true",
                    help="continue from OUT/checkpoint.ckpt (a run killed before its first checkpoint restarts)")
     p.add_argument("--stop-after-cycles", type=int, default=None,
@@ -567,14 +573,17 @@ def check_args(args: argparse.Namespace) -> None:
 
 def resolve_config(args: argparse.Namespace) -> Config:
     """The run's config; on --resume without config options it is the run folder's config.json."""
+    overrides = list(args.overrides)
+    if args.init_from is not None:
+        overrides.append(f"train.init_from={os.path.abspath(args.init_from)}")
     explicit = any(v is not None for v in (args.preset, args.algo, args.lr_schedule, args.seed, args.total_steps)) \
-        or args.overrides
+        or overrides
     if args.resume and not explicit:
         if not os.path.isfile(os.path.join(args.out, CONFIG_FILE)) and not os.path.isfile(os.path.join(args.out, CHECKPOINT_FILE)):
             raise RunDirError(f"{args.out}: cannot resume, no {CONFIG_FILE} and no {CHECKPOINT_FILE} there (the run "
                               "wrote neither); start it again without --resume, or pass its config options")
         return run_dir.load_config(args.out)
-    return build_config(args.preset or "cpu-quick", args.algo, args.seed, args.total_steps, args.overrides,
+    return build_config(args.preset or "cpu-quick", args.algo, args.seed, args.total_steps, overrides,
                         args.lr_schedule)
 
 
@@ -610,6 +619,8 @@ def run(cfg: Config, out: str, *, resume: bool = False, env_factory: EnvFactory 
     a read-only location) is checked before the env is built, and nothing is written before
     all of it passed.  See ``run_dir`` for the fresh / resume / restart rules."""
     validate(cfg)
+    if cfg.train.init_from and not resume:  # refuse an unusable --init-from before the run folder is touched
+        run_dir.check_init_from(cfg)
     primary = jax.process_index() == 0  # under jax.distributed process 0 owns the run folder
     lock = run_dir.FolderLock(out, create=True, what="run folder") if primary else contextlib.nullcontext()
     with lock:

@@ -43,14 +43,19 @@ def toy_config(cycles: int = 6, algo: str = "sa-ppo", extra: list[str] | None = 
     sets = ["ppo.num_envs=32", "ppo.unroll_length=16", "ppo.num_minibatches=4", "ppo.num_epochs=2",
             f"sa.num_cycles={cycles}", "sa.eval_episodes=32", "env.task.max_steps=30",
             "train.checkpoint_every_cycles=2", "train.metrics_window=64",
-            "ppo.privileged_critic=false"]  # the toy env has no privileged critic inputs
+            "ppo.privileged_critic=false"]  # toy runs: no privileged critic unless a test sets it (toy_factory)
     return train.build_config("cpu-quick", algo, 0, total, sets + list(extra or []))
 
 
 def toy_factory(nan_progress: tuple[float, float] | None = None) -> Any:
+    """The toy envs; the training env reports privileged critic inputs when the config has a privileged
+    critic (as many as ``observation.critic_extra_size`` asks for)."""
+    from sagrasp_jax import observation
+
     def factory(cfg: Config) -> tuple[Any, Any]:
-        return AutoReset(PointReach(max_steps=cfg.env.task.max_steps, nan_progress=nan_progress)), \
-            PointReach(max_steps=cfg.env.task.max_steps)
+        extra = observation.critic_extra_size(cfg)
+        return AutoReset(PointReach(max_steps=cfg.env.task.max_steps, nan_progress=nan_progress,
+                                    privileged_size=extra)), PointReach(max_steps=cfg.env.task.max_steps)
     return factory
 
 

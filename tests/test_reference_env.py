@@ -178,8 +178,8 @@ def test_timeout_ends_the_episode_with_its_metrics():
 
 
 def test_dynamic_mode_holds_and_tracks_the_target():
-    """POSITION_CONTROL with URDF effort limits: holds the start pose against gravity and follows
-    a moving joint target with a lag of a few hundredths of a radian."""
+    """The MJX servo law on PyBullet's dynamics (gravity on, torque limits from the MJCF): holds the
+    start pose against gravity and follows a moving joint target with a lag of a few hundredths of a radian."""
     env = PyBulletGraspEnv(env_config(mode="dynamic"))
     try:
         env.reset(options={"reset_spec": explicit_spec(config.HOME_Q)})

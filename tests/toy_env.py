@@ -5,7 +5,9 @@ return ``brax.envs.base.State``; ``info`` carries ``rng``, ``progress`` (set by 
 ``steps`` and an ``episode`` dict of per-episode metrics (the finished episode's values on the
 step where ``done == 1``).  The reward weights depend on ``progress`` like the real task, so
 tests can see that the trainer writes it.  ``nan_progress`` makes the reward NaN inside a
-progress window, to exercise the trainer's non-finite rollback.
+progress window, to exercise the trainer's non-finite rollback.  ``privileged_size`` > 0 adds that many
+privileged critic inputs (``info["privileged"]``: progress, time used, the obstacle, zero-padded), so
+trainer tests can run a privileged critic.
 """
 
 from __future__ import annotations
@@ -34,14 +36,19 @@ class PointReach:
     action_size = 2
 
     def __init__(self, max_steps: int = 30, step_size: float = 0.15, obstacle_prob: float = 0.2,
-                 nan_progress: tuple[float, float] | None = None) -> None:
+                 nan_progress: tuple[float, float] | None = None, privileged_size: int = 0) -> None:
         self.max_steps = max_steps
+        self.privileged_size = privileged_size
         self.step_size = step_size
         self.obstacle_prob = obstacle_prob
         self.nan_progress = nan_progress
 
     def _obs(self, pos: jax.Array, target: jax.Array, obstacle: jax.Array) -> jax.Array:
         return jnp.concatenate([pos, target, obstacle[:2], obstacle[2:3] * 0.0 + 0.1])
+
+    def _privileged(self, info: dict) -> jax.Array:
+        extra = jnp.concatenate([info["progress"][None], info["steps"][None] / self.max_steps, info["obstacle"]])
+        return jnp.pad(extra, (0, max(0, self.privileged_size - extra.shape[0])))[:self.privileged_size]
 
     def reset(self, rng: jax.Array) -> State:
         rng, k_pos, k_tgt, k_obs, k_has = jax.random.split(rng, 5)
@@ -57,6 +64,8 @@ class PointReach:
             "rng": rng, "progress": zero, "steps": zero, "pos": pos, "target": target,
             "obstacle": obstacle, "acc": episode, "episode": dict(episode),
         }
+        if self.privileged_size:
+            info["privileged"] = self._privileged(info)
         return State(pipeline_state=None, obs=self._obs(pos, target, obstacle), reward=zero,
                      done=zero, metrics={}, info=info)
 
@@ -91,6 +100,8 @@ class PointReach:
         ep["timeout"] = _flag(timeout)
         ep["steps"] = steps
         new_info = dict(info, pos=pos, steps=steps, acc=ep, episode=dict(ep))
+        if self.privileged_size:
+            new_info["privileged"] = self._privileged(new_info)
         return state.replace(obs=self._obs(pos, target, obstacle), reward=reward, done=done,
                              info=new_info)
 

@@ -61,16 +61,16 @@ from sagrasp_jax.scene import SCENE
 ENV_ID = "SAGrasp-PyBullet-v0"
 EPISODE_KEYS = episode.EPISODE_KEYS
 
-# POSITION_CONTROL gains of the dynamic mode, per arm joint: positionGain kp and velocityGain kd of
-# PyBullet's motor constraint (after a substep h: v = kp·(q* − q)/h + (1 − kd)·v).  MuJoCo's
-# implicit PD servo of the MJCF (Kp, Kv + damping D, armature a) is v = (I·v + h·Kp·(q* − q))/(I + h·D),
-# i.e. kp = h²·Kp/(I + h·D), kd = h·D/(I + h·D) with I the joint inertia incl. armature; these values
-# were fitted (Nelder-Mead, 24 random-action episodes × 80 steps against MuJoCo at 0.01 s × 5) and match
-# that formula at the home pose for joints 1-3; the wrists differ because their MuJoCo servos saturate
-# at 13.5 N·m (docs/parity.md).
-DYNAMIC_POSITION_GAINS = (0.13, 0.07, 0.11, 0.29, 0.31, 0.26)
-DYNAMIC_VELOCITY_GAINS = (0.64, 0.37, 0.57, 1.0, 1.0, 0.88)
-GRAVITY = 9.81  # m/s², used only with gravity_compensation=False
+# POSITION_CONTROL gains of servo="position_control", per arm joint: positionGain kp and velocityGain kd of
+# PyBullet's motor constraint (after a substep h: v = kp·(q* − q)/h + (1 − kd)·v, whatever the arm's inertia).
+# Refitted to the MJX env's servos by linear least squares over 19,200 physics substeps of scripted episodes
+# (experiments/fit_position_control.py).  That law cannot follow MuJoCo's force servo (pose-dependent inertia,
+# armature, torque limits), and parity fails with it (docs/parity.md); the default servo="mujoco" is exact.
+DYNAMIC_POSITION_GAINS = (0.126, 0.087, 0.115, 0.142, 0.134, 0.143)
+DYNAMIC_VELOCITY_GAINS = (0.636, 0.439, 0.584, 0.517, 0.493, 0.523)
+GRAVITY = 9.81  # m/s²: the world's gravity when the arm's weight is not left out (see _build_world)
+UNLIMITED = 1e3  # a joint range no motion reaches (rad or m)
+SERVOS = ("mujoco", "position_control")  # dynamic-mode motor models (PyBulletGraspEnv's ``servo``)
 FINGER_FORCE_FALLBACK = 20.0  # N, used only if the URDF gives a finger no effort limit
 
 
@@ -137,6 +137,50 @@ def _as_numpy_spec(spec: sampling.ResetSpec) -> sampling.ResetSpec:
 
 
 
+@dataclasses.dataclass(frozen=True)
+class ServoModel:
+    """The MJX env's arm position servos, read from ``mjcf/aubo_i5_eg2.xml``.
+
+    MuJoCo's law per joint i (``mjx.forward.fwd_actuation``): f_i = clip(kp_i·(u_i − q_i) − kv_i·v_i,
+    forcerange_i), plus the gravity torque where ``actgravcomp_i`` (the servo carries the arm's
+    weight), clipped again to the joint's ``actfrcrange_i``; the joint damping −d_i·v_i and, where the
+    gravity torque is not the servo's, passive gravity compensation.  The implicitfast integrator
+    solves the velocity step with (M + diag(armature) + h·diag(kv + d)) — the servo's damping is
+    implicit, clamped or not (``mjx.derivative.deriv_smooth_vel``)."""
+
+    kp: np.ndarray
+    kv: np.ndarray
+    ctrlrange: np.ndarray  # (n, 2)
+    forcerange: np.ndarray  # (n, 2)
+    actfrcrange: np.ndarray  # (n, 2)
+    actgravcomp: np.ndarray  # (n,) bool
+    armature: np.ndarray
+    damping: np.ndarray
+
+
+def load_servo_model(xml_path: str | None = None) -> ServoModel:
+    """The servo constants of the MJCF the MJX env loads (one source: ``tools/urdf_to_mjcf.py``)."""
+    import mujoco
+
+    path = xml_path or os.path.normpath(os.path.join(os.path.dirname(robot.URDF_PATH), "..", "mjcf", "aubo_i5_eg2.xml"))
+    m = mujoco.MjModel.from_xml_path(path)
+    rows = []
+    for name in robot.ARM_JOINTS:
+        j = m.joint(name).id
+        dof = int(m.jnt_dofadr[j])
+        (act,) = [a for a in range(m.nu) if m.actuator_trnid[a, 0] == j]
+        kp, kv = float(m.actuator_gainprm[act, 0]), -float(m.actuator_biasprm[act, 2])
+        if m.actuator_biasprm[act, 1] != -kp or m.actuator_biasprm[act, 0] != 0:
+            raise ValueError(f"{path}: actuator of {name} is not a position servo")
+        limited = lambda flag, rng: rng if flag else np.array([-np.inf, np.inf])  # noqa: E731
+        rows.append((kp, kv, limited(m.actuator_ctrllimited[act], m.actuator_ctrlrange[act]),
+                     limited(m.actuator_forcelimited[act], m.actuator_forcerange[act]),
+                     limited(m.jnt_actfrclimited[j], m.jnt_actfrcrange[j]), bool(m.jnt_actgravcomp[j]),
+                     float(m.dof_armature[dof]), float(m.dof_damping[dof])))
+    cols = list(zip(*rows))
+    return ServoModel(*(np.asarray(c, dtype=bool if i == 5 else float) for i, c in enumerate(cols)))
+
+
 def disconnect(client: int) -> int:
     """Disconnect a PyBullet client if it is connected (idempotent); returns -1, the "closed" id."""
     if client >= 0:
@@ -165,12 +209,15 @@ class PyBulletGraspEnv(gym.Env):
         position_gains: tuple[float, ...] | None = None,
         velocity_gains: tuple[float, ...] | None = None,
         gravity_compensation: bool = True,
+        servo: str = "mujoco",
     ) -> None:
         cfg = cfg if cfg is not None else config.get_config("paper").env
         if mode is not None:
             cfg = dataclasses.replace(cfg, control=dataclasses.replace(cfg.control, mode=mode))
         if cfg.control.mode not in ("kinematic", "dynamic"):
             raise ValueError(f"control mode must be 'kinematic' or 'dynamic', got {cfg.control.mode!r}")
+        if servo not in SERVOS:
+            raise ValueError(f"servo must be one of {', '.join(SERVOS)}, got {servo!r}")
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}")
         if cfg.sampling.max_obstacles != SCENE.obstacles.count:
@@ -182,6 +229,8 @@ class PyBulletGraspEnv(gym.Env):
         self.position_gains = np.asarray(position_gains or DYNAMIC_POSITION_GAINS, dtype=float)
         self.velocity_gains = np.asarray(velocity_gains or DYNAMIC_VELOCITY_GAINS, dtype=float)
         self.gravity_compensation = gravity_compensation
+        self.servo = servo
+        self.servo_model = load_servo_model() if cfg.control.mode == "dynamic" and servo == "mujoco" else None
         self.progress = 0.0
 
         self.action_space = spaces.Box(-1.0, 1.0, (control.ACTION_SIZE,), dtype=np.float32)
@@ -226,7 +275,10 @@ class PyBulletGraspEnv(gym.Env):
         # controller does); PyBullet has no such attribute, and its motor constraint under gravity
         # sags by ~3.5 mrad at these gains.  The robot is the only dynamic body here (target and
         # obstacles are static), so exact compensation is the same as no gravity.
-        self._pb(pb.setGravity, 0.0, 0.0, 0.0 if self.gravity_compensation else -GRAVITY)
+        # The "mujoco" servo carries the arm's weight itself (as the MJCF's actuator gravity compensation
+        # does), so that world has gravity.
+        weightless = self.gravity_compensation and self.servo_model is None
+        self._pb(pb.setGravity, 0.0, 0.0, 0.0 if weightless else -GRAVITY)
         self._pb(pb.setTimeStep, ctl.physics_dt)
         if self.render_mode == "human":
             self._pb(pb.configureDebugVisualizer, pb.COV_ENABLE_GUI, 0)
@@ -254,8 +306,12 @@ class PyBulletGraspEnv(gym.Env):
             joints[info[1].decode()] = j
             links[info[12].decode()] = j  # a child link's index is its joint's index
             efforts[j] = float(info[10])
+        movable = [j for j in range(self._pb(pb.getNumJoints, self.robot_body))
+                   if self._pb(pb.getJointInfo, self.robot_body, j)[2] != pb.JOINT_FIXED]
         self.arm_joints = [joints[name] for name in robot.ARM_JOINTS]
         self.finger_joints = [joints[name] for name in robot.FINGER_JOINTS]
+        self._movable = movable  # PyBullet's dof order (mass matrix, inverse dynamics)
+        self._servo_dofs = np.array([movable.index(j) for j in self.arm_joints])
         self.arm_links = [links[name] for name in self.robot.link_names[1:]]
         self.flange_link = joints["flange_joint"]  # a fixed joint's index is its child link's index
         self.centre_link = joints["gripper_center_joint"]
@@ -284,6 +340,11 @@ class PyBulletGraspEnv(gym.Env):
         # Release PyBullet's default velocity motors (they act as joint friction).
         all_joints = self.arm_joints + self.finger_joints
         self._pb(pb.setJointMotorControlArray, self.robot_body, all_joints, pb.VELOCITY_CONTROL, forces=[0.0] * len(all_joints))
+        if self.servo_model is not None:
+            # The MJX env's dynamic mode runs without constraints (no joint-limit solver: the servo targets
+            # are clipped to the limits); no limit here either (the fingers rest at theirs).
+            for j in all_joints:
+                self._pb(pb.changeDynamics, self.robot_body, j, jointLowerLimit=-UNLIMITED, jointUpperLimit=UNLIMITED)
 
     def _place_episode_bodies(self, spec: sampling.ResetSpec) -> None:
         """Target as a static multibody at its sampled pose; a fresh body per active obstacle slot."""
@@ -330,9 +391,43 @@ class PyBulletGraspEnv(gym.Env):
             approach_axis=rot[6][:, 2],  # flange local +z
         )
 
+    def _servo_substep(self, ctrl: np.ndarray) -> None:
+        """One physics step of the MJX env's servos (``ServoModel``) on PyBullet's rigid-body dynamics:
+        PyBullet gives the mass matrix M, the bias forces (Coriolis and gravity) and integrates; the
+        arm's acceleration is MuJoCo's implicitfast step a = (M + diag(armature) + h·diag(kv + d))⁻¹·f,
+        applied as the joint torques that produce it (PyBullet's inverse dynamics), the fingers' is zero
+        (the MJX model welds them open).  PyBullet has no rotor inertia (armature), and its
+        POSITION_CONTROL motor is a velocity constraint, not a force law (docs/parity.md)."""
+        sm, h = self.servo_model, self.cfg.control.physics_dt
+        assert sm is not None
+        states = self._pb(pb.getJointStates, self.robot_body, self._movable)
+        q_all = [s[0] for s in states]
+        v_all = [s[1] for s in states]
+        zero = [0.0] * len(self._movable)
+        idx = self._servo_dofs
+        mass = np.asarray(self._pb(pb.calculateMassMatrix, self.robot_body, q_all))[np.ix_(idx, idx)]
+        bias = np.asarray(self._pb(pb.calculateInverseDynamics, self.robot_body, q_all, v_all, zero))[idx]
+        gravity = np.asarray(self._pb(pb.calculateInverseDynamics, self.robot_body, q_all, zero, zero))[idx]
+        q, v = np.asarray(q_all)[idx], np.asarray(v_all)[idx]
+        force = np.clip(sm.kp * (ctrl - q) - sm.kv * v, sm.forcerange[:, 0], sm.forcerange[:, 1])
+        force = np.clip(force + np.where(sm.actgravcomp, gravity, 0.0), sm.actfrcrange[:, 0], sm.actfrcrange[:, 1])
+        smooth = force - sm.damping * v + np.where(sm.actgravcomp, 0.0, gravity) - bias
+        acc = np.linalg.solve(mass + np.diag(sm.armature + h * (sm.kv + sm.damping)), smooth)
+        acc_all = np.zeros(len(self._movable))
+        acc_all[idx] = acc
+        tau = np.asarray(self._pb(pb.calculateInverseDynamics, self.robot_body, q_all, v_all, acc_all.tolist()))
+        self._pb(pb.setJointMotorControlArray, self.robot_body, self._movable, pb.TORQUE_CONTROL, forces=tau.tolist())
+        self._pb(pb.stepSimulation)
+
     def _apply(self, q_target: np.ndarray) -> None:
         if self.cfg.control.mode == "kinematic":
             self._set_joints(q_target)
+            return
+        if self.servo_model is not None:
+            sm = self.servo_model
+            ctrl = np.clip(q_target, sm.ctrlrange[:, 0], sm.ctrlrange[:, 1])
+            for _ in range(self.cfg.control.substeps):
+                self._servo_substep(ctrl)
             return
         self._pb(
             pb.setJointMotorControlArray, self.robot_body, self.arm_joints, pb.POSITION_CONTROL,

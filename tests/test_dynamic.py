@@ -1,0 +1,279 @@
+"""Dynamic mode (issue 18): the fine-tune path (``train --init-from``), the domain-randomisation knobs
+(``env.randomize``: on, the quantity varies; off, nothing is drawn and the run is the plain one), the
+lean MJX model and the physics backend choice.  Small on purpose: a handful of short jitted rollouts."""
+
+from __future__ import annotations
+
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from conftest import toy_config, toy_factory
+from sagrasp_jax import config, observation, robot, run_dir, train
+from sagrasp_jax.env import GraspEnv
+
+N, T = 8, 4  # envs, steps
+
+
+def _cfg(mode: str, *sets: str) -> config.Config:
+    return config.apply_overrides(config.get_config("paper"), [f"env.control.mode={mode}", "env.task.obs_noise_std=0",
+                                                                 "env.sampling.obstacle_prob=0", *sets])
+
+
+def _rollout(cfg: config.Config, action: float = 0.5):
+    """N envs from the same keys, T steps of one constant action; every state kept."""
+    env = GraspEnv(cfg.env)
+
+    def run(keys):
+        state = jax.vmap(env.reset)(keys)
+
+        def body(st, _):
+            st = jax.vmap(env.step)(st, jnp.full((N, 6), action))
+            return st, st
+
+        return state, jax.lax.scan(body, state, None, length=T)[1]
+
+    return jax.device_get(jax.jit(run)(jax.random.split(jax.random.PRNGKey(7), N)))
+
+
+def _q(states, mode):
+    return states.pipeline_state.qpos[..., :6] if mode == "dynamic" else states.info["q_target"]
+
+
+# --------------------------------------------------------------------------------------- off by default
+
+@pytest.mark.parametrize("mode", ["kinematic", "dynamic"])
+def test_randomisation_is_off_by_default_and_draws_nothing(mode):
+    cfg = config.apply_overrides(config.get_config("paper"), [f"env.control.mode={mode}"])
+    assert not config.randomization_enabled(cfg.env)
+    env = GraspEnv(cfg.env)
+    key = jax.random.PRNGKey(3)
+    state = jax.jit(env.reset)(key)
+    assert "randomize" not in state.info
+    rng, _ = jax.random.split(key)  # the sample draw ...
+    rng, _ = jax.random.split(rng)  # ... and the observation noise: nothing else
+    np.testing.assert_array_equal(np.asarray(state.info["rng"]), np.asarray(rng))
+
+
+def test_servo_and_latency_knobs_need_the_dynamic_mode():
+    for key in ("env.randomize.servo_gain=0.2", "env.randomize.latency=1", "env.control.impl=warp"):
+        with pytest.raises(config.ConfigError, match="needs env.control.mode=dynamic"):
+            config.apply_overrides(config.get_config("paper"), [key])
+    for key in ("env.randomize.servo_gain=1.5", "env.randomize.target_error=-0.001"):
+        with pytest.raises(config.ConfigError, match="env.randomize"):
+            config.apply_overrides(config.get_config("paper"), ["env.control.mode=dynamic", key])
+
+
+# --------------------------------------------------------------------------------------- sensing knobs
+
+def test_joint_offset_and_target_error_on_joint_noise_off():
+    cfg = _cfg("kinematic", "env.randomize.joint_offset=0.01", "env.randomize.target_error=0.005")
+    start, states = _rollout(cfg)
+    r = start.info["randomize"]
+    seen_q = states.obs[..., :6] - _q(states, "kinematic")  # (T, N, 6)
+    np.testing.assert_allclose(seen_q, np.broadcast_to(r["joint_offset"], seen_q.shape), atol=1e-6)  # constant
+    assert np.abs(r["joint_offset"]).max() <= 0.01 and np.std(r["joint_offset"]) > 1e-3  # on: varies
+    np.testing.assert_array_equal(r["joint_noise"], 0.0)  # off: no extra noise
+    seen_target = states.obs[..., 9:12] - states.info["reset"].target_pos
+    np.testing.assert_allclose(seen_target, np.broadcast_to(r["target_error"], seen_target.shape), atol=1e-6)
+    assert np.abs(r["target_error"]).max() <= 0.005 and np.std(r["target_error"]) > 5e-4
+    # the reward and the success test use the true target
+    true_d = np.linalg.norm(states.obs[..., 6:9] - states.info["reset"].target_pos, axis=-1)
+    np.testing.assert_allclose(states.metrics["distance"], true_d, atol=1e-6)
+
+
+def test_joint_noise_on_offset_and_target_error_off():
+    cfg = _cfg("kinematic", "env.randomize.joint_noise=0.01")
+    start, states = _rollout(cfg)
+    r = start.info["randomize"]
+    seen_q = states.obs[..., :6] - _q(states, "kinematic")
+    assert np.std(seen_q, axis=0).min() > 0  # changes from step to step
+    assert 0 < r["joint_noise"].max() <= 0.01
+    np.testing.assert_array_equal(r["joint_offset"], 0.0)
+    np.testing.assert_allclose(states.obs[..., 9:12], states.info["reset"].target_pos, atol=1e-7)
+
+
+# --------------------------------------------------------------------------------------- servo knobs
+
+@pytest.fixture(scope="module")
+def plain_dynamic():
+    return _rollout(_cfg("dynamic"))
+
+
+def test_servo_gain_and_latency_on(plain_dynamic):
+    start, states = _rollout(_cfg("dynamic", "env.randomize.servo_gain=0.2", "env.randomize.latency=1"))
+    r = start.info["randomize"]
+    for name in ("kp_scale", "kv_scale"):
+        assert 0.8 <= r[name].min() and r[name].max() <= 1.2 and np.std(r[name]) > 0.02
+    assert 0 <= r["latency"].min() and r["latency"].max() <= 1 and np.std(r["latency"]) > 0.1
+    _, plain = plain_dynamic
+    assert np.abs(_q(states, "dynamic") - _q(plain, "dynamic")).max() > 1e-3  # the servos track differently
+
+
+def test_latency_holds_the_previous_target_for_its_share_of_the_substeps():
+    env = GraspEnv(_cfg("dynamic", "env.randomize.latency=1").env)
+    q0 = jnp.asarray(config.HOME_Q, jnp.float32)
+    pipeline = env._initial_pipeline(q0)
+    advance = jax.jit(env._advance)
+    r = env._draw_randomization(jax.random.PRNGKey(0), jnp.float32)
+    r = dict(r, kp_scale=jnp.ones(6), kv_scale=jnp.ones(6))
+    moved = []
+    for latency in (0.0, 0.4, 1.0):  # 0, 2 and 5 of the 5 substeps on the previous target
+        _, q = advance(pipeline, q0 + 0.05, q0, dict(r, latency=jnp.float32(latency)))
+        moved.append(float(jnp.abs(q - q0).max()))
+    _, q_plain = jax.jit(lambda p, t: env._advance(p, t, q0, None))(pipeline, q0 + 0.05)
+    assert moved[0] == pytest.approx(float(jnp.abs(q_plain - q0).max()), abs=1e-7)  # latency 0: the plain step
+    assert moved[0] > moved[1] > 0 and moved[2] < 1e-5  # a whole step late: the arm has not moved yet
+
+
+def test_servo_knobs_off_track_like_the_plain_env(plain_dynamic):
+    """Randomisation on (a joint-reading offset, which the servos never see) with servo gains and
+    latency off: the arm moves as without randomisation."""
+    start, states = _rollout(_cfg("dynamic", "env.randomize.joint_offset=0.01"))
+    np.testing.assert_array_equal(start.info["randomize"]["kp_scale"], 1.0)
+    np.testing.assert_array_equal(start.info["randomize"]["latency"], 0.0)
+    _, plain = plain_dynamic
+    np.testing.assert_allclose(_q(states, "dynamic"), _q(plain, "dynamic"), atol=1e-6)
+
+
+def test_lean_dynamic_model_is_the_six_joint_arm():
+    """Geoms, sites and the cell gone, fingers welded open and fused: every moving kilogram is still there."""
+    m = GraspEnv(_cfg("dynamic").env)._mjx_model
+    assert (m.nq, m.nv, m.nu, m.ngeom, m.nsite) == (6, 6, 6, 0, 0)
+    masses = robot.load_robot().link_masses
+    assert float(np.sum(m.body_mass)) == pytest.approx(sum(masses.values()) - masses["base_link"], abs=1e-5)
+
+
+# --------------------------------------------------------------------------------------- fine-tune path
+
+def test_init_from_continues_policy_and_normaliser_with_a_fresh_optimizer(toy_run, tmp_path):
+    cfg = toy_config(cycles=2, extra=[f"train.init_from={toy_run}", "env.control.mode=dynamic"])
+    trainer = train.Trainer(cfg, str(tmp_path / "ft"), env_factory=toy_factory(), progress=False)
+    _, params, normaliser, _ = run_dir.load_policy_state(toy_run, trainer.obs_size, trainer.action_size)
+    ts = jax.device_get(trainer.train_state)
+    for got, want in zip(jax.tree_util.tree_leaves((ts.params, ts.normaliser)),
+                         jax.tree_util.tree_leaves((params, normaliser))):
+        np.testing.assert_array_equal(got, want)
+    adam = ts.opt_state[1].inner_state[0]
+    assert int(adam.count) == 0  # fresh optimizer ...
+    assert trainer.sa_state.cycle == 0 and trainer.lr == cfg.sa.lr0  # ... and SA schedule
+    train.run(cfg, str(tmp_path / "run"), env_factory=toy_factory(), progress=False)
+    assert run_dir.load_config(str(tmp_path / "run")).train.init_from == toy_run
+
+
+def test_init_from_carries_a_privileged_critic(tmp_path):
+    """A run with a privileged critic (cpu-quick's) starts another one: the value network, whose first
+    layer also reads the privileged inputs, comes across with the policy and the normaliser."""
+    sets = ["ppo.privileged_critic=true"]
+    source = str(tmp_path / "source")
+    train.run(toy_config(cycles=2, extra=sets), source, env_factory=toy_factory(), progress=False)
+    cfg = toy_config(cycles=2, extra=[*sets, f"train.init_from={source}", "env.control.mode=dynamic"])
+    trainer = train.Trainer(cfg, str(tmp_path / "ft"), env_factory=toy_factory(), progress=False)
+    assert trainer.critic_extra == observation.critic_extra_size(cfg) > 0
+    _, params, normaliser, _ = run_dir.load_policy_state(source, trainer.obs_size, trainer.action_size)
+    ts = jax.device_get(trainer.train_state)
+    widths = {leaf.shape[0] for leaf in jax.tree_util.tree_leaves(ts.params.value) if leaf.ndim == 2}
+    assert trainer.obs_size + trainer.critic_extra in widths  # the critic's input layer
+    for got, want in zip(jax.tree_util.tree_leaves((ts.params, ts.normaliser)),
+                         jax.tree_util.tree_leaves((params, normaliser))):
+        np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("sets, message", [
+    ([], "not a run folder"),
+    (["--set", "ppo.privileged_critic=false", "--set", "ppo.network.policy_hidden=16"],
+     "its policy cannot start this run: networks"),
+    (["--set", "ppo.privileged_critic=false", "--set", "env.task.obs_layout=paper"],
+     "observation layout 'relative' ("),
+    ([], "ppo.privileged_critic=False vs this run's True"),  # cpu-quick has a privileged critic, the toy run none
+])
+def test_init_from_refuses_an_unusable_run_with_exit_2(toy_run, tmp_path, capsys, sets, message):
+    source = str(tmp_path / "missing") if message == "not a run folder" else toy_run
+    out = tmp_path / "out"
+    assert train.main(["--out", str(out), "--init-from", source, *sets]) == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_init_from_refuses_other_privileged_inputs(monkeypatch):
+    """Same critic width is not enough: the privileged inputs must mean the same (the kinds' one-hot)."""
+    def with_kinds(kinds: str) -> config.Config:
+        return config.apply_overrides(config.get_config("cpu-quick"), [f"env.sampling.obstacle_kinds={kinds}",
+                                                                       "train.init_from=/somewhere"])
+
+    source = with_kinds("sphere,cylinder,box")
+    monkeypatch.setattr(run_dir, "load_config", lambda run: source)
+    monkeypatch.setattr(run_dir, "load_checkpoint", lambda run, cfg=None: None)
+    run_dir.check_init_from(with_kinds("sphere,cylinder,box"))  # the same: accepted
+    with pytest.raises(run_dir.RunDirError, match="privileged critic inputs"):
+        run_dir.check_init_from(with_kinds("sphere,capsule,box"))
+
+
+# --------------------------------------------------------------------------------------- physics backend
+
+def test_warp_backend_matches_jax_over_a_few_steps():
+    mjx_warp = pytest.importorskip("mujoco.mjx.warp")
+    if not getattr(mjx_warp, "WARP_INSTALLED", False):
+        pytest.skip("the warp extra is not installed (pip install -e .[warp])")
+    try:
+        warp_env = GraspEnv(_cfg("dynamic", "env.control.impl=warp").env)
+        _, w = _rollout(_cfg("dynamic", "env.control.impl=warp"))
+    except Exception as exc:  # noqa: BLE001 - Warp's CPU path depends on the machine's compiler and drivers
+        pytest.skip(f"MuJoCo Warp does not run on this machine's CPU: {type(exc).__name__}: {exc}")
+    del warp_env
+    _, j = _rollout(_cfg("dynamic"))
+    np.testing.assert_allclose(_q(w, "dynamic"), _q(j, "dynamic"), atol=1e-5)
+
+
+# --------------------------------------------------------------------------------------- nearest obstacle
+
+def test_nearest_slot_tie_break_is_the_lower_slot_in_numpy_and_jax():
+    from sagrasp_jax import collision
+
+    rows = np.array([[0.3, 0.3], [0.2, 0.5], [0.5, 0.2], [np.inf, np.inf], [0.1, np.inf], [-0.01, -0.01]])
+    for row in rows:
+        got_np = collision.nearest_slot(np, row)
+        got_jax = np.asarray(jax.jit(lambda r: collision.nearest_slot(jnp, r))(jnp.asarray(row)))
+        np.testing.assert_array_equal(got_np, got_jax)
+        np.testing.assert_array_equal(got_np, np.arange(2) == np.argmin(row))  # argmin's first-minimum rule
+        assert got_np.sum() == 1
+
+
+def test_reference_servo_is_the_mjx_servo_on_pybullet_dynamics(x64):
+    """servo="mujoco": the same servo law on PyBullet's own mass matrix, bias forces and integrator
+    follows MJX to float64 rounding (docs/parity.md, "Dynamic mode")."""
+    from sagrasp_jax.reference.pybullet_env import PyBulletGraspEnv
+
+    cfg = _cfg("dynamic")
+    env = GraspEnv(cfg.env)
+    ref = PyBulletGraspEnv(cfg.env)
+    try:
+        q0 = np.asarray(config.HOME_Q)
+        target = q0 + np.array([0.05, -0.05, 0.05, -0.05, 0.05, -0.05])  # large enough to hit the torque limits
+        pipeline = env._initial_pipeline(jnp.asarray(q0))
+        ref.reset(seed=0)
+        ref._set_joints(q0)
+        advance = jax.jit(lambda p, t: env._advance(p, t, t, None))
+        for _ in range(3):
+            pipeline, q = advance(pipeline, jnp.asarray(target))
+            ref._apply(target)
+            np.testing.assert_allclose(ref._measure()[0], np.asarray(q), atol=1e-10)
+        assert np.abs(np.asarray(q) - q0).max() > 0.02  # it moved
+    finally:
+        ref.close()
+
+
+@pytest.mark.parametrize("mode", ["kinematic", "dynamic"])
+def test_parity_compares_the_plain_simulators_for_a_randomised_policy(mode):
+    """A policy trained with randomisation (its config has the knobs on) is compared with every knob off:
+    the reference env does not randomise (and the kinematic mode refuses the servo knobs)."""
+    from sagrasp_jax import parity
+
+    trained = _cfg("dynamic", "env.randomize.servo_gain=0.2", "env.randomize.latency=1",
+                   "env.randomize.target_error=0.005")
+    jax_cfg, ref_cfg = parity.parity_configs(trained, mode)
+    assert jax_cfg.control.mode == ref_cfg.control.mode == mode
+    assert not config.randomization_enabled(jax_cfg) and not config.randomization_enabled(ref_cfg)
