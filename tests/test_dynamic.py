@@ -159,7 +159,7 @@ def test_init_from_continues_policy_and_normaliser_with_a_fresh_optimizer(toy_ru
         np.testing.assert_array_equal(got, want)
     adam = ts.opt_state[1].inner_state[0]
     assert int(adam.count) == 0  # fresh optimizer ...
-    assert trainer.sa_state.cycle == 0 and trainer.lr == cfg.sa.lr0  # ... and SA schedule
+    assert trainer.sa_state.cycle == 0 and trainer.lr == cfg.ppo.learning_rate  # ... and SA schedule
     train.run(cfg, str(tmp_path / "run"), env_factory=toy_factory(), progress=False)
     assert run_dir.load_config(str(tmp_path / "run")).train.init_from == toy_run
 
