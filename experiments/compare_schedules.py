@@ -307,6 +307,20 @@ def markdown(summary: dict[str, dict[str, Any]], versus: dict[str, Any], n_seeds
 
 # ---------------------------------------------------------------------- figures
 
+def _line_style(variant: str) -> str:
+    """SA-ablation variants dashed, schedules solid."""
+    return "--" if variant.startswith("sa-no-") else "-"
+
+
+def _save(fig: Any, path: str) -> str:
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def figures(args: argparse.Namespace, variants: list[str], seeds: list[int], stem: str) -> list[str]:
     """Per-cycle evaluation success (mean and band across seeds) and lr traces of every variant."""
     try:
@@ -327,33 +341,25 @@ def figures(args: argparse.Namespace, variants: list[str], seeds: list[int], ste
         if x.size == 0:
             continue
         mean, lo, hi = band(100.0 * y, kind)
-        line, = ax.plot(x, mean, lw=1.4, label=v, ls="--" if v.startswith("sa-no-") else "-")
+        line, = ax.plot(x, mean, lw=1.4, label=v, ls=_line_style(v))
         ax.fill_between(x, lo, hi, color=line.get_color(), alpha=0.15)
     ax.set_xlabel("env steps")
     ax.set_ylabel("per-cycle evaluation success (%)")
     ax.set_title(f"{args.preset}, {len(seeds)} seed(s): mean and {BAND_LABELS[kind]}", fontsize=10)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, ncol=2)
-    fig.tight_layout()
-    path = f"{stem}_curves.png"
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    written.append(path)
+    written.append(_save(fig, f"{stem}_curves.png"))
     fig, ax = plt.subplots(figsize=(8, 4.2))
     for v in variants:
         x, y = curve_matrix(runs[v], "lr")
         if x.size:
-            ax.plot(x, band(y, "minmax")[0], lw=1.2, label=v, ls="--" if v.startswith("sa-no-") else "-")
+            ax.plot(x, band(y, "minmax")[0], lw=1.2, label=v, ls=_line_style(v))
     ax.set_yscale("log")
     ax.set_xlabel("env steps")
     ax.set_ylabel("learning rate (mean over seeds)")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=7, ncol=2)
-    fig.tight_layout()
-    path = f"{stem}_lr.png"
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    written.append(path)
+    written.append(_save(fig, f"{stem}_lr.png"))
     return written
 
 
