@@ -56,6 +56,7 @@ LEVERS: dict[str, tuple[list[str], list[str]]] = {  # name -> (off, on) override
 }
 RESULT_FILE = "ablation_eval.json"
 LEARNED = 50.0  # % overall success: below it a run never learned to grasp (hovering near the cube, timeouts)
+LEARNED_KEYS = ("success_overall", "success_obstacle", "success_blocking_scenes", "steps_per_success")  # their means
 
 
 def variants(leave_one_out: bool) -> dict[str, set[str]]:
@@ -159,8 +160,7 @@ def summarise(records: list[dict[str, Any]]) -> dict[str, Any]:
     # a run that never learned to grasp drags every mean down; say how many did, and how the others fared
     learned = [i for i, v in enumerate(metrics["success_overall"]) if v is not None and v >= LEARNED]
     out["runs_learned"] = {"learned": len(learned), "runs": len(records), "threshold_pct": LEARNED}
-    out["learned_only"] = {k: mean_ci([metrics[k][i] for i in learned]) for k in
-                           ("success_overall", "success_obstacle", "success_blocking_scenes", "steps_per_success")}
+    out["learned_only"] = {k: mean_ci([metrics[k][i] for i in learned]) for k in LEARNED_KEYS}
     return out
 
 
@@ -182,9 +182,7 @@ def markdown(summary: dict[str, dict[str, Any]]) -> str:
               "| variant | learned | overall % | obstacle % | blocking scenes % | steps/success |", "|---" * 6 + "|"]
     for name, s in summary.items():
         lo, n = s["learned_only"], s["runs_learned"]
-        lines.append(f"| {name} | {n['learned']} of {n['runs']} | " + " | ".join(
-            _cell(lo[k]) for k in ("success_overall", "success_obstacle", "success_blocking_scenes", "steps_per_success"))
-            + " |")
+        lines.append(f"| {name} | {n['learned']} of {n['runs']} | " + " | ".join(_cell(lo[k]) for k in LEARNED_KEYS) + " |")
     hit_kinds = sorted({k for s in summary.values() for k in s["collision_by_in_obstacle_episodes"]})
     lines += ["", "Collisions in obstacle episodes of the evaluation mix, by what was hit (% of those episodes):", "",
               "| variant | " + " | ".join(hit_kinds) + " |", "|---" * (len(hit_kinds) + 1) + "|"]
