@@ -14,6 +14,7 @@ computed analytically in both modes).
 
 from __future__ import annotations
 
+import functools
 import os
 from typing import Any
 
@@ -155,6 +156,7 @@ class GraspEnv:
         return spec._replace(target_pos=spec.target_pos + randomize["target_error"].astype(spec.target_pos.dtype))
 
     # -- API -------------------------------------------------------------------------------
+    @functools.partial(jax.jit, static_argnums=0)
     def reset(self, rng: jax.Array) -> State:
         """Sample a fresh episode start (target, obstacles, start noise) and build its state."""
         rng, key_sample = jax.random.split(rng)
@@ -162,6 +164,7 @@ class GraspEnv:
         spec = sampling.sample_reset(jnp, self.robot, self.cfg.sampling, self.cfg.task, u)
         return self.reset_to(spec, rng)
 
+    @functools.partial(jax.jit, static_argnums=0)
     def reset_to(self, spec: sampling.ResetSpec, rng: jax.Array) -> State:
         """Start from an explicit ResetSpec (parity with PyBullet, deployment twins)."""
         dtype = jnp.result_type(float)
@@ -211,6 +214,7 @@ class GraspEnv:
         noisy_q = observation.noisy_joints(self.cfg.task, q, progress, jax.random.normal(key, q.shape, q.dtype))
         return observation.assemble(jnp, self.cfg, noisy_q, kin.gripper_centre, self._seen(spec, randomize), col, tilt)
 
+    @functools.partial(jax.jit, static_argnums=0)
     def step(self, state: State, action: jax.Array) -> State:
         cfg, info = self.cfg, state.info
         spec = info["reset"]
