@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import math
 import os
 import platform
@@ -79,7 +78,6 @@ def time_jitted(fn: Callable[..., Any], *args: Any, reps: int = 7) -> dict[str, 
 
 def bench_env(cfg: Any, steps: int, reset_steps: int) -> dict[str, Any]:
     import jax
-    import jax.numpy as jnp
     from jax.sharding import PartitionSpec
 
     from sagrasp_jax import ppo
@@ -129,7 +127,6 @@ def bench_profile(cfg: Any) -> dict[str, Any]:
     import jax
     import jax.numpy as jnp
     import numpy as np
-    from brax.training.acme import running_statistics
 
     from sagrasp_jax import collision, control, observation, ppo, robot, train
     from sagrasp_jax.config import training_env_config

@@ -42,9 +42,10 @@ from typing import Any, Sequence
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 from bench_vs_paper_stack import first_reach  # noqa: E402
-from obstacle_ablation import _cell, _rate, ensure_trained, finished_record  # noqa: E402
+from obstacle_ablation import _cell, _rate, finished_record  # noqa: E402
 from reproduce_paper import (  # noqa: E402
-    BAND_LABELS, ReproduceError, band, band_kind, curve_matrix, git_state, mean_ci, summarise_algo, t975, write_json,
+    BAND_LABELS, ReproduceError, band, band_kind, curve_matrix, ensure_trained, git_state, mean_ci, summarise_algo, t975,
+    write_json,
 )
 
 from sagrasp_jax import evaluate, train  # noqa: E402

@@ -33,15 +33,13 @@ import argparse
 import json
 import os
 import platform
-import shutil
 import sys
-import time
 from typing import Any, Sequence
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 from obstacle_blind_eval import blind_study  # noqa: E402
-from reproduce_paper import check_same_config, git_state, mean_ci, write_json  # noqa: E402
+from reproduce_paper import check_same_config, ensure_trained, git_state, mean_ci, write_json  # noqa: E402,F401
 
 from sagrasp_jax import evaluate, runtime, train  # noqa: E402
 from sagrasp_jax.checkpoint import CheckpointError  # noqa: E402
@@ -84,23 +82,6 @@ def finished_record(out: str, cfg: Any, result_file: str, wanted: dict[str, Any]
         print(f"{tag}: done already, skipped", flush=True)
         return done
     return None
-
-
-def ensure_trained(out: str, cfg: Any, tag: str, progress: bool) -> float | None:
-    """Bring the run folder ``out`` to a finished training of ``cfg`` (``train.run``, in process): skip a
-    finished one, resume one with a checkpoint, restart one killed before its first checkpoint; a folder
-    trained with another config is refused.  Returns this call's training wall time (None: was finished)."""
-    if os.path.isdir(out) and os.listdir(out):
-        check_same_config(out, cfg)
-    if os.path.isfile(os.path.join(out, train.POLICY_FILE)):
-        return None
-    resume = os.path.isfile(os.path.join(out, train.CHECKPOINT_FILE))
-    if os.path.isdir(out) and not resume:
-        shutil.rmtree(out)  # killed before its first checkpoint
-    print(f"{tag}: {'resuming' if resume else 'training'} {cfg.train.total_steps:,} env steps -> {out}", flush=True)
-    t = time.perf_counter()
-    train.run(cfg, out, resume=resume, progress=progress)
-    return time.perf_counter() - t
 
 
 def run_one(name: str, on: set[str], seed: int, args: argparse.Namespace, tag: str) -> dict[str, Any]:

@@ -151,25 +151,39 @@ def eval_is_current(out: str, episodes: int) -> bool:
     return res.get("episodes") == episodes and (res.get("checkpoint_env_steps") or 0) >= total
 
 
+def ensure_trained(out: str, cfg: Any, tag: str, progress: bool) -> float | None:
+    """Bring the run folder ``out`` to a finished training of ``cfg`` (``train.run``, in process).
+
+    The one rule every experiment script follows: a folder trained with another config is refused
+    (its config is checked before anything is deleted); a finished one is skipped; one with a
+    checkpoint is resumed; one killed before its first checkpoint is started again.  Returns this
+    call's training wall time (None: it was finished already)."""
+    state = run_state(out)
+    if state == "stale" and not os.path.isfile(os.path.join(out, train.CONFIG_FILE)):
+        pass  # killed before even its config was written: nothing to compare, nothing to keep
+    elif state != "new":
+        check_same_config(out, cfg)
+    if state in ("trained", "evaluated"):
+        return None
+    if state == "stale":
+        print(f"{tag}: {out} has no checkpoint (killed before the first one): starting it again", flush=True)
+        shutil.rmtree(out)
+    resume = state == "partial"
+    print(f"{tag}: {'resuming' if resume else 'training'} {cfg.train.total_steps:,} env steps -> {out}", flush=True)
+    t = time.perf_counter()
+    train.run(cfg, out, resume=resume, progress=progress)
+    wall = time.perf_counter() - t
+    print(f"{tag}: trained in {wall:.0f} s", flush=True)
+    return wall
+
+
 def train_and_evaluate(algo: str, seed: int, args: argparse.Namespace, index: int, count: int) -> dict[str, Any]:
     """Bring one run to 'evaluated' (train / resume / skip) and return its evaluation."""
     out = os.path.join(args.runs_dir, run_name(algo, seed))
     cfg = train.build_config(args.preset, algo, seed, args.total_steps, args.overrides)
-    state = run_state(out)
     tag = f"[{index}/{count}] {LABELS[algo]} seed {seed}"
-    if state == "stale":
-        print(f"{tag}: {out} has no checkpoint (killed before the first one): starting it again", flush=True)
-        shutil.rmtree(out)
-        state = "new"
-    if state != "new":
-        check_same_config(out, cfg)
-    if state in ("new", "partial"):
-        verb = "training" if state == "new" else "resuming"
-        print(f"{tag}: {verb} {args.total_steps:,} env steps -> {out}", flush=True)
-        t = time.perf_counter()
-        train.run(cfg, out, resume=state == "partial", progress=not args.no_progress)
-        print(f"{tag}: trained in {time.perf_counter() - t:.0f} s", flush=True)
-    if state == "evaluated" and eval_is_current(out, args.eval_episodes):
+    ensure_trained(out, cfg, tag, not args.no_progress)
+    if eval_is_current(out, args.eval_episodes):
         print(f"{tag}: done already, skipped", flush=True)
     else:
         print(f"{tag}: evaluating {args.eval_episodes} episodes", flush=True)

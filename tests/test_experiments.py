@@ -122,6 +122,44 @@ def test_schedule_variants() -> None:
 
 # ---------------------------------------------------------------------- CLI smoke tests
 
+def test_ensure_trained_rule_for_every_folder_state(tmp_path: pytest.TempPathFactory,
+                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    """The one rule of every experiment script: refuse another config before deleting anything,
+    skip finished runs, resume checkpointed ones, restart ones killed before their first checkpoint."""
+    from sagrasp_jax import train
+    from sagrasp_jax.config import config_to_dict
+
+    calls: list[tuple[str, bool]] = []
+    monkeypatch.setattr(repro.train, "run", lambda cfg, out, resume, progress: calls.append((out, resume)))
+    cfg = train.build_config("cpu-quick", None, 0, 8192, [])
+    other = train.build_config("cpu-quick", None, 1, 8192, [])
+
+    def folder(name: str, config: object | None, *files: str) -> str:
+        out = str(tmp_path / name)
+        os.makedirs(out)
+        if config is not None:
+            with open(os.path.join(out, train.CONFIG_FILE), "w", encoding="utf-8") as f:
+                json.dump(config_to_dict(config), f)
+        for extra in files:
+            open(os.path.join(out, extra), "w").close()
+        return out
+
+    foreign_stale = folder("foreign", other, "lock")  # another seed's run, killed before its checkpoint
+    with pytest.raises(repro.ReproduceError, match="another config"):
+        repro.ensure_trained(foreign_stale, cfg, "t", False)
+    assert sorted(os.listdir(foreign_stale)) == sorted([train.CONFIG_FILE, "lock"]) and calls == []
+
+    assert repro.ensure_trained(folder("done", cfg, train.POLICY_FILE), cfg, "t", False) is None and calls == []
+    partial = folder("partial", cfg, train.CHECKPOINT_FILE)
+    assert repro.ensure_trained(partial, cfg, "t", False) is not None and calls[-1] == (partial, True)
+    stale = folder("stale", cfg, "metrics.jsonl")
+    repro.ensure_trained(stale, cfg, "t", False)
+    assert calls[-1] == (stale, False) and not os.path.exists(stale)  # removed, then trained afresh (fake run)
+    bare = folder("bare", None, "lock")  # killed before its config was written
+    repro.ensure_trained(bare, cfg, "t", False)
+    assert calls[-1] == (bare, False) and len(calls) == 3
+
+
 def test_reproduce_paper_smoke(tmp_path: pytest.TempPathFactory) -> None:
     pytest.importorskip("matplotlib")
     out, runs = str(tmp_path / "out"), str(tmp_path / "runs")
