@@ -37,7 +37,6 @@ import math
 import os
 import platform
 import shutil
-import signal
 import subprocess
 import sys
 import tempfile
@@ -46,6 +45,7 @@ from typing import Any, Callable
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
+sys.path.insert(0, HERE)  # the sibling experiment scripts (bench_vs_paper_stack)
 SECTIONS = ("env", "profile", "run", "sb3")
 LEVELS = (0.90, 0.95, 0.98)
 
@@ -269,49 +269,40 @@ def _vm_hwm_kb(pid: int) -> int | None:
 def train_run(args_extra: list[str], work: str, name: str, cache_dir: str, budget_s: float,
               stop_level: float | None, env_extra: dict[str, str] | None = None, root: str = ROOT) -> dict[str, Any]:
     """Run ``python -m sagrasp_jax.train`` and watch its metrics; stop at ``stop_level`` or the budget."""
-    from sagrasp_jax.train import METRICS_FILE, read_metrics
+    from bench_vs_paper_stack import watch_trainer
+    from sagrasp_jax.train import METRICS_FILE
 
     out = os.path.join(work, name)
     cmd = [sys.executable, "-m", "sagrasp_jax.train", "--out", out, "--no-progress", *args_extra]
     env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=cache_dir, **(env_extra or {}))
     log_path = os.path.join(work, f"{name}.log")
-    metrics = os.path.join(out, METRICS_FILE)
-    loads, offset, reached, stopped, peak_kb = [], math.inf, {}, None, 0
-    t0 = time.perf_counter()
-    with open(log_path, "w", encoding="utf-8") as log:
-        proc = subprocess.Popen(cmd, cwd=root, stdout=log, stderr=subprocess.STDOUT, env=env)
-        try:
-            while proc.poll() is None:
-                time.sleep(0.25)
-                now = time.perf_counter() - t0
-                peak_kb = max(peak_kb, _vm_hwm_kb(proc.pid) or 0)
-                rows = read_metrics(metrics) if os.path.exists(metrics) else []
-                if rows:
-                    offset = min(offset, now - rows[-1]["time_s"])  # launch -> start of training
-                    loads.append(load())
-                for r in rows:
-                    s = r.get("eval_success")
-                    for level in LEVELS:
-                        if s is not None and s >= level and f"{level:g}" not in reached:
-                            reached[f"{level:g}"] = {"wall_s": offset + r["time_s"], "env_steps": r["env_steps"],
-                                                     "train_s": r["time_s"]}
-                if stop_level is not None and f"{stop_level:g}" in reached:
-                    stopped = f"reached {stop_level:.0%}"
-                elif now > budget_s:
-                    stopped = f"budget of {budget_s:.0f} s"
-                if stopped:
-                    proc.send_signal(signal.SIGTERM)
-                    break
-            proc.wait(timeout=120)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait()
-    wall = time.perf_counter() - t0
-    rows = read_metrics(metrics) if os.path.exists(metrics) else []
+    loads: list[float] = []
+    reached: dict[str, Any] = {}
+    offset, peak_kb = math.inf, [0]
+
+    def sample_memory(pid: int) -> None:
+        peak_kb[0] = max(peak_kb[0], _vm_hwm_kb(pid) or 0)
+
+    def stop_reason(rows: list[dict[str, Any]], now: float) -> str | None:
+        nonlocal offset
+        if rows:
+            offset = min(offset, now - rows[-1]["time_s"])  # launch -> start of training
+            loads.append(load())
+        for r in rows:
+            s = r.get("eval_success")
+            for level in LEVELS:
+                if s is not None and s >= level and f"{level:g}" not in reached:
+                    reached[f"{level:g}"] = {"wall_s": offset + r["time_s"], "env_steps": r["env_steps"],
+                                             "train_s": r["time_s"]}
+        if stop_level is not None and f"{stop_level:g}" in reached:
+            return f"reached {stop_level:.0%}"
+        return f"budget of {budget_s:.0f} s" if now > budget_s else None
+
+    rows, stopped, code, wall = watch_trainer(cmd, root, log_path, os.path.join(out, METRICS_FILE), 0.25, stop_reason,
+                                              env=env, on_poll=sample_memory)
     if not rows:
         with open(log_path, encoding="utf-8") as f:
-            raise RuntimeError(f"{name}: the trainer logged nothing (exit {proc.returncode}):\n{f.read()[-3000:]}")
+            raise RuntimeError(f"{name}: the trainer logged nothing (exit {code}):\n{f.read()[-3000:]}")
     last = rows[-1]
     rates = sorted(r["steps_per_s"] for r in rows)
     evals = [r["eval_s"] for r in rows if "eval_s" in r]
@@ -334,7 +325,7 @@ def train_run(args_extra: list[str], work: str, name: str, cache_dir: str, budge
         "reset_overflow": sum(r.get("reset_overflow", 0.0) for r in rows),
         "reset_replays": sum(r.get("reset_replays", 0.0) for r in rows) if "reset_replays" in last else None,
         "time_to_eval_success": {f"{lv:g}": reached.get(f"{lv:g}", "not reached") for lv in LEVELS},
-        "peak_rss_mb": peak_kb / 1024,
+        "peak_rss_mb": peak_kb[0] / 1024,
         "load_during": [min(loads), max(loads)] if loads else None,
     }
 

@@ -37,7 +37,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from typing import Any
+from typing import Any, Callable
 
 from sagrasp_jax import fileio
 
@@ -62,12 +62,45 @@ def first_reach(points: list[tuple[float, int, float]], levels: list[float]) -> 
     return out
 
 
+def watch_trainer(cmd: list[str], cwd: str, log_path: str, metrics_path: str, poll_s: float,
+                  stop_reason: Callable[[list[dict[str, Any]], float], str | None],
+                  env: dict[str, str] | None = None, on_poll: Callable[[int], None] | None = None,
+                  ) -> tuple[list[dict[str, Any]], str | None, int | None, float]:
+    """Run a trainer command (output to ``log_path``), reading its ``metrics.jsonl`` every ``poll_s``
+    seconds; ``stop_reason(rows, seconds since launch)`` returning a reason SIGTERMs it (it
+    checkpoints and exits).  ``on_poll(pid)`` samples the process (e.g. its memory).  Returns the
+    final metric rows, the stop reason (None: it exited by itself), its exit code and the wall time."""
+    from sagrasp_jax.train import read_metrics
+
+    stopped: str | None = None
+    t0 = time.perf_counter()
+    with open(log_path, "w", encoding="utf-8") as log:
+        proc = subprocess.Popen(cmd, cwd=cwd, stdout=log, stderr=subprocess.STDOUT, env=env)
+        try:
+            while proc.poll() is None:
+                time.sleep(poll_s)
+                if on_poll is not None:
+                    on_poll(proc.pid)
+                rows = read_metrics(metrics_path) if os.path.exists(metrics_path) else []
+                stopped = stop_reason(rows, time.perf_counter() - t0)
+                if stopped:
+                    proc.send_signal(signal.SIGTERM)
+                    break
+            proc.wait(timeout=120)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+    rows = read_metrics(metrics_path) if os.path.exists(metrics_path) else []
+    return rows, stopped, proc.returncode, time.perf_counter() - t0
+
+
 # ---------------------------------------------------------------------- ours
 
 def bench_ours(seconds: float, preset: str, overrides: list[str], levels: list[float], window: int,
                work: str, max_startup_s: float) -> dict[str, Any]:
     """Train our SA-PPO via the CLI until ``seconds`` of training time, then stop it and read its metrics."""
-    from sagrasp_jax.train import METRICS_FILE, read_metrics
+    from sagrasp_jax.train import METRICS_FILE
 
     out = os.path.join(work, "ours")
     cmd = [sys.executable, "-m", "sagrasp_jax.train", "--preset", preset, "--algo", "sa-ppo", "--seed", "0",
@@ -75,33 +108,20 @@ def bench_ours(seconds: float, preset: str, overrides: list[str], levels: list[f
     for item in overrides:
         cmd += ["--set", item]
     log_path = os.path.join(work, "ours.log")
-    t0 = time.perf_counter()
-    with open(log_path, "w", encoding="utf-8") as log:
-        proc = subprocess.Popen(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
-        stopped = False
-        metrics = os.path.join(out, METRICS_FILE)
-        try:
-            while proc.poll() is None:
-                time.sleep(0.5)
-                rows = read_metrics(metrics) if os.path.exists(metrics) else []
-                if rows and rows[-1].get("time_s", 0.0) >= seconds:
-                    proc.send_signal(signal.SIGTERM)
-                    stopped = True
-                    break
-                if not rows and time.perf_counter() - t0 > max_startup_s:
-                    proc.kill()
-                    raise RuntimeError(f"our trainer logged nothing within {max_startup_s:.0f} s; see {log_path}")
-            proc.wait(timeout=60)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait()
-    wall = time.perf_counter() - t0
-    rows = read_metrics(metrics) if os.path.exists(metrics) else []
-    if not rows or (not stopped and proc.returncode != 0):
+
+    def stop_reason(rows: list[dict[str, Any]], since_launch: float) -> str | None:
+        if rows and rows[-1].get("time_s", 0.0) >= seconds:
+            return f"{seconds:.0f} s of training"
+        if not rows and since_launch > max_startup_s:
+            raise RuntimeError(f"our trainer logged nothing within {max_startup_s:.0f} s; see {log_path}")
+        return None
+
+    rows, reason, code, wall = watch_trainer(cmd, ROOT, log_path, os.path.join(out, METRICS_FILE), 0.5, stop_reason)
+    stopped = reason is not None
+    if not rows or (not stopped and code != 0):
         with open(log_path, encoding="utf-8") as f:
             tail = f.read()[-2000:]
-        raise RuntimeError(f"our trainer failed (exit {proc.returncode}):\n{tail}")
+        raise RuntimeError(f"our trainer failed (exit {code}):\n{tail}")
     last = rows[-1]
     train_s, steps = float(last["time_s"]), int(last["env_steps"])
     training_curve = [(float(r["time_s"]), int(r["env_steps"]), float(r["success"])) for r in rows

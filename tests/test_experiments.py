@@ -197,6 +197,22 @@ def test_reproduce_paper_smoke(tmp_path: pytest.TempPathFactory) -> None:
     assert clash.returncode == 2 and "another config" in clash.stderr
 
 
+def test_bench_train_run_section_smoke(tmp_path: pytest.TempPathFactory) -> None:
+    """The README-command section: a cold-cache run watched to its end, then the warm-cache restart."""
+    out = str(tmp_path / "bench.json")
+    res = _run(["experiments/bench_train.py", "--sections", "run", "--seeds", "0", "--budget-s", "240", "--out", out,
+                *_sets(TINY_SETS + ["train.total_steps=16384"])], timeout=400)
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    with open(out, encoding="utf-8") as f:
+        run = json.load(f)["run"]
+    seed0 = run["runs"]["seed0"]
+    assert seed0["stopped_by"] == "finished" and seed0["env_steps"] == 16384 and seed0["cycles"] == 4
+    assert seed0["reset_replays"] == 0 and seed0["startup_s"] >= seed0["compile_s"] > 0
+    assert 100 < seed0["peak_rss_mb"] < 8000 and seed0["median_iteration_env_steps_per_s"] > 0
+    assert set(seed0["time_to_eval_success"]) == {"0.9", "0.95", "0.98"}
+    assert 0 < run["warm"]["compile_s"] and run["warm"]["startup_s"] > 0
+
+
 def test_bench_vs_paper_stack_smoke_without_sb3(tmp_path: pytest.TempPathFactory) -> None:
     out = str(tmp_path / "bench.json")
     args = ["experiments/bench_vs_paper_stack.py", "--seconds", "2", "--window", "16", "--success", "0.5",
