@@ -19,7 +19,9 @@ with 95 % t-intervals across seeds, pooled success with Wilson intervals, and fo
 a paired comparison with ``sa`` (the same seeds): mean difference, its 95 % t-interval, the
 paired t-test's two-sided p and the seeds won.  Prints Markdown tables, writes JSON to
 ``--out`` and, with matplotlib, learning curves (per-cycle evaluation success, mean and band
-across seeds) and lr traces next to it.  Re-running skips evaluated runs, evaluates finished
+across seeds) and lr traces next to it, and — when ``constant`` and ``sa`` both ran — the paper's
+Figures 11-15 and the SA trace for the two (``reproduce_paper.plot_all``) in ``<out>_figures/``.
+Re-running skips evaluated runs, evaluates finished
 ones, resumes unfinished ones from their checkpoint and restarts ones killed before their
 first checkpoint; a run folder trained with another config is refused.
 
@@ -32,6 +34,7 @@ from __future__ import annotations
 import sagrasp_jax  # noqa: F401  (sets XLA_FLAGS before jax is imported)
 
 import argparse
+import importlib.util
 import math
 import os
 import platform
@@ -44,8 +47,8 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from bench_vs_paper_stack import first_reach  # noqa: E402
 from obstacle_ablation import _cell, _rate, finished_record  # noqa: E402
 from reproduce_paper import (  # noqa: E402
-    BAND_LABELS, ReproduceError, band, band_kind, curve_matrix, ensure_trained, git_state, mean_ci, summarise_algo, t975,
-    write_json,
+    ALGOS, BAND_LABELS, ReproduceError, band, band_kind, curve_matrix, ensure_trained, git_state, mean_ci, plot_all,
+    summarise_algo, t975, write_json,
 )
 
 from sagrasp_jax import evaluate, train  # noqa: E402
@@ -364,6 +367,26 @@ def figures(args: argparse.Namespace, variants: list[str], seeds: list[int], ste
     return written
 
 
+PAPER_PAIR = {"ppo": "constant", "sa-ppo": "sa"}  # the paper's two algorithms as schedules here
+
+
+def paper_figures(args: argparse.Namespace, records: dict[str, list[dict[str, Any]]], seeds: list[int],
+                  stem: str) -> list[str]:
+    """The paper's Figures 11-15 and the SA trace (``reproduce_paper.plot_all``) for ``constant``
+    (the paper's PPO) against ``sa``, from these runs, into ``<stem>_figures/``."""
+    if not set(PAPER_PAIR.values()) <= set(records) or importlib.util.find_spec("matplotlib") is None:
+        return []
+    evals = {a: [r["mix"] for r in sorted(records[v], key=lambda r: r["seed"])] for a, v in PAPER_PAIR.items()}
+    curves = {a: [train.read_metrics(os.path.join(args.runs_dir, f"{v}-s{s}", train.METRICS_FILE)) for s in seeds]
+              for a, v in PAPER_PAIR.items()}
+    results = {"meta": {"seeds": seeds, "band": band_kind("auto", len(seeds)), "total_steps": args.total_steps,
+                        "eval_episodes": args.eval_episodes},
+               "algos": {a: summarise_algo(evals[a], seeds) for a in ALGOS}}
+    out_dir = f"{stem}_figures"
+    os.makedirs(out_dir, exist_ok=True)
+    return [os.path.join(out_dir, name) for name in plot_all(out_dir, curves, results, smooth_window=5)]
+
+
 # ---------------------------------------------------------------------- main
 
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
@@ -416,7 +439,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     versus = compare_with_reference(summary)
     stem = os.path.splitext(args.out)[0]
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    written = [] if args.no_figures else figures(args, variants, seeds, stem)
+    written = [] if args.no_figures else (figures(args, variants, seeds, stem)
+                                          + paper_figures(args, records, seeds, stem))
     result = {
         "preset": args.preset, "total_steps": args.total_steps, "seeds": seeds, "eval_episodes": args.eval_episodes,
         "blocking_episodes": args.blocking_episodes, "extra_overrides": args.overrides,

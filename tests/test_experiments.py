@@ -260,6 +260,8 @@ def test_compare_schedules_smoke(tmp_path: pytest.TempPathFactory) -> None:
     assert "| constant |" in res.stdout and "Paired with `sa`" in res.stdout
     if importlib.util.find_spec("matplotlib") is not None:
         assert os.path.getsize(out[:-5] + "_curves.png") > 0 and os.path.getsize(out[:-5] + "_lr.png") > 0
+        for name in ["fig15_summary.png", "sa_schedule.png"] + [c[0] for c in repro.CURVES]:  # Figures 11-15
+            assert os.path.getsize(os.path.join(out[:-5] + "_figures", name)) > 0, name
     again = _run(args)
     assert again.returncode == 0, again.stderr[-3000:]
     assert again.stdout.count("done already, skipped") == 2
