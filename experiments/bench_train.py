@@ -278,10 +278,11 @@ def train_run(args_extra: list[str], work: str, name: str, cache_dir: str, budge
     log_path = os.path.join(work, f"{name}.log")
     loads: list[float] = []
     reached: dict[str, Any] = {}
-    offset, peak_kb = math.inf, [0]
+    offset, peak_kb = math.inf, 0
 
     def sample_memory(pid: int) -> None:
-        peak_kb[0] = max(peak_kb[0], _vm_hwm_kb(pid) or 0)
+        nonlocal peak_kb
+        peak_kb = max(peak_kb, _vm_hwm_kb(pid) or 0)
 
     def stop_reason(rows: list[dict[str, Any]], now: float) -> str | None:
         nonlocal offset
@@ -325,7 +326,7 @@ def train_run(args_extra: list[str], work: str, name: str, cache_dir: str, budge
         "reset_overflow": sum(r.get("reset_overflow", 0.0) for r in rows),
         "reset_replays": sum(r.get("reset_replays", 0.0) for r in rows) if "reset_replays" in last else None,
         "time_to_eval_success": {f"{lv:g}": reached.get(f"{lv:g}", "not reached") for lv in LEVELS},
-        "peak_rss_mb": peak_kb[0] / 1024,
+        "peak_rss_mb": peak_kb / 1024,
         "load_during": [min(loads), max(loads)] if loads else None,
     }
 

@@ -39,7 +39,7 @@ from typing import Any, Sequence
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 from obstacle_blind_eval import blind_study  # noqa: E402
-from reproduce_paper import check_same_config, ensure_trained, git_state, mean_ci, write_json  # noqa: E402,F401
+from reproduce_paper import check_same_config, ensure_trained, git_state, mean_ci, write_json  # noqa: E402
 
 from sagrasp_jax import evaluate, runtime, train  # noqa: E402
 from sagrasp_jax.checkpoint import CheckpointError  # noqa: E402

@@ -159,9 +159,8 @@ def ensure_trained(out: str, cfg: Any, tag: str, progress: bool) -> float | None
     checkpoint is resumed; one killed before its first checkpoint is started again.  Returns this
     call's training wall time (None: it was finished already)."""
     state = run_state(out)
-    if state == "stale" and not os.path.isfile(os.path.join(out, train.CONFIG_FILE)):
-        pass  # killed before even its config was written: nothing to compare, nothing to keep
-    elif state != "new":
+    config_written = os.path.isfile(os.path.join(out, train.CONFIG_FILE))
+    if state != "new" and (state != "stale" or config_written):  # killed before its config: nothing to compare
         check_same_config(out, cfg)
     if state in ("trained", "evaluated"):
         return None

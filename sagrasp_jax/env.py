@@ -156,6 +156,8 @@ class GraspEnv:
         return spec._replace(target_pos=spec.target_pos + randomize["target_error"].astype(spec.target_pos.dtype))
 
     # -- API -------------------------------------------------------------------------------
+    # reset / reset_to / step are jitted per env (static self): each is traced once per env, not once per
+    # caller (the trainer's reset, auto-reset, rollout and evaluation); the programs are the same.
     @functools.partial(jax.jit, static_argnums=0)
     def reset(self, rng: jax.Array) -> State:
         """Sample a fresh episode start (target, obstacles, start noise) and build its state."""

@@ -22,12 +22,12 @@ import sagrasp_jax  # noqa: F401  (sets XLA_FLAGS and the compile-cache dir befo
 
 import argparse
 import bisect
+import concurrent.futures
 import contextlib
 import dataclasses
 import math
 import os
 import sys
-import threading
 import time
 from dataclasses import dataclass
 from typing import Any, Callable, TextIO
@@ -293,27 +293,14 @@ class Trainer:
         if self._compiled_cycle is None:
             t = time.perf_counter()
             lowered = self._cycle.lower(*self._cycle_args(1))
-            built: dict[str, Any] = {}
-
-            def build_cycle() -> None:
-                try:
-                    built["cycle"] = lowered.compile()
-                except BaseException as exc:  # re-raised on the calling thread
-                    built["error"] = exc
-                built["done_s"] = time.perf_counter() - t
-
-            worker = threading.Thread(target=build_cycle, name="compile-training-call", daemon=True)
-            worker.start()
-            try:
+            with concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="compile-training-call") as pool:
+                cycle = pool.submit(lambda: (lowered.compile(), time.perf_counter() - t))
                 compiled_eval = self._evaluate.lower(self.train_state.params, self.train_state.normaliser,
                                                      self.eval_keys).compile()
                 eval_s = time.perf_counter() - t
-            finally:
-                worker.join()
-            if "error" in built:
-                raise built["error"]
-            self._compiled_cycle, self._compiled_eval = built["cycle"], compiled_eval
-            self.compile_s = {"iteration": built["done_s"], "eval": eval_s, "total": time.perf_counter() - t}
+                self._compiled_cycle, cycle_s = cycle.result()  # re-raises the worker's error here
+            self._compiled_eval = compiled_eval
+            self.compile_s = {"iteration": cycle_s, "eval": eval_s, "total": time.perf_counter() - t}
         return self.compile_s
 
     def run_iteration(self) -> dict[str, Any]:
