@@ -55,13 +55,21 @@ class ControlConfig:
     fine_damping: float = 0.05  # λ: damping of that least-squares step
     fine_clip: float = 0.015  # rad: the correction is clipped to ±this (c = 0.3·q_max)
     q_limit: float = Q_LIMIT  # rad: joint targets are clipped to ±this (the URDF limit, ±175°)
-    mode: str = "kinematic"  # "kinematic": qpos = q_target, no physics; "dynamic": MuJoCo servos track q_target
+    # "kinematic": qpos = q_target, no physics; "dynamic": MuJoCo servos track q_target; "lagged": no physics, the
+    # joints follow q_target through the per-step servo model below (lag_gain, lag_momentum), fitted to the dynamic
+    # mode's servos: as cheap as "kinematic", with the servo lag and the command latency of "dynamic"
+    mode: str = "kinematic"
     control_dt: float = 0.05  # s: control period (20 Hz)
     physics_dt: float = 0.01  # s: physics step of the dynamic mode
     substeps: int = 5  # physics steps per control step in the dynamic mode
     # Physics backend of the dynamic mode: "jax" (MJX's JAX implementation, any device) or "warp" (MuJoCo
     # Warp through MJX: needs the warp extra, pip install -e .[warp], and is meant for CUDA GPUs)
     impl: str = "jax"
+    # "lagged" mode, per joint: each control step the joint closes this fraction of its distance to the command
+    # (q ← q + lag_gain·(c − q) + lag_momentum·(q − q_prev)); fitted by least squares to the dynamic mode's servos
+    # (experiments/fit_servo_lag.py, experiments/results/fit_servo_lag.json)
+    lag_gain: tuple[float, ...] = (0.639, 0.601, 0.632, 0.806, 0.785, 0.798)
+    lag_momentum: tuple[float, ...] = (0.070, 0.143, 0.080, 0.037, 0.077, 0.059)  # "lagged" mode: carry-over of the last step's motion
 
 
 @dataclass(frozen=True)
@@ -111,11 +119,15 @@ class TaskConfig:
     # Observation layout (observation.LAYOUTS): "paper" = the paper's 17 numbers (absolute obstacle
     # centre, sentinel when absent); "relative" = per obstacle slot, nearest first, a presence flag,
     # the vectors gripper centre → obstacle surface and closest robot point → obstacle surface, and a
-    # closeness that is 0 when absent, all hand-scaled (docs/design.md, "Observation layouts").
+    # closeness that is 0 when absent, all hand-scaled (docs/design.md, "Observation layouts");
+    # "relative_lag" = "relative" and each joint's pending command q_target − q_reading (obs_pending_clip)
     obs_layout: str = "paper"
     obs_vector_scale: float = 0.25  # m: "relative" obstacle vectors are divided by this (clipped to ±obs_vector_clip)
     obs_vector_clip: float = 3.0  # "relative" obstacle vectors, after scaling, are clipped to ±this
     obs_closeness_range: float = 0.15  # m: "relative" closeness = max(0, 1 − distance / this)
+    # "relative_lag" layout: the pending command q_target − q_reading of each joint, divided by control.q_max (one
+    # full step = 1) and clipped to ±this; it shows the policy what its last commands still have to do
+    obs_pending_clip: float = 5.0
     # Robot-obstacle distance (Δpo, obstacle collisions): "fine" = a sphere set within ±4 mm of the
     # robot's URDF primitives (collision.py); "cover" = the first landing's conservative cover, which
     # over-reports contact by up to 2.5 cm near the flange (kept for the ablation and old runs).
@@ -162,10 +174,11 @@ class RandomizeConfig:
     draws its own values at reset (docs/design.md, "Dynamic mode and domain randomisation")."""
 
     # Servo gains: each arm joint's kp and kv are scaled by their own factors, uniform in [1 − this, 1 + this]
-    # per episode (0.2 = ±20 %); dynamic mode only
+    # per episode (0.2 = ±20 %); dynamic mode (lagged mode: lag_gain is scaled by the kp factor)
     servo_gain: float = 0.0
-    # Command latency in control steps: per episode uniform in [0, this]; the previous joint target holds for
-    # that fraction of the control period's physics substeps (1 = a whole step late); dynamic mode only
+    # Command latency in control steps: per episode uniform in [0, this]; a queue of the last commands delays each
+    # by the whole steps, and the fraction of a step holds the command before it for that share of the control
+    # period (1 = a whole step late, 2.5 = two and a half); dynamic and lagged modes only
     latency: float = 0.0
     joint_offset: float = 0.0  # rad: per-episode offset of each joint reading, uniform in ±this (calibration error)
     # rad: extra Gaussian noise on the joint readings, its std drawn per episode uniformly in [0, this] (on top of
@@ -215,6 +228,8 @@ class PPOConfig:
     network: NetworkConfig = field(default_factory=NetworkConfig)
 
 
+CONTROL_MODES = ("kinematic", "dynamic", "lagged")  # env.control.mode (env.py)
+OBS_LAYOUTS = ("paper", "relative", "relative_lag")  # env.task.obs_layout (observation.py)
 LR_SCHEDULES = ("constant", "sa", "kl-adaptive", "cosine", "linear")  # the names lr.schedule accepts (lr_schedule.py)
 
 
@@ -307,8 +322,23 @@ def _obstacle_aware(base: Config) -> Config:
     )
 
 
+def _robot_grade(base: Config) -> Config:
+    """What makes a policy take to the real arm (docs/design.md, "Robot-grade policy"): it trains in the
+    ``lagged`` mode (the dynamic mode's servo lag and command latency at the kinematic mode's cost), observes
+    its pending command (``relative_lag``) and meets every transfer error in training, at or above the real
+    arm's levels (ROBOT_KNOBS): servo gains ±20 %, latency up to 2 steps, joint offset ±5 mrad, joint noise
+    σ ≤ 5 mrad, detected target ±6 mm."""
+    env = base.env
+    return dataclasses.replace(base, env=dataclasses.replace(
+        env,
+        control=dataclasses.replace(env.control, mode="lagged"),
+        task=dataclasses.replace(env.task, obs_layout="relative_lag"),
+        randomize=RandomizeConfig(servo_gain=0.2, latency=2.0, joint_offset=0.005, joint_noise=0.005, target_error=0.006),
+    ))
+
+
 def _cpu_quick() -> Config:
-    base = _obstacle_aware(Config())
+    base = _robot_grade(_obstacle_aware(Config()))
     return dataclasses.replace(
         base,
         ppo=dataclasses.replace(
@@ -328,7 +358,7 @@ def _cpu_quick() -> Config:
 def _gpu() -> Config:
     # Physics backend: none runs, the preset trains in kinematic mode (env.control.impl stays "jax"); a
     # dynamic-mode GPU run adds env.control.mode=dynamic and env.control.impl=warp (pip install -e .[warp]).
-    base = _obstacle_aware(Config())
+    base = _robot_grade(_obstacle_aware(Config()))
     return dataclasses.replace(
         base,
         ppo=dataclasses.replace(
@@ -349,6 +379,24 @@ PRESETS: dict[str, typing.Callable[[], Config]] = {
     "paper": _paper,
     "cpu-quick": _cpu_quick,
     "gpu": _gpu,
+}
+
+
+# The transfer knobs at the levels a real AUBO-i5 cell needs (servo gains ±20 %, command latency 0-1 step,
+# joint offset ±5 mrad, joint noise σ ≤ 5 mrad, detected target ±5 mm): "every knob on" in docs/results.md.
+ROBOT_KNOBS: tuple[str, ...] = ("env.randomize.servo_gain=0.2", "env.randomize.latency=1",
+                                "env.randomize.joint_offset=0.005", "env.randomize.joint_noise=0.005",
+                                "env.randomize.target_error=0.005")
+_KNOBS_OFF = tuple(item.split("=")[0] + "=0" for item in ROBOT_KNOBS)
+
+# Named evaluation conditions (evaluate --condition NAME): env overrides applied over a run's own config, so a
+# policy trained with randomisation is judged without it, or with it at fixed levels, in the physics of choice.
+EVAL_CONDITIONS: dict[str, tuple[str, ...]] = {
+    "kinematic": ("env.control.mode=kinematic", *_KNOBS_OFF),  # exact joint tracking, no transfer error
+    "dynamic": ("env.control.mode=dynamic", *_KNOBS_OFF),  # MJX servos, no transfer error
+    "robot": ("env.control.mode=dynamic", *ROBOT_KNOBS),  # MJX servos and every transfer knob on
+    "robot-latency2": ("env.control.mode=dynamic", *ROBOT_KNOBS[:1], "env.randomize.latency=2", *ROBOT_KNOBS[2:]),
+    "kinematic-target-error": ("env.control.mode=kinematic", *_KNOBS_OFF[:-1], ROBOT_KNOBS[-1]),
 }
 
 
@@ -399,11 +447,11 @@ def _parse_value(text: str, annotation: Any, key: str) -> Any:
 
 
 _CHOICES = {
-    "env.control.mode": ("kinematic", "dynamic"),
+    "env.control.mode": CONTROL_MODES,
     "env.control.impl": ("jax", "warp"),
     "env.reward.rc_mode": ("entry", "per_step"),
     "env.reward.near_miss_mode": ("change", "per_step"),
-    "env.task.obs_layout": ("paper", "relative"),
+    "env.task.obs_layout": OBS_LAYOUTS,
     "env.task.obstacle_geometry": ("fine", "cover"),
     "env.sampling.obstacle_kinds": shapes.NAMES,  # a tuple key: each entry
     "sa.metric": ("return", "success"),
@@ -432,6 +480,8 @@ _RANGES: dict[str, tuple[float | str, float]] = {
     "env.control.control_dt": (">0", 1.0),
     "env.control.physics_dt": (">0", 0.1),
     "env.control.substeps": (1, 1000),
+    "env.control.lag_gain": (">0", 1.0),
+    "env.control.lag_momentum": (0.0, 0.9),
     "env.reward.ratio": (0.0, 1e3),
     "env.reward.rc": (-1e3, 1e3),
     "env.reward.d_grab": (0.0, 1.0),
@@ -483,6 +533,7 @@ _RANGES: dict[str, tuple[float | str, float]] = {
     "env.task.obs_vector_scale": (">0", 10.0),
     "env.task.obs_vector_clip": (">0", 1e3),
     "env.task.obs_closeness_range": (">0", 10.0),
+    "env.task.obs_pending_clip": (">0", 1e3),
     "ppo.num_envs": (1, 2**24),
     "ppo.unroll_length": (1, 100_000),
     "ppo.num_minibatches": (1, 2**24),
@@ -523,7 +574,7 @@ _RANGES: dict[str, tuple[float | str, float]] = {
     "train.obstacle_prob": (-1.0, 1.0),  # −1 = env.sampling's; validate also refuses (−1, 0)
     "train.blocking_prob": (-1.0, 1.0),
     "env.randomize.servo_gain": (0.0, 0.9),
-    "env.randomize.latency": (0.0, 1.0),
+    "env.randomize.latency": (0.0, 3.0),
     "env.randomize.joint_offset": (0.0, 0.2),
     "env.randomize.joint_noise": (0.0, 0.2),
     "env.randomize.target_error": (0.0, 0.05),
@@ -758,9 +809,15 @@ def validate(cfg: Config) -> None:
     for key, ok in checks:
         if not ok:
             raise ConfigError(f"invalid value for {key}: {get_key(cfg, key)!r}")
-    for key in ("env.randomize.servo_gain", "env.randomize.latency", "env.control.impl"):  # servo physics only
-        if get_key(cfg, key) != get_key(Config(), key) and cfg.env.control.mode != "dynamic":
-            raise ConfigError(f"{key}={get_key(cfg, key)!r} needs env.control.mode=dynamic (the kinematic mode has no servos)")
+    if cfg.env.control.impl != "jax" and cfg.env.control.mode != "dynamic":  # a physics backend: servo physics only
+        raise ConfigError(f"env.control.impl={cfg.env.control.impl!r} needs env.control.mode=dynamic (no physics runs otherwise)")
+    for key in ("env.randomize.servo_gain", "env.randomize.latency"):  # servos: simulated or modelled
+        if get_key(cfg, key) != 0 and cfg.env.control.mode == "kinematic":
+            raise ConfigError(f"{key}={get_key(cfg, key)!r} needs env.control.mode=dynamic or lagged "
+                              "(the kinematic mode has no servos)")
+    for key in ("env.control.lag_gain", "env.control.lag_momentum"):
+        if len(get_key(cfg, key)) != 6:
+            raise ConfigError(f"invalid value for {key}: {get_key(cfg, key)!r} (one value per arm joint: 6)")
     if (cfg.ppo.num_envs * cfg.ppo.unroll_length) % cfg.ppo.num_minibatches:
         raise ConfigError(f"ppo.num_minibatches={cfg.ppo.num_minibatches} must divide ppo.num_envs × ppo.unroll_length "
                           f"= {cfg.ppo.num_envs} × {cfg.ppo.unroll_length}")

@@ -119,3 +119,40 @@ def control_step(
         finetuned=finetuned,
         correction=correction,
     )
+
+
+# -- servo lag and command latency (the "lagged" mode, the dynamic mode's latency, the deployment twin) --------
+
+
+def latency_queue_size(max_latency: float) -> int:
+    """Commands to keep for a command latency of up to ``max_latency`` control steps (0 = no queue): the
+    whole steps of delay, the command they select and the one before it."""
+    return int(math.floor(max_latency)) + 2 if max_latency > 0 else 0
+
+
+def delayed_commands(xp: Any, queue: Any, latency: Any) -> tuple[Any, Any, Any]:
+    """For a latency of ``n + f`` control steps (0 ≤ f < 1) and ``queue`` (K, 6) of commands, newest first:
+    the command ``n`` steps old (tracked for the last 1 − f of the control period), the one before it (held
+    for the first f of it) and f.  ``latency`` must stay below K − 1 (``latency_queue_size``)."""
+    whole = xp.floor(latency)
+    n = whole.astype(xp.int32) if hasattr(whole, "astype") else int(whole)
+    return queue[n], queue[n + 1], latency - whole
+
+
+def held_command_weight(xp: Any, fraction: Any, gain: Any) -> Any:
+    """The weight of the older command in the per-step servo model when it is held for the first ``fraction``
+    of the control period and the newer one for the rest: for a servo that closes ``gain`` of its error per
+    period (exponentially in time), w = 1 − (1 − (1 − gain)^(1 − fraction)) / gain — 0 at fraction 0, 1 at 1,
+    and below ``fraction`` in between (a late step still moves the joint most of the way)."""
+    gain = xp.clip(gain, 1e-6, 1.0 - 1e-6)
+    return 1.0 - (1.0 - (1.0 - gain) ** (1.0 - fraction)) / gain
+
+
+def servo_model_step(xp: Any, cfg: ControlConfig, q: Any, q_prev: Any, command: Any, gain: Any) -> Any:
+    """The lagged mode's servos over one control period: each joint closes ``gain`` (per joint; normally
+    ``cfg.lag_gain``) of its distance to ``command`` and carries ``cfg.lag_momentum`` of its last step's
+    motion ``q − q_prev`` — a least-squares fit of the dynamic mode's MJX servos
+    (experiments/fit_servo_lag.py) — inside the joint limits."""
+    momentum = xp.asarray(cfg.lag_momentum, dtype=q.dtype)
+    q_next = q + gain * (command - q) + momentum * (q - q_prev)
+    return xp.clip(q_next, -cfg.q_limit, cfg.q_limit)

@@ -9,7 +9,11 @@ Modes (``cfg.control.mode``): ``kinematic`` sets qpos = q_target (what the AUBO
 controller's precise joint tracking amounts to) and needs no physics; ``dynamic``
 runs ``mjx.step`` with position servos tracking q_target under gravity
 (``substeps`` × ``physics_dt`` per 0.05 s control period, contacts off — collisions are
-computed analytically in both modes).
+computed analytically in every mode); ``lagged`` needs no physics either: the joints follow
+the command through a per-step servo model fitted to the dynamic mode's servos
+(``control.servo_model_step``), so that a policy can train for servo lag and command latency at the
+kinematic mode's speed.  Command latency (``env.randomize.latency``, in control steps) is a
+queue of the last commands in ``info["commands"]`` (newest first) in both servo modes.
 """
 
 from __future__ import annotations
@@ -41,8 +45,8 @@ class GraspEnv:
     action_size = control.ACTION_SIZE
 
     def __init__(self, cfg: EnvConfig, privileged: bool = False):
-        if cfg.control.mode not in ("kinematic", "dynamic"):
-            raise ValueError(f"env.control.mode must be 'kinematic' or 'dynamic', got {cfg.control.mode!r}")
+        if cfg.control.mode not in config_mod.CONTROL_MODES:
+            raise ValueError(f"env.control.mode must be one of {', '.join(config_mod.CONTROL_MODES)}, got {cfg.control.mode!r}")
         self.cfg = cfg
         self.obs_layout = observation.layout_of(cfg)
         self.observation_size = len(self.obs_layout)
@@ -55,6 +59,8 @@ class GraspEnv:
         self.n_uniforms = sampling.uniforms_needed(cfg.sampling)
         self._mjx_model = None
         self.randomized = config_mod.randomization_enabled(cfg)  # env.randomize: per-episode draws in info["randomize"]
+        self.queue_size = control.latency_queue_size(cfg.randomize.latency)  # commands kept in info["commands"] (0: no latency, no queue)
+        self.lagged = cfg.control.mode == "lagged"  # servo model state in info["servo"]
         if cfg.control.mode == "dynamic":
             self._mjx_model = self._load_mjx_model()
 
@@ -106,32 +112,56 @@ class GraspEnv:
         data = mjx.make_data(self._mj_model if impl == "warp" else self._mjx_model, impl=impl)
         return data.replace(qpos=q0.astype(data.qpos.dtype), ctrl=q0.astype(data.ctrl.dtype))
 
-    def _advance(self, pipeline: Any, q_target: jax.Array, q_previous: jax.Array,
-                 randomize: dict[str, Any] | None) -> tuple[Any, jax.Array]:
-        """Apply q_target; returns the new pipeline state and the measured joints.
+    def _advance(self, state: State, q_target: jax.Array, queue: jax.Array | None,
+                 randomize: dict[str, Any] | None) -> tuple[Any, jax.Array, dict[str, Any]]:
+        """Apply the new command ``q_target``: returns the new pipeline state, the measured joints and the
+        servo-model info of the lagged mode ({} otherwise).
 
-        With randomisation (``env.randomize``): this episode's servo gains, and a command latency —
-        the previous target ``q_previous`` holds for the first ``latency × substeps`` substeps."""
-        if self._mjx_model is None:
-            return None, q_target
+        ``queue`` (K, 6), newest first, holds the commands up to this one when there is command latency:
+        the servos then track the command ``n`` steps old and, for the fraction ``f`` of the control period
+        (latency = n + f), the one before it (``control.delayed_commands``).  Randomisation scales the servo gains."""
+        info = state.info
+        if self.cfg.control.mode == "kinematic":
+            return None, q_target, {}
+        dtype = q_target.dtype
+        current, previous, fraction = q_target, info["q_target"], jnp.zeros((), dtype)
+        if queue is not None:
+            current, previous, fraction = control.delayed_commands(jnp, queue, randomize["latency"].astype(dtype))
+        if self.lagged:
+            gain = jnp.asarray(self.cfg.control.lag_gain, dtype)
+            if randomize is not None:
+                gain = jnp.clip(gain * randomize["kp_scale"].astype(dtype), 0.0, 1.0)
+            servo = info["servo"]
+            weight = control.held_command_weight(jnp, fraction, jnp.asarray(self.cfg.control.lag_gain, dtype))
+            command = (1.0 - weight) * current + weight * previous
+            q_new = control.servo_model_step(jnp, self.cfg.control, servo["q"], servo["q_prev"], command, gain)
+            return None, q_new, {"servo": {"q": q_new, "q_prev": servo["q"]}}
         from mujoco import mjx
 
         model = self._mjx_model
-        delay = jnp.zeros((), jnp.int32)
         if randomize is not None:
             kp, kv = self._servo_kp * randomize["kp_scale"], self._servo_kv * randomize["kv_scale"]
             model = model.replace(actuator_gainprm=model.actuator_gainprm.at[:, 0].set(kp.astype(model.actuator_gainprm.dtype)),
                                   actuator_biasprm=model.actuator_biasprm.at[:, 1].set(-kp.astype(model.actuator_biasprm.dtype))
                                   .at[:, 2].set(-kv.astype(model.actuator_biasprm.dtype)))
-            delay = jnp.round(randomize["latency"] * self.cfg.control.substeps).astype(jnp.int32)
-        dtype = pipeline.ctrl.dtype
+        delay = jnp.round(fraction * self.cfg.control.substeps).astype(jnp.int32)
+        pipeline = state.pipeline_state
+        ctrl_dtype = pipeline.ctrl.dtype
 
         def substep(data: Any, i: Any) -> tuple[Any, None]:
-            ctrl = q_target if randomize is None else jnp.where(i < delay, q_previous, q_target)
-            return mjx.step(model, data.replace(ctrl=ctrl.astype(dtype))), None
+            ctrl = jnp.where(i < delay, previous, current)
+            return mjx.step(model, data.replace(ctrl=ctrl.astype(ctrl_dtype))), None
 
         pipeline, _ = jax.lax.scan(substep, pipeline, jnp.arange(self.cfg.control.substeps))
-        return pipeline, pipeline.qpos[:6].astype(q_target.dtype)
+        return pipeline, pipeline.qpos[:6].astype(dtype), {}
+
+    def measured_joints(self, state: State) -> jax.Array:
+        """The arm's actual joint positions in ``state`` (no sensor noise), in every mode."""
+        if self.cfg.control.mode == "dynamic":
+            return state.pipeline_state.qpos[..., :6].astype(state.info["q_target"].dtype)
+        if self.lagged:
+            return state.info["servo"]["q"]
+        return state.info["q_target"]
 
     # -- domain randomisation (env.randomize; off by default: no draw, no state) --------------
     def _draw_randomization(self, key: jax.Array, dtype: Any) -> dict[str, jax.Array]:
@@ -143,7 +173,7 @@ class GraspEnv:
         return {
             "kp_scale": 1.0 + u(k[0], (6,), r.servo_gain),
             "kv_scale": 1.0 + u(k[1], (6,), r.servo_gain),
-            "latency": r.latency * jax.random.uniform(k[2], (), dtype),
+            "latency": r.latency * jax.random.uniform(k[2], (), dtype),  # control steps (delayed_commands)
             "joint_offset": u(k[3], (6,), r.joint_offset),
             "joint_noise": r.joint_noise * jax.random.uniform(k[4], (), dtype),
             "target_error": u(k[5], (3,), r.target_error),
@@ -183,7 +213,7 @@ class GraspEnv:
             randomize = self._draw_randomization(key_randomize, dtype)
         rng, key_noise = jax.random.split(rng)
         zero = jnp.zeros((), dtype)
-        obs = self._observe(q0, kin, spec, col, tilt, key_noise, zero, randomize)
+        obs = self._observe(q0, kin, spec, col, tilt, key_noise, zero, randomize, q0)
         info = {
             "rng": rng,
             "progress": zero,
@@ -195,6 +225,10 @@ class GraspEnv:
         }
         if randomize is not None:
             info["randomize"] = randomize
+        if self.queue_size:
+            info["commands"] = jnp.broadcast_to(q0, (self.queue_size, q0.shape[0]))
+        if self.lagged:
+            info["servo"] = {"q": q0, "q_prev": q0}
         if self.privileged:
             info["privileged"] = observation.privileged(jnp, self.cfg, spec, col, kin.gripper_centre, info["steps"], zero,
                                                         blocking)
@@ -209,12 +243,16 @@ class GraspEnv:
         )
 
     def _observe(self, q: Any, kin: Any, spec: Any, col: Any, tilt: Any, key: Any, progress: Any,
-                 randomize: dict[str, Any] | None = None) -> jax.Array:
+                 randomize: dict[str, Any] | None, q_command: Any) -> jax.Array:
+        """The policy's observation: joint readings with noise (and this episode's offset), the detected target,
+        and the last command ``q_command``.  The servos track commands in their own frame and the readings are
+        off by the offset, so the pending command (command − reading) shows the offset as a real arm would."""
         if randomize is not None:  # joint readings with this episode's offset and extra noise; the detected target
             key, key_extra = jax.random.split(key)
             q = q + randomize["joint_offset"] + randomize["joint_noise"] * jax.random.normal(key_extra, q.shape, q.dtype)
         noisy_q = observation.noisy_joints(self.cfg.task, q, progress, jax.random.normal(key, q.shape, q.dtype))
-        return observation.assemble(jnp, self.cfg, noisy_q, kin.gripper_centre, self._seen(spec, randomize), col, tilt)
+        return observation.assemble(jnp, self.cfg, noisy_q, kin.gripper_centre, self._seen(spec, randomize), col, tilt,
+                                    q_command)
 
     @functools.partial(jax.jit, static_argnums=0)
     def step(self, state: State, action: jax.Array) -> State:
@@ -223,10 +261,13 @@ class GraspEnv:
         dtype = info["q_target"].dtype
         action = action.astype(dtype)
         randomize = info.get("randomize")
-        q_now = info["q_target"] if self._mjx_model is None else state.pipeline_state.qpos[:6].astype(dtype)
+        q_now = self.measured_joints(state)
         ctl = control.control_step(jnp, self.robot, cfg.control, info["q_target"], q_now,
                                    self._seen(spec, randomize).target_pos, action)
-        pipeline, q_meas = self._advance(state.pipeline_state, ctl.q_target, info["q_target"], randomize)
+        queue = None
+        if self.queue_size:
+            queue = jnp.concatenate([ctl.q_target[None], info["commands"][:-1]], axis=0)
+        pipeline, q_meas, servo_info = self._advance(state, ctl.q_target, queue, randomize)
         kin = robot.forward_kinematics(jnp, self.robot, q_meas)
         col = collision.check(jnp, self.robot, kin, spec, cfg)
         tilt = robot.tilt(jnp, kin.approach_axis)
@@ -234,10 +275,12 @@ class GraspEnv:
         step = episode.advance(jnp, cfg, info["tracker"], spec, progress=info["progress"], d_now=d_now, col=col,
                                gripper_centre=kin.gripper_centre, tilt=tilt)
         rng, key_noise = jax.random.split(info["rng"])
-        obs = self._observe(q_meas, kin, spec, col, tilt, key_noise, info["progress"], randomize)
+        obs = self._observe(q_meas, kin, spec, col, tilt, key_noise, info["progress"], randomize, ctl.q_target)
         new_info = dict(info)
         new_info.update(rng=rng, steps=step.tracker.steps, q_target=ctl.q_target, tracker=step.tracker,
-                        episode=step.episode)
+                        episode=step.episode, **servo_info)
+        if queue is not None:
+            new_info["commands"] = queue
         if self.privileged:
             new_info["privileged"] = observation.privileged(jnp, cfg, spec, col, kin.gripper_centre, step.tracker.steps,
                                                             info["progress"], step.tracker.blocking)
@@ -252,3 +295,4 @@ class GraspEnv:
         }
         return state.replace(pipeline_state=pipeline, obs=obs, reward=step.reward, done=step.done.astype(dtype),
                              metrics=metrics, info=new_info)
+

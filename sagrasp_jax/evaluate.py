@@ -34,7 +34,7 @@ import numpy as np
 
 from sagrasp_jax import ppo, run_dir
 from sagrasp_jax.checkpoint import CheckpointError
-from sagrasp_jax.config import SEED_RANGE, Config, ConfigError, blocking_sampling, check_range
+from sagrasp_jax.config import EVAL_CONDITIONS, SEED_RANGE, Config, ConfigError, blocking_sampling, check_range
 from sagrasp_jax.run_dir import RunDirError
 
 EvalEnvFactory = Callable[[Config], ppo.Env]
@@ -234,7 +234,10 @@ class _FinalPoseRecorder:
     def _record(self, state: Any) -> Any:
         pipeline = state.pipeline_state
         n = self.ARM_DOF
-        q = state.info["q_target"] if pipeline is None else pipeline.qpos[:n].astype(state.info["q_target"].dtype)
+        if pipeline is not None:  # dynamic mode: the servos' joints
+            q = pipeline.qpos[:n].astype(state.info["q_target"].dtype)
+        else:  # lagged mode: the servo model's joints; kinematic: the target itself
+            q = state.info["servo"]["q"] if "servo" in state.info else state.info["q_target"]
         episode = dict(state.info["episode"], **{f"final_q{i + 1}": q[i] for i in range(n)})
         return state.replace(info=dict(state.info, episode=episode))
 
@@ -294,7 +297,13 @@ def main(argv: list[str] | None = None) -> int:
                    help="also replay each kinematic success through the MuJoCo physical grasp check (close, lift 5 cm)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="env.KEY=VALUE",
                    help="evaluate in a changed env, repeatable (e.g. env.control.mode=dynamic, env.randomize.latency=1)")
+    p.add_argument("--condition", choices=sorted(EVAL_CONDITIONS), default=None,
+                   help="a named evaluation env (config.EVAL_CONDITIONS), applied before --set: kinematic, dynamic "
+                        "(every transfer knob off), robot (dynamic, every knob on at the real arm's levels), "
+                        "robot-latency2 (the same with up to 2 steps of latency), kinematic-target-error")
     args = p.parse_args(argv)
+    if args.condition:
+        args.overrides = [*EVAL_CONDITIONS[args.condition], *args.overrides]
     try:
         check_options(args.episodes, args.seed, args.max_steps)
         cfg = run_dir.load_config(args.run)

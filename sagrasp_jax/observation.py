@@ -13,6 +13,11 @@ Layouts (``env.task.obs_layout``; a policy file records its entry names and its 
   obstacle entry is 0 when the slot is empty, so "absent" is the natural value, and these
   entries are hand-scaled: the trainer's running normaliser leaves them alone
   (``hand_scaled_mask``; docs/design.md, "Observation layouts").
+* ``relative_lag`` — ``relative`` followed by each joint's pending command ``(q_target − q_reading) /
+  q_max`` (clipped to ± ``obs_pending_clip``, hand-scaled): the part of the commanded joint targets the
+  arm has not executed yet.  Under command latency or servo lag the policy cannot otherwise tell that
+  its last commands are still on their way; 0 when the arm tracks exactly.  Every backend has both
+  numbers: the env its command queue and joints, the deployment loop what it sent and what it reads.
 
 Joint readings carry Gaussian sensor noise in training (``noisy_joints``; the only place the
 noise model lives).
@@ -26,7 +31,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from sagrasp_jax import collision, shapes
-from sagrasp_jax.config import Config, EnvConfig, TaskConfig
+from sagrasp_jax.config import OBS_LAYOUTS, Config, EnvConfig, TaskConfig
 from sagrasp_jax.robot import Kinematics, RobotModel, forward_kinematics, tilt
 
 _ROBOT_ENTRIES: tuple[str, ...] = (
@@ -40,11 +45,14 @@ OBS_SIZE = len(OBS_LAYOUT)
 _SLOT_ENTRIES = ("present", "gripper_dx", "gripper_dy", "gripper_dz", "robot_dx", "robot_dy", "robot_dz", "closeness")
 
 
+PENDING_ENTRIES = tuple(f"pending{j}" for j in range(1, 7))  # relative_lag: (q_target − q_reading) / q_max per joint
+
+
 def _relative_layout(slots: int) -> tuple[str, ...]:
     return _ROBOT_ENTRIES + ("theta_gz",) + tuple(f"obstacle{k}_{e}" for k in range(slots) for e in _SLOT_ENTRIES)
 
 
-LAYOUT_NAMES = ("paper", "relative")
+LAYOUT_NAMES = OBS_LAYOUTS  # declared once in config (env.task.obs_layout's choices)
 
 
 def layout(name: str, slots: int = 2) -> tuple[str, ...]:
@@ -53,7 +61,14 @@ def layout(name: str, slots: int = 2) -> tuple[str, ...]:
         return PAPER_LAYOUT
     if name == "relative":
         return _relative_layout(slots)
+    if name == "relative_lag":
+        return _relative_layout(slots) + PENDING_ENTRIES
     raise ValueError(f"unknown observation layout {name!r}; valid layouts: {', '.join(LAYOUT_NAMES)}")
+
+
+def sees_pending(cfg: EnvConfig) -> bool:
+    """Whether the layout observes the pending command (then every backend passes ``q_command``)."""
+    return cfg.task.obs_layout == "relative_lag"
 
 
 def layout_of(cfg: EnvConfig) -> tuple[str, ...]:
@@ -61,9 +76,9 @@ def layout_of(cfg: EnvConfig) -> tuple[str, ...]:
 
 
 def hand_scaled_mask(names: tuple[str, ...]) -> np.ndarray:
-    """Entries the running normaliser must leave alone (mean 0, std 1): the relative layout's
-    obstacle entries, already scaled by hand and 0 when absent."""
-    return np.array([re.fullmatch(r"obstacle\d+_\w+", n) is not None for n in names])
+    """Entries the running normaliser must leave alone (mean 0, std 1): the relative layouts'
+    obstacle entries and pending commands, already scaled by hand and 0 when absent."""
+    return np.array([re.fullmatch(r"obstacle\d+_\w+|pending\d", n) is not None for n in names])
 
 
 class Observed(NamedTuple):
@@ -91,8 +106,11 @@ def _sorted_slots(xp: Any, key: Any, values: Any) -> Any:
 
 
 def assemble(xp: Any, cfg: EnvConfig, q: Any, gripper_centre: Any, reset: Any, col: collision.CollisionResult,
-             theta: Any) -> Any:
-    """The observation of layout ``cfg.task.obs_layout`` (``q`` may already carry sensor noise)."""
+             theta: Any, q_command: Any = None) -> Any:
+    """The observation of layout ``cfg.task.obs_layout`` (``q`` may already carry sensor noise).
+
+    ``q_command``: the joint targets last commanded, in the frame of the readings ``q`` (needed by
+    ``relative_lag``; ignored by the other layouts)."""
     task = cfg.task
     dtype = gripper_centre.dtype
     target = xp.asarray(reset.target_pos, dtype=dtype)
@@ -101,7 +119,7 @@ def assemble(xp: Any, cfg: EnvConfig, q: Any, gripper_centre: Any, reset: Any, c
         return xp.concatenate(
             [q, gripper_centre, target, col.nearest_obstacle_pos, xp.reshape(col.nearest_obstacle_dist, (1,)), theta]
         )
-    if task.obs_layout != "relative":
+    if task.obs_layout not in ("relative", "relative_lag"):
         raise ValueError(f"unknown observation layout {task.obs_layout!r}")
     active = xp.asarray(reset.obstacle_active)
     present = active.astype(dtype)
@@ -117,7 +135,18 @@ def assemble(xp: Any, cfg: EnvConfig, q: Any, gripper_centre: Any, reset: Any, c
         axis=-1,
     )  # (slots, 8), zero rows for empty slots
     key = xp.where(active, col.obstacle_dist, xp.inf)
-    return xp.concatenate([q, gripper_centre, target, theta, xp.reshape(_sorted_slots(xp, key, slots), (-1,))])
+    parts = [q, gripper_centre, target, theta, xp.reshape(_sorted_slots(xp, key, slots), (-1,))]
+    if task.obs_layout == "relative_lag":
+        if q_command is None:
+            raise ValueError("the relative_lag layout needs the last commanded joint targets (q_command)")
+        parts.append(pending(xp, cfg, q, q_command))
+    return xp.concatenate(parts)
+
+
+def pending(xp: Any, cfg: EnvConfig, q_reading: Any, q_command: Any) -> Any:
+    """``relative_lag``'s pending command: (q_command − q_reading) / q_max, clipped to ± obs_pending_clip."""
+    clip = cfg.task.obs_pending_clip
+    return xp.clip((xp.asarray(q_command, dtype=q_reading.dtype) - q_reading) / cfg.control.q_max, -clip, clip)
 
 
 def blind(xp: Any, cfg: EnvConfig, obs: Any) -> Any:
@@ -169,11 +198,14 @@ def privileged(xp: Any, cfg: EnvConfig, reset: Any, col: collision.CollisionResu
     return xp.concatenate([head, xp.reshape(slots, (-1,))])
 
 
-def observe(xp: Any, robot: RobotModel, cfg: EnvConfig, q: Any, reset: Any, kin: Kinematics | None = None) -> Observed:
+def observe(xp: Any, robot: RobotModel, cfg: EnvConfig, q: Any, reset: Any, kin: Kinematics | None = None,
+            q_command: Any = None) -> Observed:
     """Noise-free observation at measured joints ``q`` for the scene ``reset`` (a ResetSpec).
 
-    ``kin`` lets a simulator pass its own link frames (PyBullet); by default our FK of ``q``."""
+    ``kin`` lets a simulator pass its own link frames (PyBullet); by default our FK of ``q``.
+    ``q_command``: the joint targets last sent (``relative_lag``); ``q`` itself (nothing pending) if None."""
     kin = forward_kinematics(xp, robot, q) if kin is None else kin
     col = collision.check(xp, robot, kin, reset, cfg)
     theta = tilt(xp, kin.approach_axis)
-    return Observed(assemble(xp, cfg, q, kin.gripper_centre, reset, col, theta), kin, col, theta)
+    q_command = q if q_command is None else q_command
+    return Observed(assemble(xp, cfg, q, kin.gripper_centre, reset, col, theta, q_command), kin, col, theta)

@@ -17,6 +17,12 @@ Obstacles (``shapes.SHAPES``): ``--obstacle sphere X Y Z R``, ``--obstacle cylin
 turned by YAW_DEG about its optical axis), ``--obstacle capsule X Y Z R L [YAW_DEG]`` (lying on
 the table, L tip to tip along the camera's x axis turned by YAW_DEG), at most two.
 
+Rehearsing transfer errors on the twin: ``--twin-latency STEPS`` delays every command by that many
+control steps (fractions blend two commands, as in training), ``--twin-servo-lag`` makes the arm follow
+through the fitted servo model (``--twin-servo-gain F`` scales its gain), and ``--twin-target-error
+DX DY DZ`` (in ``--units``) puts the twin's cube that far from the detection: the loop only knows the
+detection, and the grasp-and-lift says whether the cube came along anyway.
+
 Exit status: 0 grasp pose reached (and lifted, unless --no-grasp), 1 timeout or collision,
 2 input refused before anything moved, 3 the safety layer stopped the robot.
 """
@@ -43,6 +49,7 @@ from sagrasp_jax.deploy.calibration import (
 from sagrasp_jax import shapes
 from sagrasp_jax.deploy.loop import DeployError, Obstacle, format_report, run_episode, scene_spec, with_obstacle_kinds
 from sagrasp_jax.deploy.safety import SafetyViolation, check_policy_constants
+from sagrasp_jax.deploy.transfer import TransferErrors
 from sagrasp_jax.runtime import PolicyFormatError, load_policy
 
 BACKENDS = ("twin",)
@@ -159,7 +166,17 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--max-steps", type=int, default=None, help="step cap (default: the policy's env.task.max_steps)")
     p.add_argument("--no-grasp", action="store_true", help="stop at the grasp pose: do not close the gripper and lift")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
+    p.add_argument("--twin-latency", type=float, default=0.0, metavar="STEPS",
+                   help="twin: command latency in control steps (default 0)")
+    p.add_argument("--twin-servo-lag", action="store_true", help="twin: joints follow commands through the servo model")
+    p.add_argument("--twin-servo-gain", type=float, default=1.0, metavar="F",
+                   help="twin: servo-model gain factor with --twin-servo-lag (default 1)")
+    p.add_argument("--twin-target-error", nargs=3, type=float, default=None, metavar=("DX", "DY", "DZ"),
+                   help="twin: the real cube's offset from the detection, in --units (world axes)")
     return p
+
+
+MAX_TARGET_ERROR = 0.05  # m per axis: a larger detection error is a wrong detection, not an error to rehearse
 
 
 def _json_safe(value: Any) -> Any:
@@ -180,6 +197,21 @@ def _emit(args: argparse.Namespace, payload: dict[str, Any], text: str, error: b
         print(json.dumps(_json_safe(payload), indent=2, allow_nan=False))
     if error or not args.json:
         print(text, file=sys.stderr if error else sys.stdout)
+
+
+def _twin_errors(args: argparse.Namespace, spec: Any) -> tuple[Any, Any]:
+    """The twin's transfer errors and the scene it builds (the cube moved by ``--twin-target-error``)."""
+    try:
+        errors = TransferErrors(latency=args.twin_latency, servo_lag=args.twin_servo_lag, servo_gain=args.twin_servo_gain)
+    except ValueError as exc:
+        raise InputRefused(f"--twin-latency / --twin-servo-gain: {exc}") from None
+    if args.twin_target_error is None:
+        return errors, spec
+    offset = np.asarray(args.twin_target_error, dtype=float) * _unit_scale(args.units)
+    if not (np.isfinite(offset).all() and np.all(np.abs(offset) <= MAX_TARGET_ERROR)):
+        raise InputRefused(f"--twin-target-error {args.twin_target_error} {args.units} must be finite and within "
+                           f"±{MAX_TARGET_ERROR * 1000:g} mm per axis")
+    return errors, spec._replace(target_pos=np.asarray(spec.target_pos) + offset)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -215,6 +247,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         q_home = np.asarray(env_cfg.task.home_q, dtype=float)
         env_cfg = with_obstacle_kinds(env_cfg, obstacles)
         spec = scene_spec(q_home, centre, yaw, obstacles, env_cfg)
+        twin_errors, true_spec = _twin_errors(args, spec)
     except (InputRefused, TargetRejected, CalibrationError, PolicyFormatError, ValueError) as exc:
         _emit(args, {"outcome": "input_refused", "message": str(exc), "input": given},
               f"error: refused before moving: {exc}", error=True)
@@ -225,7 +258,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     from sagrasp_jax.deploy.twin import PyBulletTwin  # the only backend; PyBullet only when it is used
 
-    with PyBulletTwin(spec, env_cfg, q0=q_home, gui=args.gui) as robot:
+    if true_spec is not spec:
+        given["twin_cube_world"] = [float(v) for v in true_spec.target_pos]
+    with PyBulletTwin(true_spec, env_cfg, q0=q_home, gui=args.gui, errors=twin_errors) as robot:
         try:
             report = run_episode(robot, policy, centre, yaw, obstacles, max_steps=args.max_steps, grasp=not args.no_grasp)
         except (SafetyViolation, DeployError) as exc:

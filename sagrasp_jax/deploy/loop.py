@@ -139,9 +139,10 @@ class Observation(NamedTuple):
     collision: collision.CollisionResult
 
 
-def build_observation(model: RobotModel, env_cfg: EnvConfig, q: Any, spec: ResetSpec) -> Observation:
-    """The training observation (``observation.observe``, shared with both envs) at measured joints ``q``, no noise."""
-    seen = observation.observe(np, model, env_cfg, np.asarray(q, dtype=float), spec)
+def build_observation(model: RobotModel, env_cfg: EnvConfig, q: Any, spec: ResetSpec, q_command: Any = None) -> Observation:
+    """The training observation (``observation.observe``, shared with both envs) at measured joints ``q``, no
+    noise; ``q_command`` is the joint target last sent (the ``relative_lag`` layout's pending command)."""
+    seen = observation.observe(np, model, env_cfg, np.asarray(q, dtype=float), spec, q_command=q_command)
     return Observation(seen.obs, seen.kin.gripper_centre, float(seen.tilt), seen.col)
 
 
@@ -177,6 +178,12 @@ class DeployReport:
     slowed_steps: int
     finetuned_steps: int
     wall_s: float
+    # per control step, ms: the loop's own work (read, observe, policy, control step) and the whole period
+    # including the safety check and the robot's command call (which returns after one control period on a real controller)
+    step_compute_ms_mean: float = 0.0
+    step_compute_ms_max: float = 0.0
+    step_period_ms_mean: float = 0.0
+    step_period_ms_max: float = 0.0
     grasp: dict[str, Any] | None = None  # closed / lifted / rises, when a grasp was attempted
     hits: list[str] = field(default_factory=list)
 
@@ -238,9 +245,12 @@ def run_episode(
     steps = slowed = finetuned = 0
     clearance = math.inf
     outcome, message = "timeout", ""
+    compute_ms: list[float] = []
+    period_ms: list[float] = []
     while True:
+        t_step = time.perf_counter()
         q = _read(robot)
-        ob = build_observation(model, env_cfg, q, spec)
+        ob = build_observation(model, env_cfg, q, spec, q_target)
         clearance = min(clearance, float(ob.collision.nearest_obstacle_dist))
         if bool(ob.collision.any_collision):
             outcome = "collision"
@@ -253,8 +263,10 @@ def run_episode(
             break
         action = policy(ob.obs)
         ctl = control.control_step(np, model, env_cfg.control, q_target, q, target, action)
+        compute_ms.append(1e3 * (time.perf_counter() - t_step))
         try:
             q_target = send_checked(robot, safety, ctl.q_target, q_target)
+            period_ms.append(1e3 * (time.perf_counter() - t_step))
         except SafetyViolation as exc:
             outcome, message = "refused", f"safety layer refused step {steps + 1}: {exc}; robot stopped"
             break
@@ -283,6 +295,10 @@ def run_episode(
         slowed_steps=slowed,
         finetuned_steps=finetuned,
         wall_s=0.0,
+        step_compute_ms_mean=float(np.mean(compute_ms)) if compute_ms else 0.0,
+        step_compute_ms_max=float(np.max(compute_ms)) if compute_ms else 0.0,
+        step_period_ms_mean=float(np.mean(period_ms)) if period_ms else 0.0,
+        step_period_ms_max=float(np.max(period_ms)) if period_ms else 0.0,
         hits=hits,
     )
     if report.success and grasp:

@@ -11,6 +11,12 @@ targets precisely, so before the gripper closes a command sets the joints exactl
 are tracked by the joint motors under physics for one control period each, so the cube,
 squeezed between the pads (the only robot parts with contacts), is carried by friction and
 ``object_position`` tells whether the grasp held.  Nothing here imports jax.
+
+Transfer errors to rehearse under (``deploy.transfer.TransferErrors``; deploy's ``--twin-*`` flags): a command latency of
+whole and fractional control steps (a queue of commands, as in training), servo lag (the arm follows
+its commands through the lagged mode's fitted servo model, ``control.servo_model_step``, with an
+optional gain error), and a cube placed off the detected position (the deploy CLI builds the twin's
+scene from the true cube and hands the loop the detection).
 """
 
 from __future__ import annotations
@@ -28,9 +34,10 @@ try:
 except ImportError as exc:  # pragma: no cover - exercised only without the extra
     raise ImportError("the PyBullet twin needs pybullet: pip install -e .[reference]") from exc
 
+from sagrasp_jax import control, shapes
 from sagrasp_jax import robot as robot_mod
-from sagrasp_jax import shapes
 from sagrasp_jax.config import HOME_Q, EnvConfig
+from sagrasp_jax.deploy.transfer import TransferErrors
 from sagrasp_jax.reference.pybullet_env import _shape_kwargs, disconnect, rotation_to_quaternion
 from sagrasp_jax.robot import BOX
 from sagrasp_jax.sampling import ResetSpec
@@ -53,8 +60,13 @@ class PyBulletTwin:
     """The cell in PyBullet with the cube and obstacles of one scene (``deploy.loop.scene_spec``)."""
 
     def __init__(self, spec: ResetSpec, env_cfg: EnvConfig | None = None, q0: Any = HOME_Q, gui: bool = False,
-                 realtime: bool | None = None) -> None:
+                 realtime: bool | None = None, errors: TransferErrors | None = None) -> None:
         self.cfg = env_cfg or EnvConfig()
+        self.errors = errors or TransferErrors()
+        q0 = np.asarray(q0, dtype=float)
+        size = control.latency_queue_size(self.errors.latency)
+        self._queue = np.repeat(q0[None], max(size, 2), axis=0)  # commands, newest first
+        self._q_prev = q0.copy()  # the servo model's joints one step ago
         self.robot = robot_mod.load_robot()
         self.gui = gui
         self.realtime = gui if realtime is None else realtime
@@ -168,9 +180,28 @@ class PyBulletTwin:
             self._hold_arm(q)
             self._simulate(self.control_dt)
         else:
-            self._set_arm(q)
+            self._set_arm(self._executed(q))
             if self.realtime:
                 time.sleep(self.control_dt)
+
+    def _executed(self, q: np.ndarray) -> np.ndarray:
+        """Where the arm is one control period after the command ``q``, under this twin's latency and servo lag."""
+        e = self.errors
+        self._queue = np.concatenate([q[None], self._queue[:-1]], axis=0)
+        if e.latency == 0 and not e.servo_lag:
+            return q
+        current, previous, fraction = q, self._queue[1], 0.0
+        if e.latency > 0:
+            current, previous, fraction = control.delayed_commands(np, self._queue, float(e.latency))
+        if not e.servo_lag:  # exact tracking: the older command for the fraction, then the newer one
+            return current
+        q_now = self.read_joints()
+        gain = np.clip(np.asarray(self.cfg.control.lag_gain) * e.servo_gain, 0.0, 1.0)
+        weight = control.held_command_weight(np, fraction, gain)
+        command = (1.0 - weight) * current + weight * previous
+        q_next = control.servo_model_step(np, self.cfg.control, q_now, self._q_prev, command, gain)
+        self._q_prev = q_now
+        return q_next
 
     def open_gripper(self) -> None:
         self._fingers(self.robot.finger_open)
