@@ -446,7 +446,8 @@ class PyBulletGraspEnv(gym.Env):
         noise = self.np_random.normal(size=6) if observation.noise_std(task, self.progress) > 0 else np.zeros(6)
         assert self._spec is not None
         noisy_q = observation.noisy_joints(task, q, self.progress, noise)
-        return observation.assemble(np, self.cfg, noisy_q, kin.gripper_centre, self._spec, col, tilt).astype(np.float64)
+        return observation.assemble(np, self.cfg, noisy_q, kin.gripper_centre, self._spec, col, tilt,
+                                    self._q_target).astype(np.float64)
 
     # -- Gymnasium API ---------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
