@@ -2,15 +2,17 @@
 
 A policy only knows the detected cube.  The best it can do is to bring the gripper centre to the middle of
 the success band of the *detected* cube (horizontally on its centre, 12.5 mm above it, pointing down) with
-its pads clear.  This script takes the grasp poses a trained run really ends in (its kinematic successes
+its pads clear: what the deployment loop and ``evaluate --physical`` do before closing
+(``reward.grasp_centre``; ``--aim middle``).  ``--aim policy`` instead closes where the policy itself stops
+relative to the cube it sees, as a loop without the final centring would.  This script takes the grasp poses a trained run really ends in (its kinematic successes
 without detection error, replayed exactly as ``evaluate --physical`` does; their orientation and yaw
 relative to the cube), draws a detection error uniformly in ±E per axis, moves the gripper straight up or
 down (IK, ``robot.lift_pose``) to the band's middle above the *detected* cube and puts the true cube, resting
 on the table, off by the horizontal error.  For each level E
 it reports the share of poses whose true cube is still (a) inside the success band (≤ 10 mm horizontally,
 5–20 mm below the gripper centre), (b) clear of the palm and pads (``collision.check``: no hit of the
-target or the table), (c) held when the fingers close and lift (``physical.physical_grasp_check``), and
-all three: the ceiling for that level.  Also the policy's own final offsets (how close to the middle it
+target or the table), (c) held when the fingers close and lift (``physical.physical_grasp_check``, run whenever the pads are
+clear, in the band or not), and (a)–(c) together: the ceiling for that level.  Also the policy's own final offsets (how close to the middle it
 aims).  Prints a table and writes JSON.
 
     python experiments/detection_ceiling.py --run runs/robot_s0 --poses 100 --out experiments/results/detection_ceiling.json
@@ -57,6 +59,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--poses", type=int, default=100, help="success poses per level (the first N)")
     parser.add_argument("--episodes", type=int, default=300, help="episodes replayed to find them")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--levels", default=",".join(f"{v:g}" for v in LEVELS_MM), help="error levels, mm (comma list)")
+    parser.add_argument("--aim", choices=("middle", "policy"), default="middle",
+                        help="middle: the ideal aim (the ceiling); policy: where the run's policy stops relative to the "
+                             "cube it sees, as a deployment stops when its detected cube's band is reached")
     parser.add_argument("--out", default="experiments/results/detection_ceiling.json")
     args = parser.parse_args(argv)
     cfg = run_dir.load_config(args.run)
@@ -70,28 +76,30 @@ def main(argv: list[str] | None = None) -> int:
     own = np.array([k.gripper_centre - np.asarray(s.target_pos) for k, s in zip(kins, specs)])
     rng = np.random.default_rng(args.seed)
     rows = []
-    for level in LEVELS_MM:
+    for level in [float(v) for v in args.levels.split(",")]:
         band = clear = held = ceiling = no_ik = 0
-        for q0, kin0, spec in zip(q_final, kins, specs):
+        for q0, kin0, spec, own_offset in zip(q_final, kins, specs, own):
             error = rng.uniform(-1.0, 1.0, 3) * level / 1000.0
-            # the cube rests on the table where it was; the ideal aim puts the gripper centre over the detected
-            # cube's centre (horizontal error) at the band's middle above the detected height (vertical error)
+            # the cube rests on the table where it was.  "middle": the gripper centre over the detected cube's
+            # centre at the band's middle above its detected height; "policy": where the policy itself stops
+            # relative to the cube it sees (its final offset without error), i.e. where a deployment stops
             rest_z = float(np.asarray(spec.target_pos)[2])
-            height = middle + error[2] - float(kin0.gripper_centre[2] - rest_z)
+            aim = np.array([0.0, 0.0, middle]) if args.aim == "middle" else own_offset
+            height = aim[2] + error[2] - float(kin0.gripper_centre[2] - rest_z)
             try:
                 q = robot.lift_pose(model, q0, height)
             except robot.IKError:  # counted as a failure: no pose reaches the band's middle from here
                 no_ik += 1
                 continue
             kin = robot.forward_kinematics(np, model, q)
-            cube = np.array([kin.gripper_centre[0] + error[0], kin.gripper_centre[1] + error[1], rest_z])
+            cube = np.array([kin.gripper_centre[0] - aim[0] + error[0], kin.gripper_centre[1] - aim[1] + error[1], rest_z])
             true = spec._replace(target_pos=cube)
             offset = kin.gripper_centre - cube
             in_band = bool(np.hypot(offset[0], offset[1]) <= task.success_xy
                            and task.success_dz_min <= offset[2] <= task.success_dz_max)
             hits = collision.check(np, model, kin, true, env_cfg).hits
             is_clear = not (bool(hits["target"]) or bool(hits["table"]))
-            is_held = bool(physical.physical_grasp_check(q, true)["success"]) if in_band and is_clear else False
+            is_held = bool(physical.physical_grasp_check(q, true)["success"]) if is_clear else False  # band or not
             band += in_band
             clear += is_clear
             held += is_held
@@ -100,7 +108,7 @@ def main(argv: list[str] | None = None) -> int:
         rows.append({"error_mm": level, "poses": n, "no_ik": no_ik, "in_band": band / n, "pads_clear": clear / n,
                      "held": held / n, "ceiling": ceiling / n})
         print(f"±{level:g} mm: {rows[-1]}", file=sys.stderr, flush=True)
-    report = {"run": args.run, "band_middle_mm": 1000 * middle, "levels": rows,
+    report = {"run": args.run, "aim": args.aim, "band_middle_mm": 1000 * middle, "levels": rows,
               "policy_final_offset_mm": {"horizontal_mean": float(1000 * np.hypot(own[:, 0], own[:, 1]).mean()),
                                          "horizontal_p95": float(1000 * np.percentile(np.hypot(own[:, 0], own[:, 1]), 95)),
                                          "height_mean": float(1000 * own[:, 2].mean()),

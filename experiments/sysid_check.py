@@ -28,6 +28,7 @@ from sagrasp_jax.fileio import atomic_write_json
 
 CASES: dict[str, dict[str, Any]] = {
     "nominal": {"kp_scale": [1.0] * 6, "latency": 0.0, "offset": [0.0] * 6},
+    "whole-step": {"kp_scale": [1.0] * 6, "latency": 1.0, "offset": [0.004, -0.003, 0.002, -0.005, 0.001, 0.003]},
     "slow-late": {"kp_scale": [0.8, 0.85, 0.9, 0.8, 0.85, 0.9], "latency": 1.2,
                   "offset": [0.004, -0.003, 0.002, -0.005, 0.001, 0.003]},
     "stiff-later": {"kp_scale": [1.2, 1.15, 1.1, 1.2, 1.15, 1.1], "latency": 2.4,
@@ -35,9 +36,10 @@ CASES: dict[str, dict[str, Any]] = {
 }
 
 
-def synthesize(kp_scale: Any, latency: float, offset: Any, noise: float = 0.0005, episodes: int = 4, steps: int = 100,
+def synthesize(kp_scale: Any, latency: float, offset: Any, noise: float = 0.0005, episodes: int = 1, steps: int = 400,
                seed: int = 0) -> sysid.RobotLog:
-    """A log of ``episodes`` × ``steps`` control periods of the dynamic env with these arm parameters."""
+    """A log of ``episodes`` × ``steps`` control periods of the dynamic env with these arm parameters (several
+    episodes are logged one after another: each jump between them is a period the fit cannot explain)."""
     overrides = ["env.control.mode=dynamic", "env.task.obs_noise_std=0", "env.randomize.latency=3",
                  "env.randomize.servo_gain=0.2"]  # knobs on so the env keeps a command queue and a draw to overwrite
     cfg = config.apply_overrides(config.get_config("cpu-quick"), overrides).env

@@ -185,9 +185,11 @@ def evaluate_physical(run: str, episodes: int, seed: int, max_steps: int, lift: 
 
     The replay goes through ``ppo.evaluate_policy`` with the env wrapped to copy the final
     joints into the episode record, so it is the evaluation's own code path; the kinematic
-    success count is reported next to the physical one so a mismatch would show.
+    success count is reported next to the physical one so a mismatch would show.  As the
+    deployment loop does, the gripper first centres on the cube the policy saw (the true cube plus
+    the episode's detection error, ``reward.grasp_centre``), then closes on the true cube.
     """
-    from sagrasp_jax import physical
+    from sagrasp_jax import physical, reward, robot
     from sagrasp_jax.env import GraspEnv
     from sagrasp_jax.sampling import ResetSpec
 
@@ -198,23 +200,34 @@ def evaluate_physical(run: str, episodes: int, seed: int, max_steps: int, lift: 
     networks = ppo.make_networks(cfg.ppo.network, env.observation_size, env.action_size, cfg.ppo.obs_clip)
     keys = ppo.eval_keys(seed, episodes)
     result = jax.device_get(ppo.make_evaluator(networks, env, max_steps)(params, normaliser, keys))
-    specs = jax.device_get(jax.jit(jax.vmap(env.reset))(keys).info["reset"])
+    first = jax.device_get(jax.jit(jax.vmap(env.reset))(keys).info)
+    specs = first["reset"]
+    target_error = np.asarray(first["randomize"]["target_error"]) if "randomize" in first else np.zeros((episodes, 3))
     eps = {k: np.asarray(v) for k, v in result.episodes.items()}
     q_final = np.stack([eps[f"final_q{i + 1}"] for i in range(physical.ARM_DOF)], axis=-1)
     successes = np.nonzero(eps["success"] > 0)[0]
+    model = robot.load_robot()
     checks = []
     for i in successes:
         spec = ResetSpec(*(np.asarray(leaf)[i] for leaf in specs))
-        checks.append(physical.physical_grasp_check(q_final[i], spec, lift=lift))
+        # as the deployment loop does: centre on the *detected* cube (true + this episode's error), then close
+        goal = reward.grasp_centre(np, cfg.env.task, np.asarray(spec.target_pos) + target_error[i])
+        try:
+            q_grasp = robot.approach_pose(model, q_final[i], goal, what="centring pose")
+        except robot.IKError as exc:
+            checks.append({"success": False, "reason": str(exc), "criteria": {"centring_pose": False}})
+            continue
+        checks.append(physical.physical_grasp_check(q_grasp, spec, lift=lift))
     held = sum(c["success"] for c in checks)
-    failures = {name: sum(not c["criteria"][name] for c in checks) for name in checks[0]["criteria"]} if checks else {}
+    names = dict.fromkeys(name for c in checks for name in c["criteria"])
+    failures = {name: sum(not c["criteria"].get(name, True) for c in checks) for name in names}
     return {
         "episodes": episodes,
         "kinematic_successes": int(len(successes)),
         "physical_successes": int(held),
         "physical_success_rate": held / episodes,
         "physical_given_kinematic": held / len(successes) if len(successes) else None,
-        "mean_cube_rise": float(np.mean([c["cube_rise"] for c in checks])) if checks else None,
+        "mean_cube_rise": float(np.mean([c["cube_rise"] for c in checks if "cube_rise" in c])) if checks else None,
         "failed_criteria": failures,
         "lift": lift,
     }

@@ -384,10 +384,20 @@ def lift_pose(model: RobotModel, q: Any, height: float, max_joint_move: float = 
     the goal by more than 1 mm or moves a joint by more than ``max_joint_move``."""
     q = np.asarray(q, dtype=float)
     goal = forward_kinematics(np, model, q).gripper_centre + np.array([0.0, 0.0, height])
-    q_lift = solve_home_pose(q, goal, model)
-    kin = forward_kinematics(np, model, q_lift)
+    return approach_pose(model, q, goal, max_joint_move, what="lift pose")
+
+
+def approach_pose(model: RobotModel, q: Any, goal: Any, max_joint_move: float = LIFT_MAX_JOINT_MOVE,
+                  what: str = "pose") -> np.ndarray:
+    """Joints that put the gripper centre at ``goal`` pointing down, by IK seeded at ``q`` (the grasp's
+    final centring and the lift); IKError if it misses by more than 1 mm or moves a joint by more than
+    ``max_joint_move``."""
+    q = np.asarray(q, dtype=float)
+    goal = np.asarray(goal, dtype=float)
+    q_goal = solve_home_pose(q, goal, model)
+    kin = forward_kinematics(np, model, q_goal)
     error = float(np.linalg.norm(kin.gripper_centre - goal))
-    move = float(np.abs(q_lift - q).max())
-    if not (error <= 1e-3 and move <= max_joint_move and np.isfinite(q_lift).all()):
-        raise IKError(f"no lift pose found near the grasp pose (IK error {error * 1000:.1f} mm, joint move {move:.3f} rad)")
-    return q_lift
+    move = float(np.abs(q_goal - q).max())
+    if not (error <= 1e-3 and move <= max_joint_move and np.isfinite(q_goal).all()):
+        raise IKError(f"no {what} found near the grasp pose (IK error {error * 1000:.1f} mm, joint move {move:.3f} rad)")
+    return q_goal

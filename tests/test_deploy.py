@@ -15,7 +15,7 @@ import pytest
 pytest.importorskip("pybullet")
 
 from sagrasp_jax import sampling  # noqa: E402
-from sagrasp_jax.config import HOME_Q, get_config  # noqa: E402
+from sagrasp_jax.config import HOME_Q, RandomizeConfig, get_config  # noqa: E402
 from sagrasp_jax.deploy import (  # noqa: E402
     CameraCalibration,
     Obstacle,
@@ -89,14 +89,15 @@ def _twin(target=TARGET, obstacles=(), q0=HOME, yaw=0.0) -> PyBulletTwin:
 
 
 def test_observation_is_the_training_envs() -> None:
-    """Same 17 numbers as GraspEnv (noise off) for sampled scenes, obstacles included."""
+    """Same numbers as GraspEnv (noise and transfer errors off) for sampled scenes, obstacles included."""
     import jax
 
     from sagrasp_jax.env import GraspEnv
 
     cfg = get_config("cpu-quick").env
     cfg = dataclasses.replace(cfg, task=dataclasses.replace(cfg.task, obs_noise_std=0.0),
-                              sampling=dataclasses.replace(cfg.sampling, obstacle_prob=1.0))
+                              sampling=dataclasses.replace(cfg.sampling, obstacle_prob=1.0),
+                              randomize=RandomizeConfig())  # the training's transfer errors off: the same scene seen
     env = GraspEnv(cfg)
     rng = np.random.default_rng(0)
     reset_to = jax.jit(env.reset_to)

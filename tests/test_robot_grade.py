@@ -215,3 +215,41 @@ def test_twin_latency_and_servo_lag() -> None:
         np.testing.assert_allclose(twin.read_joints(), q0 + np.asarray(env_cfg.control.lag_gain) * step, atol=1e-9)
     with pytest.raises(ValueError, match="latency"):
         TransferErrors(latency=-1.0)
+
+
+def test_a_29_number_policy_still_loads_evaluates_and_deploys(tmp_path) -> None:
+    """Policies of the second landing (layout ``relative``, kinematic training, no pending command) keep
+    working next to the robot-grade ones: the runtime reads their layout from the file, and the deploy
+    loop builds their 29 numbers (the command is only passed on, never appended)."""
+    pytest.importorskip("pybullet")
+    from sagrasp_jax import runtime
+    from sagrasp_jax.deploy import run_episode, scene_spec
+    from sagrasp_jax.deploy.twin import PyBulletTwin
+
+    cfg = apply_overrides(get_config("cpu-quick"), [*KNOBS_OFF, "env.control.mode=kinematic", "env.task.obs_layout=relative"])
+    names = observation.layout_of(cfg.env)
+    rng = np.random.default_rng(0)
+    sizes = [len(names), 32, 32, 6]
+    weights = [(0.1 * rng.standard_normal((a, b)), np.zeros(b)) for a, b in zip(sizes[:-1], sizes[1:])]
+    path = runtime.save_policy_npz(str(tmp_path / "policy.npz"), weights, "tanh", np.zeros(len(names)),
+                                   np.ones(len(names)), config.config_to_dict(cfg), obs_layout=names)
+    policy = runtime.load_policy(path)
+    assert policy.obs_layout == names and len(names) == 29
+    seen = []
+    original = policy.__call__
+
+    class Recording:
+        def __getattr__(self, name):  # the loop reads the policy's config and path
+            return getattr(policy, name)
+
+        def __call__(self, obs):
+            seen.append(np.asarray(obs).shape)
+            return original(obs)
+
+    env_cfg = policy.env_config()
+    target = np.array([0.10, -0.45, 0.025])
+    q0 = np.asarray(config.HOME_Q)
+    with PyBulletTwin(scene_spec(q0, target, 0.0, [], env_cfg), env_cfg, q0=q0) as twin:
+        report = run_episode(twin, Recording(), target, 0.0, max_steps=5, grasp=False)
+    assert seen and all(shape == (29,) for shape in seen), seen
+    assert report.outcome in ("timeout", "collision", "refused"), report

@@ -17,8 +17,10 @@ training env runs, with NumPy:
   here also refuses a command whose pose would collide with the cell, the detected
   obstacles or the cube (``collision.check``), so the arm stops instead of touching them.
 
-After a success the gripper closes and the arm lifts the gripper centre by ``lift_height``
-(0.05 m) in small IK steps, each passing the same safety layer.  Nothing here imports jax.
+After a success the gripper centre moves over the detected cube's centre to the middle of the
+success band's heights (``reward.grasp_centre``: a detection error then has the band's whole
+margin), the gripper closes and the arm lifts the gripper centre by ``lift_height`` (0.05 m), all in
+small IK steps, each passing the same safety layer.  Nothing here imports jax.
 """
 
 from __future__ import annotations
@@ -35,12 +37,14 @@ from sagrasp_jax import collision, control, observation, reward, shapes
 from sagrasp_jax.config import EnvConfig
 from sagrasp_jax.deploy.calibration import validate_obstacle_clearance, validate_target
 from sagrasp_jax.deploy.safety import SafetyLayer, SafetyViolation, check_policy_constants
-from sagrasp_jax.robot import IKError, RobotModel, forward_kinematics, lift_pose, load_robot
+from sagrasp_jax.robot import IKError, RobotModel, approach_pose, forward_kinematics, lift_pose, load_robot
 from sagrasp_jax.runtime import NumpyPolicy
 from sagrasp_jax.sampling import ResetSpec
 
 LIFT_HEIGHT = 0.05  # m, SPEC §2/§5: lift after closing the gripper
 LIFT_MIN_STEPS = 10  # control periods the lift takes at least (0.5 s: ≤ 0.1 m/s)
+CENTRE_MIN_STEPS = 4  # control periods the final centring takes at least (it moves a few mm)
+CENTRE_SETTLE_STEPS = 6  # control periods the centring pose is held before closing (3 steps of latency, servo lag)
 
 
 class DeployError(RuntimeError):
@@ -307,22 +311,52 @@ def run_episode(
     return report
 
 
+def _ramp(robot: RobotInterface, safety: SafetyLayer, q_goal: np.ndarray, q_target: np.ndarray, min_steps: int) -> np.ndarray:
+    """Move the commanded target to ``q_goal`` in safety-checked steps of at most half the step limit."""
+    n = max(min_steps, math.ceil(float(np.max(np.abs(q_goal - q_target) / safety.step_limit)) * 2))
+    for k in range(1, n + 1):
+        q_target = send_checked(robot, safety, q_target + (q_goal - q_target) / (n - k + 1), q_target)
+    return q_target
+
+
+def _centre_on_cube(robot: RobotInterface, model: RobotModel, env_cfg: EnvConfig, spec: ResetSpec, q: np.ndarray,
+                    q_target: np.ndarray, safety: SafetyLayer) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """Before closing: bring the gripper centre over the detected cube's centre, to the middle of the success
+    band's heights (``reward.grasp_centre``), in safety-checked steps (the cube is still an obstacle), and hold
+    the command until the arm has settled there (latency and servo lag).  A detection error then has the
+    band's whole margin on every side.  Returns the measured joints, the commanded target and a summary."""
+    goal = reward.grasp_centre(np, env_cfg.task, np.asarray(spec.target_pos, dtype=float))
+    start = forward_kinematics(np, model, q).gripper_centre
+    q_goal = approach_pose(model, q, goal, what="centring pose")
+    q_target = _ramp(robot, safety, q_goal, q_target, CENTRE_MIN_STEPS)
+    for _ in range(CENTRE_SETTLE_STEPS):
+        q_target = send_checked(robot, safety, q_target, q_target)
+    q = _read(robot)
+    end = forward_kinematics(np, model, q).gripper_centre
+    return q, q_target, {"centring_move_mm": float(1000 * np.linalg.norm(goal - start)),
+                         "centring_residual_mm": float(1000 * np.linalg.norm(end - goal))}
+
+
 def _grasp_and_lift(robot: RobotInterface, model: RobotModel, env_cfg: EnvConfig, spec: ResetSpec,
                     q: np.ndarray, q_target: np.ndarray, height: float, safety: SafetyLayer) -> dict[str, Any]:
-    """Close the gripper, lift ``height`` m in safety-checked steps, measure what rose."""
+    """Centre on the detected cube, close the gripper, lift ``height`` m in safety-checked steps, measure what rose."""
     locate = getattr(robot, "object_position", None)
     cube0 = np.asarray(locate(), float) if locate is not None else None
+    result: dict[str, Any] = {"closed": False, "lift_commanded": float(height), "lifted": False, "message": ""}
+    try:
+        q, q_target, centring = _centre_on_cube(robot, model, env_cfg, spec, q, q_target, safety)
+        result.update(centring)
+    except (SafetyViolation, DeployError, IKError) as exc:
+        result["message"] = f"centring stopped: {exc}; gripper not closed"
+        return result
     centre0 = forward_kinematics(np, model, q).gripper_centre
     robot.close_gripper()
-    result: dict[str, Any] = {"closed": True, "lift_commanded": float(height), "lifted": False, "message": ""}
+    result["closed"] = True
     # The cube now rides between the pads: contact with it is the point, not a collision.
     lift_safety = SafetyLayer(safety.settings, model, workspace=safety.workspace, table_clearance=safety.table_clearance,
                               collision_check=collision_hook(model, env_cfg, spec, ignore=("target",)))
     try:
-        q_lift = lift_pose(model, q, height)
-        n = max(LIFT_MIN_STEPS, math.ceil(float(np.max(np.abs(q_lift - q_target) / lift_safety.step_limit)) * 2))
-        for k in range(1, n + 1):
-            q_target = send_checked(robot, lift_safety, q_target + (q_lift - q_target) / (n - k + 1), q_target)
+        _ramp(robot, lift_safety, lift_pose(model, q, height), q_target, LIFT_MIN_STEPS)
         result["lifted"] = True
     except (SafetyViolation, DeployError, IKError) as exc:
         result["message"] = f"lift stopped: {exc}"
