@@ -761,6 +761,10 @@ def validate(cfg: Config) -> None:
     for key in ("env.randomize.servo_gain", "env.randomize.latency", "env.control.impl"):  # servo physics only
         if get_key(cfg, key) != get_key(Config(), key) and cfg.env.control.mode != "dynamic":
             raise ConfigError(f"{key}={get_key(cfg, key)!r} needs env.control.mode=dynamic (the kinematic mode has no servos)")
+    for key in ("ppo.network.policy_hidden", "ppo.network.value_hidden"):  # `--set KEY=` leaves no layer
+        if not get_key(cfg, key):
+            raise ConfigError(f"{key} is empty: give at least one hidden layer width (e.g. {key}=64,64); "
+                              "no hidden layer would make the network linear")
     if (cfg.ppo.num_envs * cfg.ppo.unroll_length) % cfg.ppo.num_minibatches:
         raise ConfigError(f"ppo.num_minibatches={cfg.ppo.num_minibatches} must divide ppo.num_envs × ppo.unroll_length "
                           f"= {cfg.ppo.num_envs} × {cfg.ppo.unroll_length}")
