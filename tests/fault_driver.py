@@ -1,7 +1,7 @@
 """A toy-env training in its own process, for tests/test_faults.py to kill.
 
     python tests/fault_driver.py OUT [--slow SECONDS] [--die-in-checkpoint-write N] [--die-after-checkpoint N]
-                                     [--dynamic] [--cli]
+                                     [--snapshot-after-checkpoint N DIR] [--dynamic] [--cli]
 
 Runs ``train.run(toy_config(), OUT, resume=True, env_factory=toy_factory())``: the CLI's library
 path (lock, folder checks, fresh / resume / restart, checkpoints) on the toy env, so a kill and
@@ -11,7 +11,9 @@ so that random kill times spread over the training; it changes no number.
 ``--die-in-checkpoint-write N`` SIGKILLs the process half-way through writing the N-th
 checkpoint of this process (after the temp file is half written, before the rename): the state
 a kill during a checkpoint write leaves.
-``--die-after-checkpoint N`` SIGKILLs it right after its N-th checkpoint is written.
+``--die-after-checkpoint N`` SIGKILLs it right after its N-th checkpoint is written;
+``--snapshot-after-checkpoint N DIR`` instead copies the run folder to DIR at that moment (what a
+kill there would leave) and trains on: one process gives both the killed and the uninterrupted run.
 ``--cli`` trains through ``train.main(["--out", OUT, "--resume"])`` (the run's config.json must be
 there; toy envs), so that signals meet the CLI's handlers.
 ``--dynamic`` trains the real grasp env in dynamic mode instead (``dynamic_config``: a few envs,
@@ -47,9 +49,27 @@ def main() -> None:
     p.add_argument("--slow", type=float, default=0.0)
     p.add_argument("--die-in-checkpoint-write", type=int, default=0)
     p.add_argument("--die-after-checkpoint", type=int, default=0)
+    p.add_argument("--snapshot-after-checkpoint", nargs=2, default=None, metavar=("N", "DIR"))
     p.add_argument("--dynamic", action="store_true")
     p.add_argument("--cli", action="store_true")
     args = p.parse_args()
+
+    if args.snapshot_after_checkpoint:
+        import shutil
+
+        n_snapshot, snapshot_dir = int(args.snapshot_after_checkpoint[0]), args.snapshot_after_checkpoint[1]
+        saved = fileio.atomic_write
+        seen = [0]
+
+        def atomic_write_then_copy(path: str, write):  # type: ignore[no-untyped-def]
+            out = saved(path, write)
+            if os.path.basename(path) == run_dir.CHECKPOINT_FILE:
+                seen[0] += 1
+                if seen[0] == n_snapshot:
+                    shutil.copytree(args.out, snapshot_dir)
+            return out
+
+        fileio.atomic_write = atomic_write_then_copy
 
     if args.die_after_checkpoint:
         written = fileio.atomic_write
