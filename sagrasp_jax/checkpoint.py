@@ -119,6 +119,10 @@ def load(path: str) -> Checkpoint:
             blob = f.read()
     except FileNotFoundError:
         raise CheckpointError(f"{path}: no checkpoint found") from None
+    except IsADirectoryError:
+        raise CheckpointError(f"{path} is a folder, not a checkpoint file") from None
+    except OSError as exc:
+        raise CheckpointError(f"{path}: cannot read the checkpoint ({exc.strerror or exc})") from None
     if not blob.startswith(MAGIC):
         raise CheckpointError(f"{path}: not a sagrasp_jax checkpoint (bad magic bytes); the file is corrupt")
     start = len(MAGIC) + _LEN.size

@@ -818,6 +818,10 @@ def validate(cfg: Config) -> None:
     for key in ("env.control.lag_gain", "env.control.lag_momentum"):
         if len(get_key(cfg, key)) != 6:
             raise ConfigError(f"invalid value for {key}: {get_key(cfg, key)!r} (one value per arm joint: 6)")
+    for key in ("ppo.network.policy_hidden", "ppo.network.value_hidden"):  # `--set KEY=` leaves no layer
+        if not get_key(cfg, key):
+            raise ConfigError(f"{key} is empty: give at least one hidden layer width (e.g. {key}=64,64); "
+                              "no hidden layer would make the network linear")
     if (cfg.ppo.num_envs * cfg.ppo.unroll_length) % cfg.ppo.num_minibatches:
         raise ConfigError(f"ppo.num_minibatches={cfg.ppo.num_minibatches} must divide ppo.num_envs × ppo.unroll_length "
                           f"= {cfg.ppo.num_envs} × {cfg.ppo.unroll_length}")

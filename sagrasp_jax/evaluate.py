@@ -8,8 +8,11 @@ success rate with its 95 % Wilson interval, mean steps per successful grasp, col
 obstacle present / absent.  The JSON goes atomically into the run folder, named by episodes and
 seed (``run_dir.evaluation_file``: ``evaluation-1000ep-seed12346.json``), or to ``--out``.  An
 existing file is replaced only if it holds the same evaluation (same run, checkpoint, episodes,
-seed, step cap, physical check) or with ``--force``.  The output folder is locked while the
-evaluation runs, and checked to be writable before it starts.
+seed, step cap, physical check, and what was trained: the config hash and the checkpoint's
+digest) or with ``--force``.  The result file is locked while the evaluation runs (``run_dir.
+ResultLock``: evaluations of other runs may write into the same folder meanwhile, a training may
+not), and its folder is checked to be writable, full disks included, before it starts; a write
+that still fails afterwards prints the result and exits 2.
 
 ``--physical`` also replays every kinematic success through the physical grasp check
 (``evaluate_physical``, ``sagrasp_jax.physical``).  ``--set env.KEY=VALUE`` evaluates the run's
@@ -142,6 +145,7 @@ def evaluate_run(run: str, episodes: int = 1000, seed: int | None = None, max_st
     cfg = run_dir.load_config(run)
     ckpt = run_dir.load_checkpoint(run, cfg)  # verified before the env is built
     counters = run_dir.checkpoint_counters(ckpt)
+    trained = trained_identity(cfg, ckpt)
     env = (env_factory or default_eval_env)(scene_config(env_overrides(cfg, overrides), scenes))
     params, normaliser = run_dir.restore_policy(cfg, ckpt, env.observation_size, env.action_size)
     networks = ppo.make_networks(cfg.ppo.network, env.observation_size, env.action_size, cfg.ppo.obs_clip)
@@ -164,6 +168,7 @@ def evaluate_run(run: str, episodes: int = 1000, seed: int | None = None, max_st
         "policy": "deterministic",
         "checkpoint_iteration": counters.get("iteration"),
         "checkpoint_env_steps": counters.get("env_steps"),
+        **trained,
         "wall_s": wall,
         "overall": summarise(eps, everyone),
         "obstacle_present": summarise(eps, present),
@@ -171,6 +176,19 @@ def evaluate_run(run: str, episodes: int = 1000, seed: int | None = None, max_st
         "obstacle_absent": summarise(eps, ~present),
         "fallback_episodes": int(np.sum(eps["fallback"] > 0)) if "fallback" in eps else 0,
     }
+
+
+def trained_identity(cfg: Config, ckpt: Any) -> dict[str, Any]:
+    """What was trained, in an evaluation's identity: a hash of the run's whole config (seed included;
+    ``config.config_hash`` covers the env only) and its checkpoint's payload digest (a retrained run
+    at the same iteration is another evaluation)."""
+    import hashlib
+    import json
+
+    from sagrasp_jax.config import config_to_dict
+
+    blob = json.dumps(config_to_dict(cfg), sort_keys=True).encode()
+    return {"config_sha256": hashlib.sha256(blob).hexdigest()[:16], "checkpoint_sha256": ckpt.header.get("payload_sha256")}
 
 
 def write_results(path: str, results: dict[str, Any]) -> str:
@@ -320,7 +338,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         check_options(args.episodes, args.seed, args.max_steps)
         cfg = run_dir.load_config(args.run)
-        counters = run_dir.checkpoint_counters(run_dir.load_checkpoint(args.run, cfg))
+        ckpt = run_dir.load_checkpoint(args.run, cfg)
+        counters = run_dir.checkpoint_counters(ckpt)
         env_overrides(cfg, args.overrides)  # refused before any work
         seed, steps = resolve_options(cfg, args.seed, args.max_steps)
         path = args.out or run_dir.path(args.run, run_dir.evaluation_file(
@@ -328,17 +347,22 @@ def main(argv: list[str] | None = None) -> int:
             overrides_tag(args.overrides)))
         identity = {"run": os.path.abspath(args.run), "episodes": args.episodes, "seed": seed, "max_steps": steps,
                     "checkpoint_iteration": counters.get("iteration"),
-                    "checkpoint_env_steps": counters.get("env_steps"), "physical_check": args.physical,
+                    "checkpoint_env_steps": counters.get("env_steps"), **trained_identity(cfg, ckpt),
+                    "physical_check": args.physical,
                     "scenes": args.scenes, **({"env_overrides": list(args.overrides)} if args.overrides else {})}
         folder = os.path.dirname(os.path.abspath(path))
-        with run_dir.FolderLock(folder, create=True, what="output folder"):
+        with run_dir.ResultLock(path, what="output folder"):  # the file: other results may go into its folder
             run_dir.check_writable(folder, "output folder")  # before the evaluation, not after it
             run_dir.check_replace(path, identity, args.force)
             results = evaluate_run(args.run, args.episodes, seed, steps, scenes=args.scenes, overrides=args.overrides)
             results["physical_check"] = args.physical
             if args.physical:
                 results["physical"] = evaluate_physical(args.run, args.episodes, seed, steps, overrides=args.overrides)
-            write_results(path, results)
+            try:
+                write_results(path, results)
+            except OSError as exc:  # e.g. the disk filled up meanwhile: show what was evaluated, then refuse
+                print(format_table(results))
+                raise RunDirError(f"{exc}; the evaluation above was not saved") from None
     except (ConfigError, CheckpointError, RunDirError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -10,6 +10,7 @@ No jax import (the deployment runtime uses it).
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
 import re
@@ -47,11 +48,33 @@ class NotWritable(OSError):
         return str(self.args[0]) if self.args else "not writable"
 
 
-def check_writable(path: str, what: str = "output folder", is_folder: bool = True) -> None:
+class OutOfSpace(NotWritable):
+    """A write that found its file system full (ENOSPC, or over quota: EDQUOT)."""
+
+
+_FULL = (errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC))
+PROBE_BYTES = 64 * 1024  # what check_writable writes: an empty probe file still fits on a full disk
+
+
+def is_out_of_space(exc: BaseException) -> bool:
+    return isinstance(exc, OSError) and exc.errno in _FULL
+
+
+def _write_probe(fd: int, size: int) -> None:
+    """Write ``size`` bytes to ``fd`` and flush them to the disk (a full disk fails here)."""
+    block = b"\0" * min(size, 1 << 16)
+    left = size
+    while left > 0:
+        left -= os.write(fd, block[:left])
+    os.fsync(fd)
+
+
+def check_writable(path: str, what: str = "output folder", is_folder: bool = True, size: int = PROBE_BYTES) -> None:
     """Refuse, before any expensive work, an output this process could not write: ``path`` is
-    the folder (or with ``is_folder=False`` the file) to be written.  A probe file is created and
-    removed in the folder, or in its nearest existing parent when it does not exist yet (it would
-    be made there), so read-only mounts, permissions and full disks all show."""
+    the folder (or with ``is_folder=False`` the file) to be written.  A probe file of ``size``
+    bytes is written, synced and removed in the folder, or in its nearest existing parent when it
+    does not exist yet (it would be made there), so read-only mounts, permissions and full disks
+    all show (``OutOfSpace`` for the last)."""
     folder = os.path.abspath(path if is_folder else os.path.dirname(os.path.abspath(path)))
     while not os.path.exists(folder):
         folder = os.path.dirname(folder)
@@ -60,17 +83,32 @@ def check_writable(path: str, what: str = "output folder", is_folder: bool = Tru
     try:
         fd, probe = tempfile.mkstemp(prefix=".write-probe-", dir=folder)
     except OSError as exc:
-        raise NotWritable(f"cannot write into {what} {folder}: {exc.strerror or exc}") from None
-    os.close(fd)
-    os.unlink(probe)
+        kind = OutOfSpace if is_out_of_space(exc) else NotWritable
+        raise kind(f"cannot write into {what} {folder}: {exc.strerror or exc}") from None
+    try:
+        _write_probe(fd, size)
+    except OSError as exc:
+        kind = OutOfSpace if is_out_of_space(exc) else NotWritable
+        raise kind(f"cannot write into {what} {folder}: {exc.strerror or exc} (a {size}-byte test write failed)") from None
+    finally:
+        os.close(fd)
+        os.unlink(probe)
 
 
 def atomic_write(path: str, write: Callable[[str], None]) -> str:
     """Call ``write(tmp_path)`` (the temp name keeps the extension, for writers that pick the
-    format by it), then rename over ``path``; the temp file is removed on any error."""
+    format by it), then rename over ``path``; the temp file is removed on any error.
+    Out of space (ENOSPC / EDQUOT) anywhere on the way raises ``OutOfSpace`` naming ``path``;
+    the old file, if any, is left as it was."""
     folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(path)}.", suffix=f".tmp{os.path.splitext(path)[1]}", dir=folder)
+    try:
+        os.makedirs(folder, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(path)}.", suffix=f".tmp{os.path.splitext(path)[1]}",
+                                   dir=folder)
+    except OSError as exc:
+        if is_out_of_space(exc):
+            raise out_of_space_error(path, exc) from None
+        raise
     os.close(fd)
     try:
         write(tmp)
@@ -78,11 +116,20 @@ def atomic_write(path: str, write: Callable[[str], None]) -> str:
             os.fsync(fh.fileno())
         os.chmod(tmp, _umask_mode())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         if os.path.exists(tmp):
             os.unlink(tmp)
+        if is_out_of_space(exc) and not isinstance(exc, OutOfSpace):
+            raise out_of_space_error(path, exc) from None
         raise
     return path
+
+
+def out_of_space_error(path: str, exc: OSError) -> OutOfSpace:
+    error = OutOfSpace(f"cannot write {path}: {exc.strerror or 'no space left on device'} (the file was left as it "
+                       "was)")
+    error.errno = exc.errno
+    return error
 
 
 def atomic_write_bytes(path: str, data: bytes) -> str:

@@ -15,9 +15,11 @@ Every file is written through ``fileio`` (temp file + rename), so a kill leaves 
 or the new file, plus at worst a temp file that the next writer removes; ``metrics.jsonl`` is
 appended by :class:`RunLogger` (a line cut short by a kill is dropped when it is read back).
 
-**Lock.** A command that writes into a folder (``train`` into its run, ``evaluate`` and
-``export`` into their output folder) holds :class:`FolderLock` on it for as long as it
-writes; a second writer is refused at once with a message naming the holder.  The lock is
+**Lock.** A command that writes into a folder (``train`` into its run, ``export`` into its
+output folder) holds :class:`FolderLock` on it for as long as it writes; a second writer is
+refused at once with a message naming the holder.  ``evaluate`` holds :class:`ResultLock` on
+its result file (and a shared lock on the folder), so evaluations of other runs may write into
+the same folder meanwhile.  The lock is
 ``fcntl.flock`` on the folder itself: nothing is added to the folder, and the kernel drops
 it when the process dies, so a killed run never leaves a stale lock.
 
@@ -100,10 +102,11 @@ class FolderLock:
     empty at release is removed again, so a refused command leaves nothing behind.
     """
 
-    def __init__(self, folder: str, create: bool = False, what: str = "folder") -> None:
+    def __init__(self, folder: str, create: bool = False, what: str = "folder", shared: bool = False) -> None:
         self.folder = folder
         self.create = create
         self.what = what
+        self.shared = shared  # a shared lock: other shared holders are welcome, an exclusive one is not
         self.created = False
         self._fd: int | None = None
 
@@ -126,7 +129,7 @@ class FolderLock:
         except OSError as exc:
             raise RunDirError(f"cannot open {self.what} {folder}: {exc.strerror or exc}") from None
         try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            fcntl.flock(fd, (fcntl.LOCK_SH if self.shared else fcntl.LOCK_EX) | fcntl.LOCK_NB)
         except OSError as exc:
             os.close(fd)
             if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
@@ -150,6 +153,70 @@ class FolderLock:
         self._fd = None
 
     def __enter__(self) -> "FolderLock":
+        return self.acquire()
+
+    def __exit__(self, *exc: Any) -> None:
+        self.release()
+
+
+class ResultLock:
+    """Lock on one result file (``evaluate``'s output) rather than on its folder, so that evaluations
+    of different runs can write into one results folder at once.
+
+    The folder gets a shared :class:`FolderLock` (refused while a training or an export holds it), the
+    file an exclusive ``flock`` on a lock file next to it, ``.<name>.evallock.tmp``: removed at release,
+    and named like ``fileio``'s temp files, so one left by a killed evaluation counts as a temp file
+    (ignored, and removed by the next training of that folder)."""
+
+    def __init__(self, file: str, what: str = "output folder") -> None:
+        self.file = file
+        self.folder_lock = FolderLock(os.path.dirname(os.path.abspath(file)), create=True, what=what, shared=True)
+        self.lock_path = os.path.join(self.folder_lock.folder, f".{os.path.basename(file)}.evallock.tmp")
+        self._fd: int | None = None
+
+    def acquire(self) -> "ResultLock":
+        self.folder_lock.acquire()
+        try:
+            for _ in range(10):  # the holder removes the lock file as it releases: lock the file the path names
+                try:
+                    fd = os.open(self.lock_path, os.O_RDWR | os.O_CREAT, 0o644)
+                except OSError as exc:
+                    raise RunDirError(f"cannot write into {self.folder_lock.what} {self.folder_lock.folder}: "
+                                      f"{exc.strerror or exc}") from None
+                try:
+                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                except OSError as exc:
+                    os.close(fd)
+                    if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                        raise RunDirError(
+                            f"{self.file} is being written by another process{_lock_holder(self.lock_path)}; "
+                            "wait until it has finished or choose another --out") from None
+                    raise RunDirError(f"cannot lock {self.file}: {exc.strerror or exc}") from None
+                try:
+                    same = os.path.samestat(os.fstat(fd), os.stat(self.lock_path))
+                except FileNotFoundError:
+                    same = False
+                if same:
+                    self._fd = fd
+                    return self
+                os.close(fd)
+            raise RunDirError(f"cannot lock {self.file}: its lock file keeps changing")
+        except BaseException:
+            self.folder_lock.release()
+            raise
+
+    def release(self) -> None:
+        if self._fd is not None:
+            try:
+                os.unlink(self.lock_path)
+            except OSError:
+                pass
+            fcntl.flock(self._fd, fcntl.LOCK_UN)
+            os.close(self._fd)
+            self._fd = None
+        self.folder_lock.release()
+
+    def __enter__(self) -> "ResultLock":
         return self.acquire()
 
     def __exit__(self, *exc: Any) -> None:
@@ -228,10 +295,15 @@ def read_metrics(file: str) -> list[dict[str, Any]]:
 
 
 def _json_safe(value: Any) -> Any:
+    """Strict-JSON form of a metrics value: NaN and ±inf (also inside lists) become null."""
     if isinstance(value, (np.generic, np.ndarray)):
         value = value.item() if np.ndim(value) == 0 else value.tolist()
     if isinstance(value, float) and not math.isfinite(value):
         return None
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
     return value
 
 
@@ -244,23 +316,47 @@ class RunLogger:
         self.path = os.path.join(out_dir, METRICS_FILE)
         if os.path.exists(self.path):
             keep = [line for line in read_metrics(self.path) if line.get("iteration", -1) < resume_iteration]
-            text = "".join(json.dumps(r, allow_nan=False) + "\n" for r in keep)
+            # NaN / Infinity in a row (Python's json reads them; this logger writes null) are kept as null
+            text = "".join(json.dumps(_json_safe(r), allow_nan=False) + "\n" for r in keep)
             fileio.atomic_write_text(self.path, text)  # under the run folder's lock
-        self.file = open(self.path, "a", encoding="utf-8")
-        self.tb = SummaryWriter(os.path.join(out_dir, TB_DIR), purge_step=resume_step + 1 if resume_step else None)
+        self.file = open(self.path, "ab", buffering=0)  # unbuffered: a failed row is cut off at once
+        tb = os.path.join(out_dir, TB_DIR)
+        try:
+            self.tb = SummaryWriter(tb, purge_step=resume_step + 1 if resume_step else None)
+        except OSError as exc:
+            self.file.close()
+            raise _write_error(tb, exc) from None
 
     def write(self, row: dict[str, Any]) -> None:
         clean = {k: _json_safe(v) for k, v in row.items()}
-        self.file.write(json.dumps(clean, allow_nan=False) + "\n")
-        self.file.flush()
+        line = memoryview((json.dumps(clean, allow_nan=False) + "\n").encode("utf-8"))
+        start = self.file.seek(0, os.SEEK_END)
+        try:
+            while line:
+                line = line[self.file.write(line):]
+        except OSError as exc:  # a full disk: no partial row stays behind
+            self.file.truncate(start)
+            raise _write_error(self.path, exc) from None
         step = int(row["env_steps"])
         for key, value in clean.items():
             if isinstance(value, (int, float)) and not isinstance(value, bool) and key not in ("iteration", "env_steps"):
                 self.tb.add_scalar(f"train/{key}", value, step)
+        try:
+            self.tb.flush()  # here, not only in tensorboardX's writer thread: a full disk shows in this one
+        except OSError as exc:
+            raise _write_error(os.path.join(os.path.dirname(self.path), TB_DIR), exc) from None
 
     def close(self) -> None:
         self.file.close()
-        self.tb.close()
+        try:
+            self.tb.close()
+        except OSError:
+            pass  # TensorBoard's last events on a full disk: metrics.jsonl and the checkpoint hold the run
+
+
+def _write_error(file: str, exc: OSError) -> OSError:
+    """A failed write into the run folder, as ``fileio.OutOfSpace`` when the disk is full."""
+    return fileio.out_of_space_error(file, exc) if fileio.is_out_of_space(exc) else exc
 
 
 def check_metrics_reach(run: str, iteration: int, log_every: int) -> list[dict[str, Any]]:
@@ -375,7 +471,7 @@ def prepare_training(out: str, cfg: Config, resume: bool) -> str:
     temps = set(fileio.temp_files(out))
     entries = sorted(n for n in os.listdir(out) if path(out, n) not in temps)
     has_config = os.path.isfile(path(out, CONFIG_FILE))
-    has_ckpt = os.path.isfile(path(out, CHECKPOINT_FILE))
+    has_ckpt = os.path.exists(path(out, CHECKPOINT_FILE))  # a folder there is refused by load_checkpoint
     if not resume:
         if has_config and not has_ckpt and set(entries) <= {CONFIG_FILE, METRICS_FILE, TB_DIR}:
             raise RunDirError(f"{out} holds a run that stopped before its first checkpoint; pass --resume to restart "

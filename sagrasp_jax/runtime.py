@@ -358,8 +358,52 @@ def load_policy(path: str | os.PathLike[str]) -> NumpyPolicy:
     if not os.path.isfile(path):
         raise PolicyFormatError(f"{path}: policy file not found")
     try:
-        with np.load(path, allow_pickle=False) as data:
-            arrays = {k: data[k] for k in data.files}
-    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
+        arrays = _read_npz(path)
+    except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, ValueError, EOFError, NotImplementedError,
+            RuntimeError) as exc:
+        if isinstance(exc, PolicyFormatError):
+            raise
         raise PolicyFormatError(f"{path}: not a readable .npz archive ({type(exc).__name__}: {exc})") from None
     return _policy_from_arrays(arrays, path)
+
+
+MAX_POLICY_BYTES = 256 * 2**20  # unpacked arrays of one policy file (a 4-layer 2048-wide float64 MLP is ≈ 100 MB)
+MAX_POLICY_MEMBERS = 1024
+
+
+def _read_npz(path: str) -> dict[str, np.ndarray]:
+    """The arrays of an ``np.savez`` archive, reading no more than its sizes allow: the members'
+    unpacked sizes (zip directory) and each ``.npy`` header's shape are checked against
+    ``MAX_POLICY_BYTES`` and against each other before any array is allocated, so a header claiming
+    gigabytes or a zip bomb is refused (PolicyFormatError) instead of filling the memory."""
+    arrays: dict[str, np.ndarray] = {}
+    with zipfile.ZipFile(path) as zf:
+        infos = zf.infolist()
+        total = sum(info.file_size for info in infos)
+        if len(infos) > MAX_POLICY_MEMBERS or total > MAX_POLICY_BYTES:
+            raise PolicyFormatError(f"{path}: {len(infos)} members of {total} bytes unpacked, over the "
+                                    f"{MAX_POLICY_BYTES} bytes a policy file may hold (zip bomb?); not read")
+        for info in infos:
+            if not info.filename.endswith(".npy"):
+                raise PolicyFormatError(f"{path}: member {info.filename!r} is not a .npy array")
+            with zf.open(info) as f:
+                version = np.lib.format.read_magic(f)
+                if version == (1, 0):
+                    shape, fortran, dtype = np.lib.format.read_array_header_1_0(f)
+                elif version == (2, 0):
+                    shape, fortran, dtype = np.lib.format.read_array_header_2_0(f)
+                else:
+                    raise PolicyFormatError(f"{path}: {info.filename} has .npy format version {version}")
+                if dtype.hasobject:
+                    raise PolicyFormatError(f"{path}: {info.filename} holds Python objects (pickles are not read)")
+                size = int(np.prod(shape, dtype=object)) * dtype.itemsize
+                stored = info.file_size - f.tell()
+                if size != stored:
+                    raise PolicyFormatError(f"{path}: {info.filename}'s header claims {dtype}{list(shape)} "
+                                            f"({size} bytes) but the member holds {stored} bytes; not read")
+                data = f.read(size)
+            if len(data) != size:
+                raise PolicyFormatError(f"{path}: {info.filename} is cut short")
+            arr = np.frombuffer(data, dtype=dtype)
+            arrays[info.filename[:-4]] = (arr.reshape(shape[::-1]).T if fortran else arr.reshape(shape)).copy()
+    return arrays

@@ -35,7 +35,7 @@ from typing import Any, Callable, TextIO
 import jax
 import numpy as np
 
-from sagrasp_jax import checkpoint, distributed, lr_schedule, observation, ppo, run_dir, sa_schedule
+from sagrasp_jax import checkpoint, distributed, fileio, lr_schedule, observation, ppo, run_dir, sa_schedule
 from sagrasp_jax.checkpoint import CheckpointError
 from sagrasp_jax.config import (
     LR_SCHEDULES, PRESETS, SEED_RANGE, Config, ConfigError, apply_overrides, check_range, get_config,
@@ -247,7 +247,7 @@ class Trainer:
                  for name, tmpl in ppo.to_host(self._trees()).items()}
         self.train_state = ppo.replicate(trees["train_state"], self.mesh)
         self.snapshot = ppo.replicate(trees["snapshot"], self.mesh)
-        self.env_state = ppo.shard_batch(trees["env_state"], self.mesh)
+        self.env_state = _placed_like(trees["env_state"], self.env_state)
         self.train_key = ppo.replicate(trees["train_key"], self.mesh)
         self.window = ppo.replicate(trees["episode_window"], self.mesh)
         self.host, self.lr_state, self.sa_rng = counters, lr_state, rng
@@ -511,6 +511,15 @@ class Trainer:
                 f"return {_fmt(row.get('eval_return'))}")
 
 
+def _placed_like(tree: Any, fresh: Any) -> Any:
+    """``tree`` (host arrays from a checkpoint) on the devices exactly as ``fresh`` (the same state
+    made by this run's jitted reset) is: the compiled cycle wants its inputs' shardings.  Not simply
+    split over the batch axis: XLA leaves zero-size leaves (dynamic mode's empty MJX fields, [B, 0])
+    replicated, and a resumed run that split them fails its second call (issue 27)."""
+    shardings = jax.tree_util.tree_map(lambda x: x.sharding, fresh)
+    return jax.device_put(ppo._placeable(tree), shardings)
+
+
 def _fmt(value: Any) -> str:
     return "-" if value is None else f"{value:.3g}"
 
@@ -567,6 +576,9 @@ def _parser() -> argparse.ArgumentParser:
     dist.add_argument("--coordinator", default=None, metavar="HOST:PORT", help="address of process 0")
     dist.add_argument("--num-processes", type=int, default=1)
     dist.add_argument("--process-id", type=int, default=0)
+    dist.add_argument("--connect-timeout", type=float, default=distributed.CONNECT_TIMEOUT, metavar="SECONDS",
+                      help="how long the processes wait for each other at start before stopping with a message naming "
+                           f"the missing one (default {distributed.CONNECT_TIMEOUT:g})")
     return p
 
 
@@ -656,18 +668,51 @@ def main(argv: list[str] | None = None) -> int:
     try:
         check_args(args)
         cfg = resolve_config(args)
+        distributed.check_options(args.coordinator, args.num_processes, args.process_id, cfg.ppo.num_envs,
+                                  args.connect_timeout)
         use_cpu_devices(cfg, args.num_processes if args.coordinator else 1)
         if args.coordinator:
-            distributed.initialize(args.coordinator, args.num_processes, args.process_id)
-        run(cfg, args.out, resume=args.resume, progress=not args.no_progress,
-            stop_after_cycles=args.stop_after_cycles)
-    except (ConfigError, CheckpointError, RunDirError) as exc:
+            distributed.initialize(args.coordinator, args.num_processes, args.process_id, args.connect_timeout)
+        with _sigterm_as_interrupt():
+            run(cfg, args.out, resume=args.resume, progress=not args.no_progress,
+                stop_after_cycles=args.stop_after_cycles)
+    except (ConfigError, CheckpointError, RunDirError, distributed.DistributedError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"\ninterrupted: {args.out} continues from its last checkpoint with --resume", file=sys.stderr)
-        return 130
+    except fileio.NotWritable as exc:  # a full disk (or a folder gone read-only) during the run
+        print(f"error: {exc}; {args.out} continues from its last checkpoint with --resume once it can be written",
+              file=sys.stderr)
+        return 2
+    except KeyboardInterrupt as exc:
+        terminated = isinstance(exc, Terminated)
+        print(f"\n{'terminated (SIGTERM)' if terminated else 'interrupted'}: {args.out} continues from its last "
+              "checkpoint with --resume", file=sys.stderr)
+        return 143 if terminated else 130
     return 0
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM during a training (``train.main``): stops it like Ctrl-C, at any point."""
+
+
+@contextlib.contextmanager
+def _sigterm_as_interrupt() -> Any:
+    """SIGTERM raises ``Terminated`` (a KeyboardInterrupt) for the block: the run stops as on Ctrl-C,
+    with its message and exit status 143, and resumes from its last checkpoint."""
+    import signal
+
+    def handler(signum: int, frame: Any) -> None:
+        raise Terminated()
+
+    try:
+        previous = signal.signal(signal.SIGTERM, handler)
+    except ValueError:  # not the main thread: leave SIGTERM alone
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":

@@ -17,6 +17,7 @@ import sagrasp_jax  # noqa: F401  (sets XLA_FLAGS before jax is imported)
 import contextlib
 import hashlib
 import json
+import math
 import os
 import random
 import shutil
@@ -512,9 +513,11 @@ def test_9_evaluate_names_its_output_and_refuses_to_replace_another_evaluation(r
 class Driver:
     """tests/fault_driver.py in a subprocess (the toy training through train.run)."""
 
-    def __init__(self, out: str, *extra: str) -> None:
-        # Cache even the trainer's many sub-second compiles: each driver starts in ≈ 6 s, not 10.
-        env = dict(os.environ, JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0")
+    def __init__(self, out: str, *extra: str, env: dict[str, str] | None = None) -> None:
+        # Cache even the trainer's many sub-second compiles: each driver starts in ≈ 6 s, not 10.  PYTHONPATH:
+        # this checkout's package, whatever an editable install elsewhere points at.
+        env = dict(os.environ, JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
+                   PYTHONPATH=os.pathsep.join([REPO, *filter(None, [os.environ.get("PYTHONPATH")])]), **(env or {}))
         self.proc = subprocess.Popen([sys.executable, DRIVER, out, *extra], stdout=subprocess.PIPE,
                                      stderr=subprocess.STDOUT, text=True, cwd=REPO, env=env)
 
@@ -575,3 +578,373 @@ def test_2_6_9_kills_at_random_points_then_resume_equals_the_uninterrupted_run(t
         for leaf in ckpt.trees[name]:
             np.testing.assert_array_equal(ckpt.trees[name][leaf], ref.trees[name][leaf], err_msg=f"{name}{leaf}")
 
+
+
+# ====================================================================== issue 27
+# 1 dynamic-mode resume; 2 deploy's cell from the deployment, not the policy file; 3 multi-process
+# options; 4 full disks; 5 an evaluation's identity includes what was trained; 6 NaN / Infinity in the
+# metrics log; 7 oversized policy files; 8 a checkpoint that is a folder; 9 SIGTERM; 10 evaluations
+# lock their result file, not its folder; 11 an empty hidden-layer list.
+
+TWO_CPU_DEVICES = {"JAX_PLATFORMS": "cpu",
+                   "XLA_FLAGS": "--xla_cpu_use_fusion_emitters=false --xla_force_host_platform_device_count=2"}
+
+
+def _checkpoints_equal(a: str, b: str) -> None:
+    ckpt, ref = run_dir.load_checkpoint(a), run_dir.load_checkpoint(b)
+    assert ckpt.host == ref.host
+    for name in ref.trees:
+        assert ckpt.trees[name].keys() == ref.trees[name].keys()
+        for leaf in ckpt.trees[name]:
+            np.testing.assert_array_equal(ckpt.trees[name][leaf], ref.trees[name][leaf], err_msg=f"{name}{leaf}")
+
+
+def test_27_1_dynamic_mode_kill_and_resume_equals_the_uninterrupted_run(tmp_path):
+    # Two devices: the env batch is split, and zero-size MJX fields ([B, 0]) must come back from the
+    # checkpoint placed as the jitted reset places them, or the second call after a resume fails.  One
+    # process trains the uninterrupted run and leaves a copy of its folder as a kill right after the first
+    # checkpoint would leave it (a dynamic-mode trainer takes ≈ 15 s to build: two, not three)
+    ref, out = str(tmp_path / "ref"), str(tmp_path / "run")
+    assert Driver(ref, "--dynamic", "--snapshot-after-checkpoint", "1", out, env=TWO_CPU_DEVICES).finish() == 0
+    assert run_dir.checkpoint_counters(run_dir.load_checkpoint(out))["iteration"] == 1  # after cycle 1 of 3
+    assert Driver(out, "--dynamic", env=TWO_CPU_DEVICES).finish() == 0  # two more cycles: two calls
+    assert len(rows(out)) == 3 and rows(out) == rows(ref)
+    assert {k: v.tolist() for k, v in policy_arrays(out).items()} == {k: v.tolist() for k, v in policy_arrays(ref).items()}
+    _checkpoints_equal(out, ref)
+
+
+@pytest.mark.parametrize("edit,target,message", [
+    (lambda c: c["env"]["sampling"].update(target_x=[-0.8, 0.8], target_radius=[0.25, 1.0]), ["-645", "-66", "1417"],
+     "trained for a cell this deployment does not have: env.sampling.target_x (m): policy [-0.8, 0.8], deployment "
+     "[-0.35, 0.35]; env.sampling.target_radius (m): policy [0.25, 1.0], deployment [0.25, 0.65]"),
+    (lambda c: c["env"]["sampling"].update(target_size=[0.002, 0.002, 0.002]), TARGET_CAM,
+     "env.sampling.target_size (m, full extents): policy [0.002, 0.002, 0.002], deployment [0.02, 0.02, 0.05]"),
+    (lambda c: c["env"]["sampling"].update(target_clearance=0.01), TARGET_CAM,
+     "env.sampling.target_clearance (m): policy 0.01, deployment 0.1"),
+])
+def test_27_2_a_policy_recording_another_cell_is_refused_before_moving(policy_file, tmp_path, edit, target, message,
+                                                                        capsys, no_twin):
+    path = _tampered(shutil.copy(policy_file, str(tmp_path / "policy.npz")), edit, rehash=True)  # hash recomputed
+    code, out, err = call(deploy_cli.main, ["--policy", path, "--target-cam", *target, "--json"], capsys)
+    assert code == 2 and message in err and "Traceback" not in err, err
+    assert json.loads(out)["outcome"] == "input_refused"
+    robot = Twinless()
+    with pytest.raises(PolicyMismatch, match="trained for a cell this deployment does not have"):
+        run_episode(robot, runtime.load_policy(path), TARGET)
+    assert robot.sent == []
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("localhost", 0))
+        return s.getsockname()[1]
+
+
+def test_27_3_multi_process_options_are_checked_and_the_start_is_time_boxed(tmp_path, capsys, monkeypatch):
+    import threading
+
+    from sagrasp_jax import distributed
+
+    monkeypatch.setattr(train, "Trainer", lambda *a, **k: pytest.fail("the env was built before refusing"))
+    out = str(tmp_path / "run")
+    port = _free_port()
+    for argv, message in [
+        (["--coordinator", f"localhost:{port}", "--num-processes", "0"], "--num-processes=0 must lie in 1"),
+        (["--coordinator", f"localhost:{port}", "--num-processes", "3"],
+         "ppo.num_envs=256 must be divisible by --num-processes=3"),
+        (["--coordinator", "x", "--num-processes", "2"], "--coordinator 'x' must be HOST:PORT"),
+        (["--coordinator", "host0:99999", "--num-processes", "2"], "--coordinator 'host0:99999' must be HOST:PORT"),
+        (["--coordinator", f"localhost:{port}", "--num-processes", "2", "--process-id", "2"],
+         "--process-id=2 must lie in 0 … 1"),
+        (["--num-processes", "2"], "--num-processes and --process-id need --coordinator"),
+        (["--coordinator", f"localhost:{port}", "--num-processes", "2", "--connect-timeout", "nan"],
+         "--connect-timeout=nan must be"),
+    ]:
+        code, _, err = call(train.main, ["--out", out, "--no-progress", *argv], capsys)
+        assert code == 2 and message in err and "Traceback" not in err, (argv, err)
+    # nobody at the coordinator / a peer that never comes: a message naming the missing process, in time
+    for process_id, message in [(1, f"process 1 cannot reach the coordinator localhost:{port} (process 0) within 1 s"),
+                                (0, f"process 1 never connected to the coordinator localhost:{port} within 1 s")]:
+        t = time.monotonic()
+        code, _, err = call(train.main, ["--out", out, "--no-progress", "--coordinator", f"localhost:{port}",
+                                         "--num-processes", "2", "--process-id", str(process_id),
+                                         "--connect-timeout", "1"], capsys)
+        assert code == 2 and message in err and "--connect-timeout" in err and "Traceback" not in err, err
+        assert time.monotonic() - t < 30
+    assert not os.path.exists(out)
+    # and processes that do come meet (the rendezvous before jax.distributed)
+    host = threading.Thread(target=distributed.rendezvous, args=(f"localhost:{port}", 3, 0, 20.0))
+    host.start()
+    peers = [threading.Thread(target=distributed.rendezvous, args=(f"localhost:{port}", 3, i, 20.0)) for i in (1, 2)]
+    for p in peers:
+        p.start()
+    for p in [host, *peers]:
+        p.join(30)
+        assert not p.is_alive()
+
+
+@contextlib.contextmanager
+def _full_file_system(tmp_path) -> typing.Iterator[str | None]:
+    """A 256 KiB tmpfs filled to its last byte, or None where this process may not mount one."""
+    import errno
+
+    folder = tmp_path / "full"
+    folder.mkdir()
+    try:
+        mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(folder)],
+                                 capture_output=True).returncode == 0
+    except OSError:
+        mounted = False
+    if not mounted:
+        yield None
+        return
+    try:
+        fd = os.open(folder / "filler", os.O_WRONLY | os.O_CREAT)
+        try:
+            while True:
+                os.write(fd, b"\0" * 4096)
+        except OSError as exc:
+            assert exc.errno == errno.ENOSPC
+        finally:
+            os.close(fd)
+        yield str(folder)
+    finally:
+        subprocess.run(["umount", "-l", str(folder)], capture_output=True)
+
+
+def _enospc(*args: Any) -> typing.NoReturn:
+    import errno
+
+    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+
+def test_27_4_a_full_disk_is_refused_before_any_work(run_copy, tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(train, "Trainer", lambda *a, **k: pytest.fail("the env was built before refusing"))
+    monkeypatch.setattr(evaluate, "evaluate_run", lambda *a, **k: pytest.fail("evaluated before refusing"))
+    before_run = snapshot(run_copy)
+    with _full_file_system(tmp_path) as full:
+        if full is None:  # no tmpfs to be had: the probe's write meets ENOSPC, as on a full disk
+            full = str(tmp_path / "full")
+            monkeypatch.setattr(fileio, "_write_probe", _enospc)
+        before = snapshot(full)
+        for main, argv in [(train.main, ["--out", os.path.join(full, "run"), "--no-progress"]),
+                           (evaluate.main, ["--run", run_copy, "--episodes", "8", "--out", os.path.join(full, "e.json")]),
+                           (export.main, ["--run", run_copy, "--out", os.path.join(full, "export"), "--no-onnx"])]:
+            code, _, err = call(main, argv, capsys)
+            assert code == 2 and f"cannot write into {'run' if main is train.main else 'output'} folder" in err, err
+            assert "No space left on device" in err and "Traceback" not in err
+        assert snapshot(full) == before
+    assert snapshot(run_copy) == before_run
+
+
+def _atomic_write_failing(monkeypatch, name: str, nth: int = 1) -> None:
+    """fileio.atomic_write of the ``nth`` write of a file called ``name`` meets a full disk half-way."""
+    original = fileio.atomic_write
+    seen = [0]
+
+    def atomic_write(path: str, write: Callable[[str], None]) -> str:
+        if os.path.basename(path) == name:
+            seen[0] += 1
+            if seen[0] == nth:
+                def half_then_full(tmp: str) -> None:
+                    write(tmp)
+                    with open(tmp, "r+b") as f:
+                        f.truncate(os.path.getsize(tmp) // 2)
+                    _enospc()
+
+                return original(path, half_then_full)
+        return original(path, write)
+
+    monkeypatch.setattr(fileio, "atomic_write", atomic_write)
+
+
+def test_27_4_b_out_of_space_during_training_exits_2_and_the_run_resumes(toy_run, tmp_path, capsys, monkeypatch):
+    out = str(tmp_path / "run")
+    os.makedirs(out)
+    run_dir.write_config(out, toy_config())
+    monkeypatch.setattr(train, "default_envs", toy_factory())
+    _atomic_write_failing(monkeypatch, run_dir.CHECKPOINT_FILE, nth=2)
+    code, _, err = call(train.main, ["--out", out, "--resume", "--no-progress"], capsys)
+    ckpt = run_dir.path(out, run_dir.CHECKPOINT_FILE)
+    assert code == 2 and f"cannot write {ckpt}: No space left on device" in err and "Traceback" not in err, err
+    assert f"{out} continues from its last checkpoint with --resume" in err
+    assert fileio.temp_files(out) == []  # no partial file
+    assert run_dir.checkpoint_counters(run_dir.load_checkpoint(out))["iteration"] == 4  # the first one, whole
+    monkeypatch.undo()
+    train.run(toy_config(), out, resume=True, env_factory=toy_factory(), progress=False)
+    assert rows(out) == rows(toy_run)
+    _checkpoints_equal(out, toy_run)
+
+
+def test_27_4_c_evaluate_that_cannot_write_its_result_shows_it_and_exits_2(run_copy, tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(evaluate, "default_eval_env", lambda cfg: toy_factory()(cfg)[1])
+    out = str(tmp_path / "results" / "e.json")
+    _atomic_write_failing(monkeypatch, "e.json")
+    code, stdout, err = call(evaluate.main, ["--run", run_copy, "--episodes", "8", "--out", out], capsys)
+    assert code == 2 and f"cannot write {out}: No space left on device" in err and "not saved" in err, err
+    assert "Traceback" not in err and "8 episodes of the evaluation mix" in stdout  # the work is not lost
+    assert not os.path.exists(os.path.dirname(out))  # made for the result, removed again: nothing left
+
+
+def _retrained(run: str, seed: int) -> None:
+    """The run as if trained again with ``--seed``: another config, other weights, the same counters."""
+    from flax import serialization
+
+    from sagrasp_jax import checkpoint
+
+    cfg = config_mod.apply_overrides(run_dir.load_config(run), [f"train.seed={seed}"])
+    ckpt = run_dir.load_checkpoint(run)
+    trees = {name: dict(flat) for name, flat in ckpt.trees.items()}
+    key = next(k for k in trees["train_state"] if "kernel" in k)
+    trees["train_state"][key] = trees["train_state"][key] + np.float32(0.01)
+    payload = serialization.msgpack_serialize(trees)
+    header = dict(ckpt.header, config=config_mod.config_to_dict(cfg), payload_bytes=len(payload),
+                  payload_sha256=hashlib.sha256(payload).hexdigest())
+    head = json.dumps(header, sort_keys=True).encode()
+    fileio.atomic_write_bytes(ckpt.path, checkpoint.MAGIC + checkpoint._LEN.pack(len(head)) + head + payload)
+    run_dir.write_config(run, cfg)
+
+
+def test_27_5_a_retrained_run_is_another_evaluation(run_copy, tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(evaluate, "default_eval_env", lambda cfg: toy_factory()(cfg)[1])
+    out = str(tmp_path / "results" / "e.json")
+    argv = ["--run", run_copy, "--episodes", "16", "--out", out]
+    assert call(evaluate.main, argv, capsys)[0] == 0
+    first = json.load(open(out))
+    assert first["config_sha256"] and first["checkpoint_sha256"]
+    _retrained(run_copy, seed=1)
+    before = snapshot(str(tmp_path / "results"))
+    code, _, err = call(evaluate.main, argv, capsys)
+    assert code == 2 and f"{out} holds a different result (" in err and "--force" in err, err
+    assert f"config_sha256 {first['config_sha256']!r} -> " in err and f"checkpoint_sha256 {first['checkpoint_sha256']!r}" in err
+    assert snapshot(str(tmp_path / "results")) == before
+    assert call(evaluate.main, [*argv, "--force"], capsys)[0] == 0
+    assert json.load(open(out))["checkpoint_sha256"] != first["checkpoint_sha256"]
+
+
+def test_27_6_resume_reads_nan_and_infinity_in_the_metrics_log(toy_run, run_copy, capsys, monkeypatch):
+    out = run_copy  # a resume keeps the rows before its checkpoint: here all of them, rewritten
+    path = run_dir.path(out, run_dir.METRICS_FILE)
+    lines = open(path).read().splitlines()
+    expected = rows(toy_run)
+    for i, (key, value) in enumerate([("loss", math.nan), ("grad_norm", math.inf), ("value_loss", -math.inf)]):
+        row = json.loads(lines[i + 1])
+        row[key] = value
+        lines[i + 1] = json.dumps(row)  # NaN, Infinity, -Infinity: what Python's json writes by default
+        expected[i + 1][key] = None
+    assert "NaN" in lines[1] and "Infinity" in lines[2]
+    with open(path, "w") as f:
+        f.write("\n".join(lines) + "\n")
+    monkeypatch.setattr(train, "default_envs", toy_factory())
+    code, _, err = call(train.main, ["--out", out, "--resume", "--no-progress"], capsys)
+    assert code == 0 and "Traceback" not in err, err
+    assert rows(out) == expected  # kept, as null: what this trainer's logger writes for a non-finite value
+
+
+def _policy_with_member(src: str, path: str, key: str, shape: tuple[int, ...], data_bytes: int) -> str:
+    """``src``'s arrays with member ``key`` replaced by a float64 .npy header of ``shape`` and
+    ``data_bytes`` zero bytes after it (deflated: a zip bomb when large)."""
+    import io
+    import zipfile
+
+    with np.load(src) as data:
+        arrays = {k: data[k] for k in data.files}
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as zf:
+        for k, v in arrays.items():
+            if k != key:
+                buf = io.BytesIO()
+                np.save(buf, v)
+                zf.writestr(f"{k}.npy", buf.getvalue())
+                continue
+            with zf.open(f"{k}.npy", "w", force_zip64=True) as f:
+                head = io.BytesIO()
+                np.lib.format.write_array_header_1_0(head, {"descr": "<f8", "fortran_order": False, "shape": shape})
+                f.write(head.getvalue())
+                chunk = b"\0" * (1 << 20)
+                for start in range(0, data_bytes, len(chunk)):
+                    f.write(chunk[: data_bytes - start])
+    return path
+
+
+@pytest.mark.parametrize("shape,data_bytes,message", [
+    ((37 * 2**30 // 8,), 17 * 8, "obs_mean.npy's header claims float64[4966055936] (39728447488 bytes) but the member "
+                                 "holds 136 bytes; not read"),
+    ((2**40 // 8,), 17 * 8, "(1099511627776 bytes) but the member holds 136 bytes; not read"),
+    ((300 * 2**20 // 8,), 300 * 2**20, "bytes unpacked, over the 268435456 bytes a policy file may hold (zip bomb?)"),
+], ids=["37GiB-header", "1TiB-header", "zip-bomb"])
+def test_27_7_an_oversized_policy_file_is_refused_before_it_is_read(policy_file, tmp_path, shape, data_bytes, message,
+                                                                     capsys, no_twin):
+    path = _policy_with_member(policy_file, str(tmp_path / "policy.npz"), "obs_mean", shape, data_bytes)
+    with pytest.raises(runtime.PolicyFormatError, match="not read"):
+        runtime.load_policy(path)
+    code, out, err = call(deploy_cli.main, ["--policy", path, "--target-cam", *TARGET_CAM, "--json"], capsys)
+    assert code == 2 and message in err and "Traceback" not in err, err
+    code, _, err = call(render.main, ["--policy", path, "--out", str(tmp_path / "v.mp4")], capsys)
+    assert code == 2 and message in err and not os.path.exists(tmp_path / "v.mp4")
+
+
+def test_27_8_a_checkpoint_that_is_a_folder_is_refused(run_copy, tmp_path, capsys):
+    ckpt = run_dir.path(run_copy, run_dir.CHECKPOINT_FILE)
+    os.unlink(ckpt)
+    os.makedirs(ckpt)
+    before = snapshot(run_copy)
+    for command in ("evaluate", "export", "resume"):
+        code, err = _run_command(command, run_copy, tmp_path, capsys)
+        assert code == 2 and f"{ckpt} is a folder, not a checkpoint file" in err and "Traceback" not in err, (command, err)
+    assert snapshot(run_copy) == before
+
+
+def test_27_9_sigterm_stops_training_with_a_message_and_the_run_resumes(toy_run, tmp_path):
+    import signal
+
+    out = str(tmp_path / "run")
+    os.makedirs(out)
+    run_dir.write_config(out, toy_config())
+    driver = Driver(out, "--cli", "--slow", "0.1", env={"JAX_NUM_CPU_DEVICES": "1"})
+    assert driver.wait_for("COMPILED")
+    time.sleep(0.3)
+    driver.proc.send_signal(signal.SIGTERM)
+    rest, _ = driver.proc.communicate(timeout=120)
+    assert driver.proc.returncode == 143, rest[-3000:]
+    assert f"terminated (SIGTERM): {out} continues from its last checkpoint with --resume" in rest
+    assert "Traceback" not in rest and fileio.temp_files(out) == []
+    train.run(toy_config(), out, resume=True, env_factory=toy_factory(), progress=False)
+    assert rows(out) == rows(toy_run)
+
+
+def test_27_10_evaluations_of_different_runs_write_into_one_results_folder_at_once(run_copy, toy_run, tmp_path, capsys,
+                                                                                    monkeypatch):
+    monkeypatch.setattr(evaluate, "default_eval_env", lambda cfg: toy_factory()(cfg)[1])
+    results = str(tmp_path / "results")
+    a, b = os.path.join(results, "a.json"), os.path.join(results, "b.json")
+    inner: dict[str, tuple[int, str, str]] = {}
+    evaluate_run = evaluate.evaluate_run
+
+    def evaluating(run: str, *args: Any, **kwargs: Any) -> dict[str, Any]:  # meanwhile, two more evaluations
+        if not inner:
+            inner["same file"] = call(evaluate.main, ["--run", toy_run, "--episodes", "8", "--out", a], capsys)
+            inner["other file"] = call(evaluate.main, ["--run", toy_run, "--episodes", "8", "--out", b], capsys)
+        return evaluate_run(run, *args, **kwargs)
+
+    monkeypatch.setattr(evaluate, "evaluate_run", evaluating)
+    code, _, err = call(evaluate.main, ["--run", run_copy, "--episodes", "8", "--out", a], capsys)
+    assert code == 0, err
+    code, _, err = inner["same file"]
+    assert code == 2 and f"{a} is being written by another process (pid {os.getpid()}" in err, err
+    assert inner["other file"][0] == 0, inner["other file"][2]
+    assert json.load(open(a))["run"] == os.path.abspath(run_copy) and json.load(open(b))["run"] == os.path.abspath(toy_run)
+    assert sorted(os.listdir(results)) == ["a.json", "b.json"]  # no lock file left
+    with run_dir.FolderLock(results):  # a training or an export writing there still keeps evaluations out
+        code, _, err = call(evaluate.main, ["--run", toy_run, "--episodes", "8", "--out", b], capsys)
+        assert code == 2 and "is in use by another process" in err
+
+
+def test_27_11_an_empty_hidden_layer_list_is_refused(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(train, "Trainer", lambda *a, **k: pytest.fail("a linear network was about to be trained"))
+    out = str(tmp_path / "run")
+    for key in ("ppo.network.policy_hidden", "ppo.network.value_hidden"):
+        code, _, err = call(train.main, ["--out", out, "--no-progress", "--set", f"{key}="], capsys)
+        assert code == 2 and f"{key} is empty: give at least one hidden layer width" in err and "Traceback" not in err
+    assert not os.path.exists(out)

@@ -48,7 +48,7 @@ from sagrasp_jax.deploy.calibration import (
 )
 from sagrasp_jax import shapes
 from sagrasp_jax.deploy.loop import DeployError, Obstacle, format_report, run_episode, scene_spec, with_obstacle_kinds
-from sagrasp_jax.deploy.safety import SafetyViolation, check_policy_constants
+from sagrasp_jax.deploy.safety import SafetyViolation, check_policy_constants, check_policy_scene, deployment_env
 from sagrasp_jax.deploy.transfer import TransferErrors
 from sagrasp_jax.runtime import PolicyFormatError, load_policy
 
@@ -234,6 +234,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         policy = load_policy(args.policy)
         env_cfg = policy.env_config()
         check_policy_constants(env_cfg, source=args.policy)
+        check_policy_scene(env_cfg, source=args.policy)
+        env_cfg = deployment_env(env_cfg)  # the cell's facts are the deployment's, never the file's
         if args.calibration:
             cal = CameraCalibration.from_file(args.calibration, args.calibration_units, args.base_z_offset, args.base_yaw)
         else:

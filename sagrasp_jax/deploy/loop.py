@@ -36,7 +36,9 @@ import numpy as np
 from sagrasp_jax import collision, control, observation, reward, shapes
 from sagrasp_jax.config import EnvConfig
 from sagrasp_jax.deploy.calibration import validate_obstacle_clearance, validate_target
-from sagrasp_jax.deploy.safety import SafetyLayer, SafetyViolation, check_policy_constants
+from sagrasp_jax.deploy.safety import (
+    SafetyLayer, SafetyViolation, check_policy_constants, check_policy_scene, deployment_env,
+)
 from sagrasp_jax.robot import IKError, RobotModel, approach_pose, forward_kinematics, lift_pose, load_robot
 from sagrasp_jax.runtime import NumpyPolicy
 from sagrasp_jax.sampling import ResetSpec
@@ -236,7 +238,10 @@ def run_episode(
     t0 = time.perf_counter()
     env_cfg = with_obstacle_kinds(policy.env_config(), obstacles)
     model = load_robot()
-    check_policy_constants(env_cfg, safety.settings if safety is not None else None, model, policy.path)
+    settings = safety.settings if safety is not None else None
+    check_policy_constants(env_cfg, settings, model, policy.path)
+    check_policy_scene(env_cfg, settings, policy.path)
+    env_cfg = deployment_env(env_cfg, settings)  # the cell's facts are the deployment's, never the file's
     target = validate_target(target_pos, env_cfg.sampling)
     q0 = _read(robot)
     spec = scene_spec(q0, target, target_yaw, obstacles, env_cfg)

@@ -7,10 +7,10 @@ policy, calibration or control-step bug behind a motion nobody asked for.
 
 Every limit comes from the robot description (``urdf/aubo_i5_eg2.urdf`` via
 ``robot.load_robot``) and the deployment's own settings (``DeploySettings``: the controller's
-command period and the largest joint-target change per command, SPEC §2), **never from a
-policy file**: a policy is data from elsewhere, and an edited one must not be able to loosen
-a limit.  A policy trained with other control constants is refused before anything moves
-(``check_policy_constants``).
+command period and the largest joint-target change per command, SPEC §2; the cell's cube size,
+target region and obstacle clearance, SPEC §1), **never from a policy file**: a policy is data from elsewhere, and an edited one must not be able to loosen
+a limit.  A policy trained with other control constants or for another cell is refused before
+anything moves (``check_policy_constants``, ``check_policy_scene``).
 
 Rules (all NumPy):
 
@@ -46,7 +46,10 @@ from typing import Any, Callable
 
 import numpy as np
 
-from sagrasp_jax.config import ControlConfig, EnvConfig
+import dataclasses
+
+from sagrasp_jax.config import ControlConfig, EnvConfig, SamplingConfig
+from sagrasp_jax.scene import SCENE
 from sagrasp_jax.robot import (
     ARM_JOINTS,
     BOX,
@@ -84,6 +87,10 @@ class WorkspaceBox:
 
 
 _SPEC_CONTROL = ControlConfig()  # SPEC §2's constants: the code's, not a policy file's
+_SPEC_SAMPLING = SamplingConfig()  # SPEC §1's trained region and clearance: the code's, not a policy file's
+# The cell facts a policy file records and the deployment checks with (env.sampling keys): units for messages.
+SCENE_KEYS = {"target_size": "m, full extents", "target_x": "m", "target_y": "m", "target_radius": "m",
+              "target_clearance": "m"}
 
 
 @dataclass(frozen=True)
@@ -99,6 +106,13 @@ class DeploySettings:
     max_step: float = _SPEC_CONTROL.q_max
     workspace: WorkspaceBox = WorkspaceBox()
     table_clearance: float = 0.0
+    # The cell (SPEC §1, ``scene.SCENE``): the cube's full extents, the region its centre may be in and the
+    # closest an obstacle may stand to it.  Targets, obstacles and collisions are checked with these.
+    target_size: tuple[float, float, float] = SCENE.target_size
+    target_x: tuple[float, float] = _SPEC_SAMPLING.target_x
+    target_y: tuple[float, float] = _SPEC_SAMPLING.target_y
+    target_radius: tuple[float, float] = _SPEC_SAMPLING.target_radius
+    target_clearance: float = _SPEC_SAMPLING.target_clearance
 
     def __post_init__(self) -> None:
         for name in ("control_dt", "max_step"):
@@ -130,6 +144,30 @@ def check_policy_constants(env_cfg: EnvConfig, settings: DeploySettings | None =
     if problems:
         raise PolicyMismatch(f"{source} was trained with control constants this robot does not use: "
                              + "; ".join(problems))
+
+
+def check_policy_scene(env_cfg: EnvConfig, settings: DeploySettings | None = None, source: str = "policy") -> None:
+    """Refuse a policy that records another cell than the deployment's (``SCENE_KEYS``: the cube's
+    size, the trained target region, the obstacle clearance): the deployment checks targets, obstacles
+    and collisions with its own values, and a file edited to widen the region or shrink the cube must
+    not get past them.  Raises PolicyMismatch naming each key, the policy's value and ours."""
+    settings = settings or DeploySettings()
+    problems = []
+    for key, unit in SCENE_KEYS.items():
+        theirs, ours = getattr(env_cfg.sampling, key), getattr(settings, key)
+        if np.shape(theirs) != np.shape(ours) or not np.allclose(theirs, ours, rtol=1e-9, atol=0.0):
+            show = (lambda v: [float(x) for x in v]) if np.ndim(ours) else float
+            problems.append(f"env.sampling.{key} ({unit}): policy {show(theirs)}, deployment {show(ours)}")
+    if problems:
+        raise PolicyMismatch(f"{source} was trained for a cell this deployment does not have: " + "; ".join(problems)
+                             + " (deploy.safety.DeploySettings)")
+
+
+def deployment_env(env_cfg: EnvConfig, settings: DeploySettings | None = None) -> EnvConfig:
+    """``env_cfg`` with the cell facts (``SCENE_KEYS``) of the deployment, not of the policy file."""
+    settings = settings or DeploySettings()
+    sampling = dataclasses.replace(env_cfg.sampling, **{key: getattr(settings, key) for key in SCENE_KEYS})
+    return dataclasses.replace(env_cfg, sampling=sampling)
 
 
 def lowest_points(robot: RobotModel, prim_pos: np.ndarray, prim_rot: np.ndarray) -> np.ndarray:
