@@ -92,12 +92,15 @@ def build_parser() -> argparse.ArgumentParser:
 
 def with_task_metrics(env: Any) -> Any:
     """Wrap a reference env so its episode metrics move to ``info["task_episode"]``
-    (SB3's VecMonitor owns ``info["episode"]``)."""
+    (SB3's VecMonitor owns ``info["episode"]``), and its timeouts count as terminal as in the
+    paper's setup (the −1 is the task's verdict, docs/task.md §4.6): the env reports them as
+    ``truncated`` (Gymnasium's convention), which SB3 would bootstrap."""
     import gymnasium as gym
 
     class TaskMetrics(gym.Wrapper):
         def step(self, action: Any) -> Any:
             obs, reward, terminated, truncated, info = self.env.step(action)
+            terminated, truncated = terminated or truncated, False
             if "episode" in info:
                 info["task_episode"] = info.pop("episode")
             return obs, reward, terminated, truncated, info

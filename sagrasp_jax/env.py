@@ -23,12 +23,12 @@ import jax
 import jax.numpy as jnp
 from brax.envs.base import State
 
-from sagrasp_jax import collision, control, episode, observation, robot, sampling
+from sagrasp_jax import assets, collision, control, episode, observation, robot, sampling
 from sagrasp_jax import config as config_mod
 from sagrasp_jax.config import EnvConfig
 
-MJCF_SCENE = os.path.join(os.path.dirname(robot.URDF_PATH), "..", "mjcf", "scene.xml")
-MJCF_ROBOT = os.path.join(os.path.dirname(robot.URDF_PATH), "..", "mjcf", "aubo_i5_eg2.xml")  # the dynamic mode's model
+MJCF_SCENE = assets.MJCF_SCENE
+MJCF_ROBOT = assets.MJCF_ROBOT  # the dynamic mode's model
 
 EPISODE_KEYS = episode.EPISODE_KEYS
 

@@ -29,7 +29,12 @@ import sys
 import time
 from typing import Any, Callable
 
-import jax
+from sagrasp_jax import extras
+
+if __name__ == "__main__":  # a missing extra ends in one line naming it (exit 2), not an import traceback
+    extras.require_cli("train", prog="python -m sagrasp_jax.evaluate")
+
+import jax  # noqa: E402
 import numpy as np
 
 from sagrasp_jax import ppo, run_dir

@@ -2,7 +2,7 @@
 
 Training scores a grasp kinematically (gripper centre over the cube, pointing down, no
 collision).  This check replays the end of an episode with physics on CPU MuJoCo, from
-``mjcf/scene.xml`` adapted in memory with ``mujoco.MjSpec`` for that episode:
+``sagrasp_jax/mjcf/scene.xml`` adapted in memory with ``mujoco.MjSpec`` for that episode:
 
 * the target, a mocap body in the training model, gets a free joint (it can be lifted) and
   the episode's pose; the obstacle slots get the episode's shape, size and pose;
@@ -28,12 +28,13 @@ from typing import Any, Callable
 import mujoco
 import numpy as np
 
+from sagrasp_jax import assets
 from sagrasp_jax import robot as robot_mod
 from sagrasp_jax import shapes
 from sagrasp_jax.robot import lift_pose
 from sagrasp_jax.sampling import ResetSpec
 
-SCENE_XML = os.path.normpath(os.path.join(os.path.dirname(robot_mod.URDF_PATH), "..", "mjcf", "scene.xml"))
+SCENE_XML = assets.MJCF_SCENE
 PHYSICS_DT = 0.002  # s; finer than the training model's 0.01 s: pad-cube contacts under squeeze
 SETTLE_S = 0.1  # s with fingers open before closing (the cube settles on the table)
 CLOSE_S = 0.5  # s for the fingers to close and squeeze

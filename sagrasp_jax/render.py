@@ -26,7 +26,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from sagrasp_jax import fileio
+from sagrasp_jax import extras, fileio
 from sagrasp_jax.config import SEED_RANGE, ConfigError, check_range
 from sagrasp_jax.deploy.safety import PolicyMismatch
 from sagrasp_jax.runtime import PolicyFormatError, load_policy
@@ -59,11 +59,10 @@ def _mujoco() -> Any:
 
 
 def _imageio() -> Any:
-    try:
-        import imageio.v2 as imageio
-        import imageio_ffmpeg  # noqa: F401  (the mp4 writer; fail here, not after rendering)
-    except ImportError as exc:
-        raise RenderError(f"writing mp4 needs imageio and imageio-ffmpeg: pip install -e .[render] ({exc})") from None
+    extras.require("render", what="writing mp4")
+    import imageio.v2 as imageio
+    import imageio_ffmpeg  # noqa: F401  (the mp4 writer; fail here, not after rendering)
+
     return imageio
 
 
@@ -177,6 +176,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.png:
             fileio.check_writable(args.png, "output folder", is_folder=False)
         load_policy(args.policy)  # the user input first, then the GL backend and the writer
+        extras.require("render", what="rendering a video")
         _mujoco()
         _imageio()
         frames, reports, still = render_episodes(args.policy, args.episodes, args.camera, args.seed, args.width,
@@ -184,7 +184,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         write_video(args.out, frames, args.fps)
         if args.png:
             write_png(args.png, frames[still])
-    except (RenderError, PolicyFormatError, PolicyMismatch, ConfigError, OSError) as exc:
+    except (RenderError, PolicyFormatError, PolicyMismatch, ConfigError, OSError, extras.MissingExtra) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     for i, r in enumerate(reports):

@@ -32,7 +32,12 @@ import time
 from dataclasses import dataclass
 from typing import Any, Callable, TextIO
 
-import jax
+from sagrasp_jax import extras
+
+if __name__ == "__main__":  # a missing extra ends in one line naming it (exit 2), not an import traceback
+    extras.require_cli("train", prog="python -m sagrasp_jax.train")
+
+import jax  # noqa: E402
 import numpy as np
 
 from sagrasp_jax import checkpoint, distributed, lr_schedule, observation, ppo, run_dir, sa_schedule

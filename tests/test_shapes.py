@@ -19,7 +19,7 @@ import sagrasp_jax  # noqa: F401
 import jax
 import jax.numpy as jnp
 
-from sagrasp_jax import collision, config, robot, sampling, shapes
+from sagrasp_jax import assets, collision, config, robot, sampling, shapes
 from sagrasp_jax.reference import exact_geometry as geometry
 
 ROBOT = robot.load_robot()
@@ -247,7 +247,7 @@ def test_capsule_in_the_mjcf_slots_and_the_physical_scene():
 
     from sagrasp_jax.physical import GraspScene
 
-    model = mujoco.MjModel.from_xml_path(os.path.join(os.path.dirname(robot.URDF_PATH), "..", "mjcf", "scene.xml"))
+    model = mujoco.MjModel.from_xml_path(assets.MJCF_SCENE)
     for slot in range(2):
         for shape in shapes.SHAPES:
             assert model.geom(f"obstacle_{slot}_{shape.name}").type[0] == {

@@ -40,7 +40,7 @@ from sagrasp_jax.deploy.calibration import (
     detected_top_to_cube_centre,
     validate_target,
 )
-from sagrasp_jax import shapes
+from sagrasp_jax import extras, shapes
 from sagrasp_jax.deploy.loop import DeployError, Obstacle, format_report, run_episode, scene_spec, with_obstacle_kinds
 from sagrasp_jax.deploy.safety import SafetyViolation, check_policy_constants
 from sagrasp_jax.runtime import PolicyFormatError, load_policy
@@ -215,7 +215,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         q_home = np.asarray(env_cfg.task.home_q, dtype=float)
         env_cfg = with_obstacle_kinds(env_cfg, obstacles)
         spec = scene_spec(q_home, centre, yaw, obstacles, env_cfg)
-    except (InputRefused, TargetRejected, CalibrationError, PolicyFormatError, ValueError) as exc:
+        if args.backend == "twin":
+            extras.require("twin", what="--backend twin (the PyBullet digital twin)")
+    except (InputRefused, TargetRejected, CalibrationError, PolicyFormatError, ValueError, extras.MissingExtra) as exc:
         _emit(args, {"outcome": "input_refused", "message": str(exc), "input": given},
               f"error: refused before moving: {exc}", error=True)
         return 2

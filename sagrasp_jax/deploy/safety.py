@@ -5,7 +5,7 @@ A command that breaks a rule raises ``SafetyViolation`` naming the joint or axis
 value and the limit; the loop must then stop the arm.  Clipping silently would hide a
 policy, calibration or control-step bug behind a motion nobody asked for.
 
-Every limit comes from the robot description (``urdf/aubo_i5_eg2.urdf`` via
+Every limit comes from the robot description (``sagrasp_jax/urdf/aubo_i5_eg2.urdf`` via
 ``robot.load_robot``) and the deployment's own settings (``DeploySettings``: the controller's
 command period and the largest joint-target change per command, SPEC §2), **never from a
 policy file**: a policy is data from elsewhere, and an edited one must not be able to loosen
