@@ -707,9 +707,7 @@ def _set(obj: Any, path: list[str], text: str, full_key: str) -> Any:
     if full_key in REMOVED_KEYS:
         raise ConfigError(f"config key {full_key!r} was replaced by {REMOVED_KEYS[full_key]}")
     if head not in names:
-        raise ConfigError(
-            f"unknown config key {full_key!r}; valid keys: {', '.join(valid_keys())}"
-        )
+        raise ConfigError(unknown_key_message(full_key))
     current = getattr(obj, head)
     if len(path) == 1:
         if dataclasses.is_dataclass(current):
@@ -717,9 +715,74 @@ def _set(obj: Any, path: list[str], text: str, full_key: str) -> Any:
         value = _parse_value(text, _field_types(type(obj))[head], full_key)
     else:
         if not dataclasses.is_dataclass(current):
-            raise ConfigError(f"unknown config key {full_key!r}; valid keys: {', '.join(valid_keys())}")
+            raise ConfigError(unknown_key_message(full_key))
         value = _set(current, path[1:], text, full_key)
     return dataclasses.replace(obj, **{head: value})
+
+
+def unknown_key_message(key: str) -> str:
+    """An unknown key names the nearest valid keys (difflib), not all of them."""
+    import difflib
+
+    keys = valid_keys()
+    leaf = key.rsplit(".", 1)[-1]
+    near = difflib.get_close_matches(key, keys, n=4, cutoff=0.6)
+    near += [k for k in keys if k not in near and difflib.SequenceMatcher(None, leaf, k.rsplit(".", 1)[-1]).ratio() >= 0.8]
+    hint = f"; did you mean {', '.join(near[:5])}?" if near else ""
+    return f"unknown config key {key!r}{hint} (--list-keys lists every key)"
+
+
+CONFIG_FILE_SUFFIXES = (".json", ".yaml", ".yml")
+
+
+def _flatten(data: Any, prefix: str, path: str) -> list[tuple[str, Any]]:
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: {prefix.rstrip('.') or 'the file'} must be a mapping of config keys, got {data!r}")
+    out: list[tuple[str, Any]] = []
+    for name, value in data.items():
+        key = f"{prefix}{name}"
+        out += _flatten(value, key + ".", path) if isinstance(value, dict) else [(key, value)]
+    return out
+
+
+def _override_text(key: str, value: Any, path: str) -> str:
+    """A file's value as the ``--set`` text that means it (so both are checked alike)."""
+    if value is None:
+        raise ConfigError(f"{path}: {key} has no value (null)")
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (list, tuple)):
+        return json.dumps(list(value))
+    return str(value)
+
+
+def file_overrides(path: str) -> list[str]:
+    """``--config FILE``: the file's keys as ``key=value`` overrides, applied over the chosen preset
+    like ``--set`` (keys it leaves out keep the preset's values).  JSON; YAML (``.yaml``/``.yml``)
+    when PyYAML is installed.  Sections may nest (``{"ppo": {"num_envs": 512}}``) or be dotted
+    (``{"ppo.num_envs": 512}``).  A file that cannot be read or parsed raises ConfigError."""
+    if not path.lower().endswith(CONFIG_FILE_SUFFIXES):
+        raise ConfigError(f"--config {path}: expected a {', '.join(CONFIG_FILE_SUFFIXES)} file")
+    try:
+        with open(path, encoding="utf-8") as f:
+            text = f.read()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"--config {path}: cannot read it ({exc})") from None
+    if path.lower().endswith(".json"):
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise ConfigError(f"--config {path}: not valid JSON ({exc})") from None
+    else:
+        try:
+            import yaml
+        except ImportError:
+            raise ConfigError(f"--config {path}: reading YAML needs PyYAML (pip install pyyaml), or use JSON") from None
+        try:
+            data = yaml.safe_load(text)
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"--config {path}: not valid YAML ({exc})") from None
+    return [f"{key}={_override_text(key, value, path)}" for key, value in _flatten(data, "", f"--config {path}")]
 
 
 def apply_overrides(cfg: Config, overrides: list[str]) -> Config:

@@ -39,7 +39,7 @@ import numpy as np
 
 from sagrasp_jax import ppo, run_dir
 from sagrasp_jax.checkpoint import CheckpointError
-from sagrasp_jax.config import SEED_RANGE, Config, ConfigError, blocking_sampling, check_range
+from sagrasp_jax.config import SEED_RANGE, Config, ConfigError, blocking_sampling, check_range, file_overrides
 from sagrasp_jax.run_dir import RunDirError
 
 EvalEnvFactory = Callable[[Config], ppo.Env]
@@ -299,8 +299,12 @@ def main(argv: list[str] | None = None) -> int:
                    help="also replay each kinematic success through the MuJoCo physical grasp check (close, lift 5 cm)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="env.KEY=VALUE",
                    help="evaluate in a changed env, repeatable (e.g. env.control.mode=dynamic, env.randomize.latency=1)")
+    p.add_argument("--config", default=None, metavar="FILE",
+                   help="env.* keys from a JSON (or YAML) file, applied before --set (same rules as --set)")
     args = p.parse_args(argv)
     try:
+        if args.config is not None:
+            args.overrides = file_overrides(args.config) + list(args.overrides)
         check_options(args.episodes, args.seed, args.max_steps)
         cfg = run_dir.load_config(args.run)
         counters = run_dir.checkpoint_counters(run_dir.load_checkpoint(args.run, cfg))
