@@ -1,7 +1,9 @@
-"""The grasping MDP of SPEC §2 as a pure-JAX, Brax-compatible environment (MuJoCo-MJX physics).
+"""The grasping MDP of docs/task.md §4 as a pure-JAX environment (MuJoCo-MJX physics).
 
 ``GraspEnv(cfg).reset(rng)`` / ``.step(state, action)`` work on one env; ``jax.vmap``
-them for batches (``wrappers.AutoReset`` does, with fresh-sample auto-reset).  The
+them for batches (``wrappers.AutoReset`` does, with fresh-sample auto-reset).  Its states are
+``brax.envs.base.State`` but it is not a brax env: brax's wrappers (``training.wrap``) need
+``envs.BraxGraspEnv`` (``envs.load("grasp-kinematic")``), which keeps their conventions.  The
 control step, reward, sampling and collision maths come from the backend-agnostic
 modules that the PyBullet reference env and the deployment runtime share.
 
