@@ -1,4 +1,4 @@
-"""The collision rules of SPEC §2 for one env at one pose, shared by both simulators.
+"""The collision rules of docs/task.md §2 for one env at one pose, shared by both simulators.
 
 Backend-agnostic (``xp`` = numpy or jax.numpy, single env, never imports jax): the MJX
 env vmaps ``check``; the PyBullet reference env, the sampler and the deployment
@@ -344,7 +344,7 @@ def nearest_slot(xp: Any, per_slot: Any) -> Any:
 
 
 def check(xp: Any, robot: RobotModel, kin: Kinematics, reset: Any, cfg: EnvConfig) -> CollisionResult:
-    """Collision flags and obstacle distances for one env at one pose (SPEC §2)."""
+    """Collision flags and obstacle distances for one env at one pose (docs/task.md §2)."""
     cover = _cover(robot)
     last = len(robot.link_names) - 1
     centres = cover_centres(xp, robot, kin)  # (S, 3)

@@ -4,7 +4,7 @@ The config is a tree of frozen dataclasses.  ``get_config(preset)`` returns a
 preset, ``apply_overrides(cfg, ["ppo.num_envs=512", ...])`` changes keys with
 type checking, and ``config_to_dict`` / ``config_from_dict`` round-trip it
 through JSON (run folders and checkpoints store it).  Values come from
-``SPEC.md`` §2-§3; where a number is ours, not the paper's, the field says so.
+``docs/task.md`` §2-§3; where a number is ours, not the paper's, the field says so.
 """
 
 from __future__ import annotations
@@ -24,9 +24,9 @@ from typing import Any
 
 from sagrasp_jax import shapes
 
-Q_LIMIT = 3.0543  # ±175° on every AUBO-i5 joint (SPEC §1); the URDF holds the same value.
+Q_LIMIT = 3.0543  # ±175° on every AUBO-i5 joint (docs/task.md §1); the URDF holds the same value.
 
-# Home pose: damped-least-squares IK seeded from SPEC §2's vector, solved once by
+# Home pose: damped-least-squares IK seeded from docs/task.md §2's vector, solved once by
 # ``sagrasp_jax.robot.solve_home_pose`` and pasted here (tests re-solve and compare).
 HOME_SEED = (1.1538, -0.4919, -1.8145, 0.2482, -1.5708, 0.0)
 HOME_Q = (
@@ -42,9 +42,9 @@ HOME_GRIPPER_CENTRE = (0.0, -0.30, 0.35)
 
 @dataclass(frozen=True)
 class ControlConfig:
-    """One control step (SPEC §2 steps 1-5)."""
+    """One control step (docs/task.md §2 steps 1-5)."""
 
-    q_max: float = 0.05  # rad: joint change per step at |action| = 1 (SPEC §2 step 1)
+    q_max: float = 0.05  # rad: joint change per step at |action| = 1 (docs/task.md §2 step 1)
     slowdown_enabled: bool = True  # proximity slow-down on (step 2)
     d_slow: float = 0.08  # m: slow down when the gripper centre is this close to the target centre
     slow_factor: float = 0.3  # Δq is multiplied by this inside d_slow
@@ -66,13 +66,13 @@ class ControlConfig:
 
 @dataclass(frozen=True)
 class RewardConfig:
-    """R = F_d·R_distance + F_s·R_success + F_o·R_obstacle (SPEC §2)."""
+    """R = F_d·R_distance + F_s·R_success + F_o·R_obstacle (docs/task.md §2)."""
 
     ratio: float = 10.0  # R_distance per metre of approach to the target
     rc: float = 0.05  # grab-zone bonus RC
     d_grab: float = 0.05  # m: radius of the grab zone around the target centre
     # "entry": RC paid on entering the grab zone and taken back on leaving (potential-based); "per_step": the
-    # paper's RC on every step inside it (kept for the ablation: PPO learns to hover, SPEC §2)
+    # paper's RC on every step inside it (kept for the ablation: PPO learns to hover, docs/task.md §2)
     rc_mode: str = "entry"
     success_reward: float = 1.0  # R_success on success
     failure_reward: float = -1.0  # R_success on a collision or a timeout
@@ -83,7 +83,7 @@ class RewardConfig:
     # Δpo/near_miss_distance, 0, 1), c_0 from the start state — a potential, so lingering near an
     # obstacle costs nothing extra and moving away repays it.  "per_step": the paper's literal
     # −scale·c_t on every step, which accumulates without bound against a bounded collision penalty
-    # and teaches crashing early (SPEC §2; kept for the ablation).
+    # and teaches crashing early (docs/task.md §2; kept for the ablation).
     near_miss_mode: str = "change"
     clean_success_bonus: float = 1.0  # R_obstacle at a success in an obstacle episode whose Δpo stayed ≥ near_miss_distance
     f_d0: float = 2.0  # F_d = f_d0 + f_d1·p (p = training progress in [0, 1])
@@ -95,7 +95,7 @@ class RewardConfig:
 
 @dataclass(frozen=True)
 class TaskConfig:
-    """Start state, observation, success and episode length (SPEC §2)."""
+    """Start state, observation, success and episode length (docs/task.md §2)."""
 
     home_q: tuple[float, ...] = HOME_Q  # rad: start pose, gripper centre at (0, −0.30, 0.35) pointing down
     start_noise: float = 0.05  # rad: uniform noise added to every start joint
@@ -124,7 +124,7 @@ class TaskConfig:
 
 @dataclass(frozen=True)
 class SamplingConfig:
-    """Target and dynamic-obstacle sampling (SPEC §1)."""
+    """Target and dynamic-obstacle sampling (docs/task.md §1)."""
 
     target_size: tuple[float, float, float] = (0.02, 0.02, 0.05)  # m: full extents of the target cuboid
     target_x: tuple[float, float] = (-0.35, 0.35)  # m: range of the target centre x
@@ -132,7 +132,7 @@ class SamplingConfig:
     target_yaw: tuple[float, float] = (-math.pi / 4, math.pi / 4)  # rad: range of the target yaw
     target_radius: tuple[float, float] = (0.25, 0.65)  # m: a target centre farther from / nearer to the base is redrawn
     target_candidates: int = 16  # target draws per scene attempt; the first inside target_radius wins
-    obstacle_prob: float = 0.2  # probability of an episode with dynamic obstacles (SPEC §1; the evaluation mix)
+    obstacle_prob: float = 0.2  # probability of an episode with dynamic obstacles (docs/task.md §1; the evaluation mix)
     max_obstacles: int = 2  # obstacle slots; an obstacle episode has 1 or 2, equally likely (the MJCF has 2)
     sphere_radius: tuple[float, float] = (0.03, 0.06)  # m: range of a sphere's radius
     sphere_z: tuple[float, float] = (0.12, 0.30)  # m: range of a (floating) sphere's centre height
@@ -142,16 +142,16 @@ class SamplingConfig:
     capsule_radius: tuple[float, float] = (0.02, 0.05)  # m: range of a capsule's radius (lying on the table, yawed)
     capsule_length: tuple[float, float] = (0.10, 0.30)  # m: range of its axis between the cap centres (tip to tip + 2 r)
     # Obstacle shapes drawn, names of shapes.SHAPES (sphere, cylinder, box, capsule); each slot's candidates are
-    # split evenly among them.  The default is the paper's mix (SPEC §1).
+    # split evenly among them.  The default is the paper's mix (docs/task.md §1).
     obstacle_kinds: tuple[str, ...] = shapes.PAPER_KINDS
     obstacle_disc_radius: float = 0.15  # m: obstacles are placed uniformly in a disc this wide around the approach midpoint
     home_xy: tuple[float, float] = (0.0, -0.30)  # m: the start gripper centre's xy, one end of that midpoint
-    target_clearance: float = 0.10  # m: an obstacle's footprint keeps this far from the target centre (SPEC §1 (a))
+    target_clearance: float = 0.10  # m: an obstacle's footprint keeps this far from the target centre (docs/task.md §1 (a))
     robot_clearance: float = 0.10  # m: an obstacle keeps this far from every robot geometry at the start pose
     obstacle_candidates: int = 9  # draws per slot and attempt, split evenly among obstacle_kinds; the first feasible wins
     scene_redraws: int = 2  # whole-scene re-draws before falling back to "no obstacle"
     # Fraction of obstacle scenes whose obstacles are placed on the straight approach path (sampling.py,
-    # "blocking" placement) instead of the SPEC's disc around the path's midpoint.  0 = the SPEC mix.
+    # "blocking" placement) instead of the disc around the path's midpoint (docs/task.md §1.5).  0 = the evaluation mix.
     blocking_prob: float = 0.0
     blocking_margin: float = 0.03  # m: an obstacle scene is "blocking" if the straight path passes this close
 
@@ -206,7 +206,7 @@ class PPOConfig:
     max_grad_norm: float = 0.5  # global gradient-norm clip
     learning_rate: float = 3e-4  # initial Adam learning rate of every lr schedule (lr.schedule); constant under "constant"
     normalize_advantages: bool = True  # advantages to zero mean, unit std per minibatch
-    obs_std_floor: float = 0.01  # the observation normaliser's std is floored at this (SPEC §2)
+    obs_std_floor: float = 0.01  # the observation normaliser's std is floored at this (docs/task.md §2)
     obs_clip: float = 5.0  # normalised observations are clipped to ±this
     # Asymmetric actor-critic: the value network also reads privileged inputs (training progress, time
     # left, every obstacle's kind, size and position; observation.privileged).  The policy, and so the
@@ -222,7 +222,7 @@ LR_SCHEDULES = ("constant", "sa", "kl-adaptive", "cosine", "linear")  # the name
 class LRConfig:
     """Learning-rate schedule (sagrasp_jax/lr_schedule.py, docs/design.md); every one starts at ppo.learning_rate."""
 
-    # "constant": the paper's PPO baseline (--algo ppo); "sa": SPEC §3's simulated-annealing plateau schedule, the
+    # "constant": the paper's PPO baseline (--algo ppo); "sa": docs/task.md §3's simulated-annealing plateau schedule, the
     # sa.* keys (--algo sa-ppo, the default); "kl-adaptive": brax's / rsl_rl's rule, after every minibatch lr ÷
     # kl_factor when its KL > 2·desired_kl, × kl_factor when KL < desired_kl / 2, kept in [kl_lr_min, kl_lr_max];
     # "cosine" / "linear": from ppo.learning_rate at progress 0 to lr.final at progress 1 (env steps / budget)
@@ -236,7 +236,7 @@ class LRConfig:
 
 @dataclass(frozen=True)
 class SAConfig:
-    """Simulated-annealing learning-rate plateau schedule (SPEC §3).  The cycle and evaluation keys
+    """Simulated-annealing learning-rate plateau schedule (docs/task.md §3).  The cycle and evaluation keys
     (cycle_steps … eval_seed) set every schedule's evaluation cadence; the rest act under lr.schedule = sa."""
 
     cycle_steps: int = 0  # env steps per cycle; 0 = total_steps / num_cycles
@@ -255,7 +255,7 @@ class SAConfig:
     max_rollbacks: int = 3  # rejections in a row before the learning rate decays
     t0: float = 0.1  # temperature scale T_0 of the Metropolis acceptance of a worse cycle
     kappa: float = 1.0  # κ: T = T_0·exp(κ·(H − H_0)/n_actions), H the policy entropy
-    # Ablation switches (docs/design.md, "SA ablation switches"); all true is SPEC §3.
+    # Ablation switches (docs/design.md, "SA ablation switches"); all true is docs/task.md §3.
     metropolis: bool = True  # accept a worse cycle with probability exp(−ΔE/T); false: every worse cycle is rejected
     rollback: bool = True  # a rejected cycle restores the snapshot; false: its updates are kept (still counted a reject)
     plateau_decay: bool = True  # rule 3 decays the lr (stall or rejections in a row); false: only a non-finite step decays it
@@ -266,7 +266,7 @@ class SAConfig:
 class TrainConfig:
     total_steps: int = 20_000_000  # env steps of the whole run
     seed: int = 0  # seed of the parameters, the envs and the sampling
-    # Training scene mix (the evaluation mix is env.sampling's, SPEC §1: 0.2 and no blocking placement).
+    # Training scene mix (the evaluation mix is env.sampling's, docs/task.md §1: 0.2 and no blocking placement).
     # −1 = the same as env.sampling.obstacle_prob / blocking_prob.
     obstacle_prob: float = -1.0
     blocking_prob: float = -1.0  # fraction of training obstacle scenes with the blocking placement; −1 = env.sampling's
@@ -298,7 +298,7 @@ def _paper() -> Config:
 def _obstacle_aware(base: Config) -> Config:
     """What the obstacle ablation chose (docs/design.md, docs/results.md): the relative observation
     layout, a training mix of 80 % obstacle scenes with 60 % of those on the approach path, and a
-    privileged critic.  Evaluation keeps the SPEC's mix (env.sampling)."""
+    privileged critic.  Evaluation keeps the evaluation mix (docs/task.md §2.8) (env.sampling)."""
     return dataclasses.replace(
         base,
         env=dataclasses.replace(base.env, task=dataclasses.replace(base.env.task, obs_layout="relative")),

@@ -1,4 +1,4 @@
-"""The grasping MDP of docs/task.md §4 as a pure-JAX environment (MuJoCo-MJX physics).
+"""The grasping MDP of docs/task.md §2 as a pure-JAX environment (MuJoCo-MJX physics).
 
 ``GraspEnv(cfg).reset(rng)`` / ``.step(state, action)`` work on one env; ``jax.vmap``
 them for batches (``wrappers.AutoReset`` does, with fresh-sample auto-reset).  Its states are
@@ -38,7 +38,7 @@ OBS_SIZE = observation.OBS_SIZE  # the paper layout's 17; an env's own size is `
 
 
 class GraspEnv:
-    """AUBO-i5 + EG2 gripper reaching a cuboid among random obstacles (SPEC §1-§2)."""
+    """AUBO-i5 + EG2 gripper reaching a cuboid among random obstacles (docs/task.md §1-§2)."""
 
     action_size = control.ACTION_SIZE
 

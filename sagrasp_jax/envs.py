@@ -11,7 +11,7 @@ wrappers) and ``brax.training.acting.generate_unroll`` run the task correctly:
   randomisation draws) travels in ``pipeline_state = {"physics", "episode", "pending"}``, and a
   done episode restarts with its own counters, never with the old episode's.
 * **Restarts are fresh scenes.**  brax restores each slot's *first* reset, which would replay one
-  scene forever (docs/task.md §6).  The adapter keeps a never-played start in the wrapper's
+  scene forever (docs/task.md §2.9).  The adapter keeps a never-played start in the wrapper's
   ``info["first_pipeline_state"]`` / ``info["first_obs"]`` instead: whenever the state it steps
   is such a start (``pipeline_state["pending"]``), it draws the next one from its own key chain
   (``info["reset_key"]``).  Under ``vmap`` the draw is a select, so it costs a reset per step;
@@ -34,7 +34,7 @@ equivalent (a stacked copy per device, sharded over them) when it is missing, an
 ``ppo.train(environment=load("grasp-kinematic"), ...)`` trains (``tests/test_brax_envs.py``).
 
 Timeouts (``env.task.max_steps``) end an episode with ``done = 1`` as the task defines
-(docs/task.md §4.6); an ``EpisodeWrapper`` shorter than that truncates (``info["truncation"]``).
+(docs/task.md §2.7); an ``EpisodeWrapper`` shorter than that truncates (``info["truncation"]``).
 """
 
 from __future__ import annotations
@@ -124,20 +124,19 @@ class BraxGraspEnv(Env):
 
 
 def load(name: str, config: config_mod.Config | config_mod.EnvConfig | None = None,
-         privileged: bool | None = None) -> BraxGraspEnv:
+         privileged: bool = False) -> BraxGraspEnv:
     """The task ``name`` (``grasp-kinematic`` or ``grasp-dynamic``) as a brax env.
 
-    ``config``: a ``Config`` (its env section; its ``ppo.privileged_critic`` picks ``privileged``
-    unless given) or an ``EnvConfig``; default the ``cpu-quick`` preset.  The name sets
-    ``env.control.mode``."""
+    ``config``: a ``Config`` (its env section) or an ``EnvConfig``; default the ``cpu-quick``
+    preset.  The name sets ``env.control.mode``.  ``privileged=True``: the dict observation
+    ``{"state", "privileged_state"}`` for an asymmetric critic."""
     if name not in ENVS:
         raise ValueError(f"unknown env {name!r}; valid envs: {', '.join(ENVS)}")
     cfg = config if config is not None else config_mod.get_config("cpu-quick")
     if isinstance(cfg, config_mod.Config):
-        privileged = cfg.ppo.privileged_critic if privileged is None else privileged
         cfg = cfg.env
     env_cfg = dataclasses.replace(cfg, control=dataclasses.replace(cfg.control, mode=ENVS[name]))
-    return BraxGraspEnv(env_cfg, privileged=bool(privileged))
+    return BraxGraspEnv(env_cfg, privileged=privileged)
 
 
 def _device_put_replicated(x: Any, devices: Any) -> Any:

@@ -55,9 +55,9 @@ def default_eval_env(cfg: Config) -> ppo.Env:
 
 
 def scene_config(cfg: Config, scenes: str) -> Config:
-    """The evaluation's config: ``mix`` = the run's own env (SPEC mix, obstacle_prob 0.2);
+    """The evaluation's config: ``mix`` = the run's own env (the evaluation mix, obstacle_prob 0.2);
     ``blocking`` = every episode has an obstacle on the straight approach path (sampling.py's
-    blocking placement, SPEC §1 feasibility rules kept)."""
+    blocking placement, docs/task.md §1 feasibility rules kept)."""
     if scenes not in SCENE_SETS:
         raise ConfigError(f"--scenes must be one of {', '.join(SCENE_SETS)}, got {scenes!r}")
     if scenes == "mix":
@@ -290,7 +290,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=None, help="evaluation seed (default sa.eval_seed + 1)")
     p.add_argument("--max-steps", type=int, default=None, help="step cap per episode (default env.task.max_steps)")
     p.add_argument("--scenes", default="mix", choices=SCENE_SETS,
-                   help="mix: the SPEC's scene mix (20 %% obstacle episodes); blocking: every episode has an obstacle "
+                   help="mix: the task's evaluation mix (20 %% obstacle episodes); blocking: every episode has an obstacle "
                         "on the straight approach path (the file name says so)")
     p.add_argument("--out", default=None,
                    help="result JSON (default RUN/evaluation-<EPISODES>ep-seed<SEED>[-<MAX_STEPS>steps].json)")

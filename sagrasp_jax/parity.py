@@ -3,7 +3,7 @@
 ``python -m sagrasp_jax.parity [--episodes 1000] [--quick] [--mode kinematic|dynamic]
 [--policy policy.npz] [--out parity.json] [--seed S]``
 
-Why: users must be able to trust that the fast env is the paper's task.  Following SPEC §2's
+Why: users must be able to trust that the fast env is the paper's task.  Following docs/task.md §2's
 parity rules, JAX runs in float64 (x64), observation noise is off in both envs, and both start
 every episode from the identical explicit ``ResetSpec``, drawn from NumPy uniforms with the
 shared sampler.  Float32 against float64 at the slow-down, fine-tune and success thresholds
@@ -165,7 +165,7 @@ class JaxSide:
         import jax.numpy as jnp
 
         if not jax.config.jax_enable_x64:
-            raise RuntimeError("parity needs jax_enable_x64 (SPEC §2 parity rules); run_parity enables it")
+            raise RuntimeError("parity needs jax_enable_x64 (docs/task.md §2 parity rules); run_parity enables it")
         from sagrasp_jax.env import GraspEnv
 
         self.jax, self.jnp = jax, jnp

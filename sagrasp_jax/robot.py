@@ -350,7 +350,7 @@ def solve_home_pose(
 ) -> np.ndarray:
     """Damped-least-squares IK: gripper centre at ``target``, approach axis along −z.
 
-    Seeded from SPEC §2's vector so that the solver stays on the branch the SPEC
+    Seeded from docs/task.md §2's vector so that the solver stays on the branch the task
     pins (other branches reach the same pose at a joint limit).
     """
     robot = robot or load_robot()

@@ -75,7 +75,7 @@ def default_envs(cfg: Config) -> tuple[ppo.Env, ppo.Env]:
     from sagrasp_jax.env import GraspEnv
     from sagrasp_jax.wrappers import AutoReset
 
-    # training episodes follow the training mix (train.obstacle_prob / blocking_prob), evaluation the SPEC's
+    # training episodes follow the training mix (train.obstacle_prob / blocking_prob), evaluation the task's (docs/task.md §2.8)
     return AutoReset(GraspEnv(training_env_config(cfg), privileged=cfg.ppo.privileged_critic)), GraspEnv(cfg.env)
 
 

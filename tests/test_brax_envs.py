@@ -23,11 +23,10 @@ MAX_STEPS = 5  # the task's own timeout: zero actions time out every 5 steps
 N_ENVS = 3
 
 
-def small_config(privileged: bool = False):
+def small_config():
     cfg = get_config("cpu-quick")
     task = dataclasses.replace(cfg.env.task, max_steps=MAX_STEPS, obs_layout="paper")
-    return dataclasses.replace(cfg, env=dataclasses.replace(cfg.env, task=task),
-                               ppo=dataclasses.replace(cfg.ppo, privileged_critic=privileged))
+    return dataclasses.replace(cfg, env=dataclasses.replace(cfg.env, task=task))
 
 
 def zero_policy(obs, key):
@@ -81,7 +80,7 @@ def test_training_wrap_restarts_fresh_episodes_with_stable_dtypes_and_keys():
 
 
 def test_eval_wrapper_and_privileged_dict_observation():
-    env = envs.load("grasp-kinematic", small_config(privileged=True))
+    env = envs.load("grasp-kinematic", small_config(), privileged=True)
     n, extra = env.inner.observation_size, env.inner.privileged_size
     assert extra > 0 and env.observation_size == {"state": (n,), "privileged_state": (n + extra,)}
     wrapped = training.EvalWrapper(training.wrap(env, episode_length=4, action_repeat=1))  # what brax's evaluator runs

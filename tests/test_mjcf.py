@@ -1,4 +1,4 @@
-"""Generated MJCF: up to date with the URDF and scene, loads in MJX, camera where the SPEC says."""
+"""Generated MJCF: up to date with the URDF and scene, loads in MJX, camera where docs/task.md §1.3 says."""
 
 import math
 import os

@@ -1,4 +1,4 @@
-"""The PyBullet reference env (SPEC §1-§2): Gymnasium contract, same starts as the JAX env,
+"""The PyBullet reference env (docs/task.md §1-§2): Gymnasium contract, same starts as the JAX env,
 PyBullet's own kinematics, collisions, both control modes, episode metrics, rendering."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Robot facts: URDF-driven FK against the SPEC checkpoints, standard DH, MuJoCo, MJX and PyBullet."""
+"""Robot facts: URDF-driven FK against the flange checkpoints of docs/task.md §1.2, standard DH, MuJoCo, MJX and PyBullet."""
 
 import math
 
@@ -12,7 +12,7 @@ ROBOT = robot.load_robot()
 
 
 def dh_flange(q: np.ndarray) -> np.ndarray:
-    """Standard DH of SPEC §1: (θ, d, a, α)."""
+    """Standard DH of docs/task.md §1: (θ, d, a, α)."""
     rows = [
         (q[0], 0.122, 0.0, math.pi / 2),
         (q[1] + math.pi / 2, 0.0, 0.408, 0.0),

@@ -150,7 +150,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--units", choices=UNITS, default="mm", help="units of the detections (default mm)")
     p.add_argument("--obstacle", nargs="+", action="append", default=[], metavar="KIND_X_Y_Z_SIZE",
                    help="detected obstacle: " + " | ".join(f"{s.name} {s.cli_usage}" for s in shapes.SHAPES))
-    p.add_argument("--calibration", default=None, help="4×4 camera->base matrix (.json/.npy/.txt; default SPEC §5)")
+    p.add_argument("--calibration", default=None, help="4×4 camera->base matrix (.json/.npy/.txt; default docs/task.md §5)")
     p.add_argument("--calibration-units", choices=UNITS, default="mm", help="translation units of --calibration")
     p.add_argument("--base-z-offset", type=float, default=0.0, help="controller base height in the URDF frame, m")
     p.add_argument("--base-yaw", type=float, default=0.0, help="controller base yaw about z relative to the URDF, rad")

@@ -1,4 +1,4 @@
-"""Safety layer between the policy and the real arm: refuse, never clip (SPEC §5).
+"""Safety layer between the policy and the real arm: refuse, never clip (docs/task.md §5).
 
 Every joint target the deployment loop is about to send passes ``SafetyLayer.check``.
 A command that breaks a rule raises ``SafetyViolation`` naming the joint or axis, the
@@ -7,7 +7,7 @@ policy, calibration or control-step bug behind a motion nobody asked for.
 
 Every limit comes from the robot description (``sagrasp_jax/urdf/aubo_i5_eg2.urdf`` via
 ``robot.load_robot``) and the deployment's own settings (``DeploySettings``: the controller's
-command period and the largest joint-target change per command, SPEC §2), **never from a
+command period and the largest joint-target change per command, docs/task.md §2), **never from a
 policy file**: a policy is data from elsewhere, and an edited one must not be able to loosen
 a limit.  A policy trained with other control constants is refused before anything moves
 (``check_policy_constants``).
@@ -17,7 +17,7 @@ Rules (all NumPy):
 1. joint limits: ``q_lower ≤ q ≤ q_upper`` per joint (URDF);
 2. per-step motion: ``|q − q_prev| ≤ min(velocity_limit·control_dt, max_step)`` per joint
    (URDF velocity limits, ``DeploySettings``), with ``q_prev`` the previous commanded target
-   (the target accumulates, SPEC §2 step 4); with the defaults max_step = 0.05 rad is the
+   (the target accumulates, docs/task.md §2 step 4); with the defaults max_step = 0.05 rad is the
    binding bound (2.5964 rad/s × 0.05 s = 0.13 rad);
 3. workspace box for the gripper centre (``WorkspaceBox``, derivation below);
 4. table: every primitive on a moving link above the shoulder (upper arm, forearm, wrists,
@@ -27,7 +27,7 @@ Rules (all NumPy):
 5. optionally, a caller-supplied ``collision_check(q) -> message | None``: the deployment loop
    wires ``collision.check`` (self-collision, the cell, the obstacles and the cube) here.
 
-Default workspace box (world = URDF base frame, metres), derived from SPEC §1:
+Default workspace box (world = URDF base frame, metres), derived from docs/task.md §1:
 
 * x ∈ [−0.50, 0.50]: the gantry posts' inner faces are at |x| = 0.58; 0.50 keeps the
   gripper body (half-width 0.045) 3.5 cm clear of them, and leaves 0.13 m beyond the
@@ -83,20 +83,20 @@ class WorkspaceBox:
             raise ValueError(f"workspace box lower {self.lower} must be below upper {self.upper} on every axis")
 
 
-_SPEC_CONTROL = ControlConfig()  # SPEC §2's constants: the code's, not a policy file's
+_TASK_CONTROL = ControlConfig()  # docs/task.md §2's constants: the code's, not a policy file's
 
 
 @dataclass(frozen=True)
 class DeploySettings:
-    """The deployment's own constants (SPEC §2, §5), fixed here and not read from any policy.
+    """The deployment's own constants (docs/task.md §2, §5), fixed here and not read from any policy.
 
     ``control_dt``: the controller's command period (s, 20 Hz); ``max_step``: the largest change
-    of one joint's target per command (rad, SPEC §2's q_max).  A policy must have been trained
+    of one joint's target per command (rad, docs/task.md §2's q_max).  A policy must have been trained
     with exactly these (``check_policy_constants``).
     """
 
-    control_dt: float = _SPEC_CONTROL.control_dt
-    max_step: float = _SPEC_CONTROL.q_max
+    control_dt: float = _TASK_CONTROL.control_dt
+    max_step: float = _TASK_CONTROL.q_max
     workspace: WorkspaceBox = WorkspaceBox()
     table_clearance: float = 0.0
 

@@ -7,7 +7,7 @@ layout added later; ``SAGrasp-PyBullet-v0`` stays the paper layout.  The ids are
 when gymnasium is installed (the ``reference`` extra), so ``gymnasium.make(ENV_ID)`` works
 after ``import sagrasp_jax.reference`` and ``gymnasium.make("sagrasp_jax.reference:SAGrasp-PyBullet-v0")``
 works without it.  Timeouts end an episode with ``truncated=True`` (Gymnasium's time-limit
-convention; the −1 timeout reward is still paid, docs/task.md §4.5).  PyBullet itself is imported
+convention; the −1 timeout reward is still paid, docs/task.md §2.7).  PyBullet itself is imported
 only when an env is built.  Nothing here imports jax.
 """
 

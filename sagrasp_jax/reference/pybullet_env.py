@@ -1,4 +1,4 @@
-"""PyBullet reference implementation of the grasping MDP (SPEC §1-§2), as a Gymnasium env.
+"""PyBullet reference implementation of the grasping MDP (docs/task.md §1-§2), as a Gymnasium env.
 
 Why it exists: the MJX/JAX env (``sagrasp_jax.env.GraspEnv``) is fast but new; this env
 rebuilds the same task in the simulator the paper used, from the same URDF and the same
@@ -557,7 +557,7 @@ class PyBulletGraspEnv(gym.Env if gym is not None else object):  # type: ignore[
     ) -> None:
         """Put the episode mid-way into a given state: joints ``q`` (velocities ``qd``), accumulated
         target ``q_target``, step count, previous distance, clean-so-far flag and previous Δpo.  For single-step
-        comparisons from a state forced identical to the other simulator's (SPEC §2 parity rules)."""
+        comparisons from a state forced identical to the other simulator's (docs/task.md §2 parity rules)."""
         if self._spec is None:
             raise RuntimeError("call reset() before force_state()")
         q = np.asarray(q, dtype=float)
