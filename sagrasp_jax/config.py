@@ -60,7 +60,7 @@ class ControlConfig:
     physics_dt: float = 0.01  # s: physics step of the dynamic mode
     substeps: int = 5  # physics steps per control step in the dynamic mode
     # Physics backend of the dynamic mode: "jax" (MJX's JAX implementation, any device) or "warp" (MuJoCo
-    # Warp through MJX: needs the warp extra, pip install -e .[warp], and is meant for CUDA GPUs)
+    # Warp through MJX: needs the warp extra, pip install "sagrasp_jax[warp]", and is meant for CUDA GPUs)
     impl: str = "jax"
 
 
@@ -327,7 +327,7 @@ def _cpu_quick() -> Config:
 
 def _gpu() -> Config:
     # Physics backend: none runs, the preset trains in kinematic mode (env.control.impl stays "jax"); a
-    # dynamic-mode GPU run adds env.control.mode=dynamic and env.control.impl=warp (pip install -e .[warp]).
+    # dynamic-mode GPU run adds env.control.mode=dynamic and env.control.impl=warp (pip install "sagrasp_jax[warp]").
     base = _obstacle_aware(Config())
     return dataclasses.replace(
         base,

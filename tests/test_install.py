@@ -90,6 +90,19 @@ def test_the_wheel_ships_the_robot_and_needs_only_numpy(wheel):
     assert {"train", "twin", "reference", "export", "render", "warp", "baseline", "plots", "test"} <= extras
 
 
+def test_extras_in_pyproject():
+    """The test extra holds everything the train extra does; the twin is pybullet alone; the core is numpy."""
+    import tomllib
+
+    with open(os.path.join(REPO, "pyproject.toml"), "rb") as f:
+        project = tomllib.load(f)["project"]
+    extras = project["optional-dependencies"]
+    assert project["dependencies"] == ["numpy>=2.0,<2.5"]
+    assert set(extras["train"]) <= set(extras["test"]) and set(extras["reference"]) <= set(extras["test"])
+    assert [r.split(">")[0] for r in extras["twin"]] == ["pybullet"]
+    assert any(r.startswith("tensorboard>") for r in extras["train"])
+
+
 def _outside(tmp_path_factory: pytest.TempPathFactory, name: str) -> str:
     work = str(tmp_path_factory.mktemp(name))
     assert not os.path.realpath(work).startswith(os.path.realpath(REPO) + os.sep)
