@@ -279,8 +279,8 @@ def reachable_parts() -> list[int]:
     return [i for i, p in enumerate(SCENE.static_parts) if lowest_z(p) < UNREACHABLE_ROLES_MIN_Z]
 
 
-_I1 = np.array([1, 2, 0])  # (i+1) % 3
-_I2 = np.array([2, 0, 1])  # (i+2) % 3
+_I1 = np.array([1, 2, 0], dtype=np.int32)  # (i+1) % 3; int32 whether or not jax runs in x64
+_I2 = np.array([2, 0, 1], dtype=np.int32)  # (i+2) % 3
 
 
 def boxes_overlap(xp: Any, pos_a: Any, rot_a: Any, half_a: Any, pos_b: Any, rot_b: Any, half_b: Any) -> Any:
