@@ -51,6 +51,8 @@ def _gl_error(exc: BaseException) -> RenderError:
 
 def _mujoco() -> Any:
     """Import MuJoCo, turning a broken GL backend (it is chosen at import time) into a RenderError."""
+    if "mujoco" in extras.missing("render"):
+        raise extras.MissingExtra(("render",), ["mujoco"], "rendering a video")
     try:
         import mujoco
     except Exception as exc:  # a missing GL library surfaces as AttributeError/OSError/ImportError from PyOpenGL
@@ -176,7 +178,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.png:
             fileio.check_writable(args.png, "output folder", is_folder=False)
         load_policy(args.policy)  # the user input first, then the GL backend and the writer
-        extras.require("render", what="rendering a video")
         _mujoco()
         _imageio()
         frames, reports, still = render_episodes(args.policy, args.episodes, args.camera, args.seed, args.width,
