@@ -362,7 +362,7 @@ def _fmt_reach(value: Any) -> str:
 # ---------------------------------------------------------------------- SB3 and the raw PyBullet env
 
 def bench_bare_pybullet(steps: int = 20_000) -> dict[str, Any] | None:
-    """Raw stepping of a bare PyBullet AUBO-i5 chain (SPEC §6's anchor, no learning): per step
+    """Raw stepping of a bare PyBullet AUBO-i5 chain (docs/task.md §6's anchor, no learning): per step
     resetJointState of the 6 arm joints, the gripper link's pose, one closest-point query to an
     obstacle, a 17-number observation."""
     try:

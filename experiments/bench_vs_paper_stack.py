@@ -20,7 +20,7 @@ time / env steps at which the training-episode success rate over the last ``--wi
 finished episodes first reaches each ``--success`` level ("not reached in budget" otherwise).
 Prints a ratio table and writes JSON atomically.
 
-    python experiments/bench_vs_paper_stack.py --seconds 120 --sb3-python /work/venv-sb3/bin/python \\
+    python experiments/bench_vs_paper_stack.py --seconds 120 --sb3-python .venv-sb3/bin/python \\
         --out experiments/results/bench_vs_paper_stack_cpu.json
 """
 
@@ -43,7 +43,7 @@ from sagrasp_jax import fileio
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 HERE = os.path.dirname(os.path.abspath(__file__))
-PAPER_STEPS_PER_S = 375.8  # paper, SB3 + PyBullet on an RTX 4070 machine (SPEC §4)
+PAPER_STEPS_PER_S = 375.8  # paper, SB3 + PyBullet on an RTX 4070 machine (docs/task.md §4)
 PAPER_TOTAL_STEPS = 20_000_000
 
 

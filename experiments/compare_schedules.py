@@ -3,7 +3,7 @@ K seeds each, the same env-step budget on one preset.
 
 Variants (``--variants``, default the five schedules; ``--ablation`` adds the four SA ablations):
 
-* ``constant`` (the paper's PPO, ``--algo ppo``), ``sa`` (SPEC §3, ``--algo sa-ppo``), ``kl-adaptive``
+* ``constant`` (the paper's PPO, ``--algo ppo``), ``sa`` (docs/task.md §3, ``--algo sa-ppo``), ``kl-adaptive``
   (brax / rsl_rl), ``cosine``, ``linear``: ``lr.schedule``;
 * ``sa-no-metropolis``, ``sa-no-rollback``, ``sa-no-plateau-decay``, ``sa-no-entropy-temperature``:
   ``lr.schedule=sa`` with ``sa.metropolis`` / ``sa.rollback`` / ``sa.plateau_decay`` /

@@ -1,14 +1,14 @@
 """Which lever wins the obstacle episodes?  Train each lever alone and the combination, K seeds each.
 
-Levers (obstacle issue; SPEC §2 "Layouts" and "Near-miss term"), each a config switch:
+Levers (obstacle issue; docs/task.md §2 "Layouts" and "Near-miss term"), each a config switch:
 
 * ``layout``    env.task.obs_layout: paper (17 numbers, sentinel when absent) → relative
                 (presence, gripper/robot → obstacle vectors, closeness; hand-scaled);
 * ``near_miss`` env.reward.near_miss_mode: per_step (the paper's) → change (a potential);
 * ``geometry``  env.task.obstacle_geometry: cover (conservative, up to 2.5 cm off) → fine (±4 mm);
-* ``mix``       training scenes: the evaluation mix (0.2 obstacle, SPEC placement) → obstacle_prob
+* ``mix``       training scenes: the evaluation mix (0.2 obstacle, disc placement) → obstacle_prob
                 0.8 with 60 % of obstacle scenes placed on the approach path (train.obstacle_prob,
-                train.blocking_prob); evaluation always uses the SPEC mix;
+                train.blocking_prob); evaluation always uses the evaluation mix;
 * ``critic``    ppo.privileged_critic: off → on (the value net also reads progress, time left and
                 every obstacle's kind, size and position).
 

@@ -1,7 +1,7 @@
 """Does a trained policy use its obstacle inputs?  Evaluate it on obstacle-only episodes twice:
 seeing (the real observation) and blind (every obstacle entry replaced by its "no obstacle" value,
 ``observation.blind``: the sentinel (0, 0, −1) and Δpo = 1 in the paper layout, zeros in the
-relative one), on the SPEC's obstacle placement and on blocking-only scenes.  Deterministic NumPy
+relative one), on the task's disc placement of obstacles and on blocking-only scenes.  Deterministic NumPy
 policy, reward weights at p = 1, no observation noise.
 
     python experiments/obstacle_blind_eval.py --policy runs/quick/policy.npz --episodes 200 \
@@ -66,7 +66,7 @@ def evaluate(policy: runtime.NumpyPolicy, episodes: int, seed: int, blind: bool,
 
 
 def blind_study(policy: runtime.NumpyPolicy, episodes: int, seed: int) -> dict:
-    """Seeing vs blind on obstacle-only scenes (SPEC placement) and on blocking-only scenes."""
+    """Seeing vs blind on obstacle-only scenes (disc placement, docs/task.md §1.5) and on blocking-only scenes."""
     result: dict = {"seed": seed, "obs_layout": policy.env_config().task.obs_layout}
     for scenes in SCENES:
         seeing = evaluate(policy, episodes, seed, False, scenes)

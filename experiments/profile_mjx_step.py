@@ -2,7 +2,7 @@
 
 Each variant strips one more thing the dynamic mode does not need (docs/parity.md, "Dynamic mode"):
 
-* ``scene``: ``mjcf/scene.xml`` with contacts off — the first landing's dynamic model (8 DoF, joint
+* ``scene``: ``sagrasp_jax/mjcf/scene.xml`` with contacts off — the first landing's dynamic model (8 DoF, joint
   limits as constraints, so the constraint solver runs);
 * ``+noconstraint``: constraints off (no joint-limit rows, no solver: the targets are clipped to the limits);
 * ``robot``: the robot MJCF alone (no cell, cameras, mocap bodies);

@@ -45,7 +45,7 @@ from sagrasp_jax.config import ConfigError, config_from_dict, config_to_dict
 ALGOS = ("ppo", "sa-ppo")
 LABELS = {"ppo": "PPO", "sa-ppo": "SA-PPO"}
 COLOURS = {"ppo": "tab:blue", "sa-ppo": "tab:orange"}  # the paper's colours
-PAPER = {  # SPEC §4 / paper §5.3: SB3 + PyBullet, 20M steps
+PAPER = {  # docs/task.md §4 / paper §5.3: SB3 + PyBullet, 20M steps
     "ppo": {"success_pct": 92.0, "steps_per_success": 154.0},
     "sa-ppo": {"success_pct": 98.0, "steps_per_success": 143.0},
     "env_steps": 20_000_000,

@@ -7,14 +7,14 @@ training episodes' success rate; it is not meant to reproduce the paper's curves
 
     python experiments/sb3_baseline.py --total-steps 200000 --out sb3_baseline.json
 
-Settings (SPEC §3 ``paper`` preset = Table 2 with SB3 defaults where it is silent): 2048 env
+Settings (docs/task.md §3 ``paper`` preset = Table 2 with SB3 defaults where it is silent): 2048 env
 steps per update as **16 envs × 128 steps** (default; ``--n-envs 1`` gives 1 env × 2048, the
 SB3 default layout), minibatch 256, 10 epochs, clip 0.2, γ 0.99, GAE λ 0.95, entropy coef 0,
 value coef 0.5, max grad norm 0.5, policy and value MLPs 64×64 tanh, constant lr 3e-4 (the
 paper's PPO baseline; SA-PPO's schedule lives in the JAX trainer).  The envs step in one
 process (``DummyVecEnv``: on 2 cores subprocesses only add IPC) and observations are
 normalised by ``VecNormalize`` (running mean/std, clipped to ±5, rewards untouched), as
-SPEC §2 asks.  SB3's policy is a state-independent-std Gaussian whose actions are clipped
+docs/task.md §2 asks.  SB3's policy is a state-independent-std Gaussian whose actions are clipped
 to [-1, 1] (our JAX PPO uses a tanh-Gaussian); the reward weights follow training
 progress p = steps / total, set on every env at each rollout start.
 
@@ -92,12 +92,15 @@ def build_parser() -> argparse.ArgumentParser:
 
 def with_task_metrics(env: Any) -> Any:
     """Wrap a reference env so its episode metrics move to ``info["task_episode"]``
-    (SB3's VecMonitor owns ``info["episode"]``)."""
+    (SB3's VecMonitor owns ``info["episode"]``), and its timeouts count as terminal as in the
+    paper's setup (the −1 is the task's verdict, docs/task.md §2.7): the env reports them as
+    ``truncated`` (Gymnasium's convention), which SB3 would bootstrap."""
     import gymnasium as gym
 
     class TaskMetrics(gym.Wrapper):
         def step(self, action: Any) -> Any:
             obs, reward, terminated, truncated, info = self.env.step(action)
+            terminated, truncated = terminated or truncated, False
             if "episode" in info:
                 info["task_episode"] = info.pop("episode")
             return obs, reward, terminated, truncated, info

@@ -1,4 +1,4 @@
-"""The collision rules of SPEC §2 for one env at one pose, shared by both simulators.
+"""The collision rules of docs/task.md §2 for one env at one pose, shared by both simulators.
 
 Backend-agnostic (``xp`` = numpy or jax.numpy, single env, never imports jax): the MJX
 env vmaps ``check``; the PyBullet reference env, the sampler and the deployment
@@ -279,8 +279,8 @@ def reachable_parts() -> list[int]:
     return [i for i, p in enumerate(SCENE.static_parts) if lowest_z(p) < UNREACHABLE_ROLES_MIN_Z]
 
 
-_I1 = np.array([1, 2, 0])  # (i+1) % 3
-_I2 = np.array([2, 0, 1])  # (i+2) % 3
+_I1 = np.array([1, 2, 0], dtype=np.int32)  # (i+1) % 3; int32 whether or not jax runs in x64
+_I2 = np.array([2, 0, 1], dtype=np.int32)  # (i+2) % 3
 
 
 def boxes_overlap(xp: Any, pos_a: Any, rot_a: Any, half_a: Any, pos_b: Any, rot_b: Any, half_b: Any) -> Any:
@@ -344,7 +344,7 @@ def nearest_slot(xp: Any, per_slot: Any) -> Any:
 
 
 def check(xp: Any, robot: RobotModel, kin: Kinematics, reset: Any, cfg: EnvConfig) -> CollisionResult:
-    """Collision flags and obstacle distances for one env at one pose (SPEC §2)."""
+    """Collision flags and obstacle distances for one env at one pose (docs/task.md §2)."""
     cover = _cover(robot)
     last = len(robot.link_names) - 1
     centres = cover_centres(xp, robot, kin)  # (S, 3)

@@ -4,7 +4,7 @@ The config is a tree of frozen dataclasses.  ``get_config(preset)`` returns a
 preset, ``apply_overrides(cfg, ["ppo.num_envs=512", ...])`` changes keys with
 type checking, and ``config_to_dict`` / ``config_from_dict`` round-trip it
 through JSON (run folders and checkpoints store it).  Values come from
-``SPEC.md`` §2-§3; where a number is ours, not the paper's, the field says so.
+``docs/task.md`` §2-§3; where a number is ours, not the paper's, the field says so.
 """
 
 from __future__ import annotations
@@ -24,9 +24,9 @@ from typing import Any
 
 from sagrasp_jax import shapes
 
-Q_LIMIT = 3.0543  # ±175° on every AUBO-i5 joint (SPEC §1); the URDF holds the same value.
+Q_LIMIT = 3.0543  # ±175° on every AUBO-i5 joint (docs/task.md §1); the URDF holds the same value.
 
-# Home pose: damped-least-squares IK seeded from SPEC §2's vector, solved once by
+# Home pose: damped-least-squares IK seeded from docs/task.md §2's vector, solved once by
 # ``sagrasp_jax.robot.solve_home_pose`` and pasted here (tests re-solve and compare).
 HOME_SEED = (1.1538, -0.4919, -1.8145, 0.2482, -1.5708, 0.0)
 HOME_Q = (
@@ -42,9 +42,9 @@ HOME_GRIPPER_CENTRE = (0.0, -0.30, 0.35)
 
 @dataclass(frozen=True)
 class ControlConfig:
-    """One control step (SPEC §2 steps 1-5)."""
+    """One control step (docs/task.md §2 steps 1-5)."""
 
-    q_max: float = 0.05  # rad: joint change per step at |action| = 1 (SPEC §2 step 1)
+    q_max: float = 0.05  # rad: joint change per step at |action| = 1 (docs/task.md §2 step 1)
     slowdown_enabled: bool = True  # proximity slow-down on (step 2)
     d_slow: float = 0.08  # m: slow down when the gripper centre is this close to the target centre
     slow_factor: float = 0.3  # Δq is multiplied by this inside d_slow
@@ -63,7 +63,7 @@ class ControlConfig:
     physics_dt: float = 0.01  # s: physics step of the dynamic mode
     substeps: int = 5  # physics steps per control step in the dynamic mode
     # Physics backend of the dynamic mode: "jax" (MJX's JAX implementation, any device) or "warp" (MuJoCo
-    # Warp through MJX: needs the warp extra, pip install -e .[warp], and is meant for CUDA GPUs)
+    # Warp through MJX: needs the warp extra, pip install "sagrasp_jax[warp]", and is meant for CUDA GPUs)
     impl: str = "jax"
     # "lagged" mode, per joint: each control step the joint closes this fraction of its distance to the command
     # (q ← q + lag_gain·(c − q) + lag_momentum·(q − q_prev)); fitted by least squares to the dynamic mode's servos
@@ -74,13 +74,13 @@ class ControlConfig:
 
 @dataclass(frozen=True)
 class RewardConfig:
-    """R = F_d·R_distance + F_s·R_success + F_o·R_obstacle (SPEC §2)."""
+    """R = F_d·R_distance + F_s·R_success + F_o·R_obstacle (docs/task.md §2)."""
 
     ratio: float = 10.0  # R_distance per metre of approach to the target
     rc: float = 0.05  # grab-zone bonus RC
     d_grab: float = 0.05  # m: radius of the grab zone around the target centre
     # "entry": RC paid on entering the grab zone and taken back on leaving (potential-based); "per_step": the
-    # paper's RC on every step inside it (kept for the ablation: PPO learns to hover, SPEC §2)
+    # paper's RC on every step inside it (kept for the ablation: PPO learns to hover, docs/task.md §2)
     rc_mode: str = "entry"
     success_reward: float = 1.0  # R_success on success
     failure_reward: float = -1.0  # R_success on a collision or a timeout
@@ -91,7 +91,7 @@ class RewardConfig:
     # Δpo/near_miss_distance, 0, 1), c_0 from the start state — a potential, so lingering near an
     # obstacle costs nothing extra and moving away repays it.  "per_step": the paper's literal
     # −scale·c_t on every step, which accumulates without bound against a bounded collision penalty
-    # and teaches crashing early (SPEC §2; kept for the ablation).
+    # and teaches crashing early (docs/task.md §2; kept for the ablation).
     near_miss_mode: str = "change"
     clean_success_bonus: float = 1.0  # R_obstacle at a success in an obstacle episode whose Δpo stayed ≥ near_miss_distance
     f_d0: float = 2.0  # F_d = f_d0 + f_d1·p (p = training progress in [0, 1])
@@ -103,7 +103,7 @@ class RewardConfig:
 
 @dataclass(frozen=True)
 class TaskConfig:
-    """Start state, observation, success and episode length (SPEC §2)."""
+    """Start state, observation, success and episode length (docs/task.md §2)."""
 
     home_q: tuple[float, ...] = HOME_Q  # rad: start pose, gripper centre at (0, −0.30, 0.35) pointing down
     start_noise: float = 0.05  # rad: uniform noise added to every start joint
@@ -136,7 +136,7 @@ class TaskConfig:
 
 @dataclass(frozen=True)
 class SamplingConfig:
-    """Target and dynamic-obstacle sampling (SPEC §1)."""
+    """Target and dynamic-obstacle sampling (docs/task.md §1)."""
 
     target_size: tuple[float, float, float] = (0.02, 0.02, 0.05)  # m: full extents of the target cuboid
     target_x: tuple[float, float] = (-0.35, 0.35)  # m: range of the target centre x
@@ -144,7 +144,7 @@ class SamplingConfig:
     target_yaw: tuple[float, float] = (-math.pi / 4, math.pi / 4)  # rad: range of the target yaw
     target_radius: tuple[float, float] = (0.25, 0.65)  # m: a target centre farther from / nearer to the base is redrawn
     target_candidates: int = 16  # target draws per scene attempt; the first inside target_radius wins
-    obstacle_prob: float = 0.2  # probability of an episode with dynamic obstacles (SPEC §1; the evaluation mix)
+    obstacle_prob: float = 0.2  # probability of an episode with dynamic obstacles (docs/task.md §1; the evaluation mix)
     max_obstacles: int = 2  # obstacle slots; an obstacle episode has 1 or 2, equally likely (the MJCF has 2)
     sphere_radius: tuple[float, float] = (0.03, 0.06)  # m: range of a sphere's radius
     sphere_z: tuple[float, float] = (0.12, 0.30)  # m: range of a (floating) sphere's centre height
@@ -154,16 +154,16 @@ class SamplingConfig:
     capsule_radius: tuple[float, float] = (0.02, 0.05)  # m: range of a capsule's radius (lying on the table, yawed)
     capsule_length: tuple[float, float] = (0.10, 0.30)  # m: range of its axis between the cap centres (tip to tip + 2 r)
     # Obstacle shapes drawn, names of shapes.SHAPES (sphere, cylinder, box, capsule); each slot's candidates are
-    # split evenly among them.  The default is the paper's mix (SPEC §1).
+    # split evenly among them.  The default is the paper's mix (docs/task.md §1).
     obstacle_kinds: tuple[str, ...] = shapes.PAPER_KINDS
     obstacle_disc_radius: float = 0.15  # m: obstacles are placed uniformly in a disc this wide around the approach midpoint
     home_xy: tuple[float, float] = (0.0, -0.30)  # m: the start gripper centre's xy, one end of that midpoint
-    target_clearance: float = 0.10  # m: an obstacle's footprint keeps this far from the target centre (SPEC §1 (a))
+    target_clearance: float = 0.10  # m: an obstacle's footprint keeps this far from the target centre (docs/task.md §1 (a))
     robot_clearance: float = 0.10  # m: an obstacle keeps this far from every robot geometry at the start pose
     obstacle_candidates: int = 9  # draws per slot and attempt, split evenly among obstacle_kinds; the first feasible wins
     scene_redraws: int = 2  # whole-scene re-draws before falling back to "no obstacle"
     # Fraction of obstacle scenes whose obstacles are placed on the straight approach path (sampling.py,
-    # "blocking" placement) instead of the SPEC's disc around the path's midpoint.  0 = the SPEC mix.
+    # "blocking" placement) instead of the disc around the path's midpoint (docs/task.md §1.5).  0 = the evaluation mix.
     blocking_prob: float = 0.0
     blocking_margin: float = 0.03  # m: an obstacle scene is "blocking" if the straight path passes this close
 
@@ -219,7 +219,7 @@ class PPOConfig:
     max_grad_norm: float = 0.5  # global gradient-norm clip
     learning_rate: float = 3e-4  # initial Adam learning rate of every lr schedule (lr.schedule); constant under "constant"
     normalize_advantages: bool = True  # advantages to zero mean, unit std per minibatch
-    obs_std_floor: float = 0.01  # the observation normaliser's std is floored at this (SPEC §2)
+    obs_std_floor: float = 0.01  # the observation normaliser's std is floored at this (docs/task.md §2)
     obs_clip: float = 5.0  # normalised observations are clipped to ±this
     # Asymmetric actor-critic: the value network also reads privileged inputs (training progress, time
     # left, every obstacle's kind, size and position; observation.privileged).  The policy, and so the
@@ -237,7 +237,7 @@ LR_SCHEDULES = ("constant", "sa", "kl-adaptive", "cosine", "linear")  # the name
 class LRConfig:
     """Learning-rate schedule (sagrasp_jax/lr_schedule.py, docs/design.md); every one starts at ppo.learning_rate."""
 
-    # "constant": the paper's PPO baseline (--algo ppo); "sa": SPEC §3's simulated-annealing plateau schedule, the
+    # "constant": the paper's PPO baseline (--algo ppo); "sa": docs/task.md §3's simulated-annealing plateau schedule, the
     # sa.* keys (--algo sa-ppo, the default); "kl-adaptive": brax's / rsl_rl's rule, after every minibatch lr ÷
     # kl_factor when its KL > 2·desired_kl, × kl_factor when KL < desired_kl / 2, kept in [kl_lr_min, kl_lr_max];
     # "cosine" / "linear": from ppo.learning_rate at progress 0 to lr.final at progress 1 (env steps / budget)
@@ -251,7 +251,7 @@ class LRConfig:
 
 @dataclass(frozen=True)
 class SAConfig:
-    """Simulated-annealing learning-rate plateau schedule (SPEC §3).  The cycle and evaluation keys
+    """Simulated-annealing learning-rate plateau schedule (docs/task.md §3).  The cycle and evaluation keys
     (cycle_steps … eval_seed) set every schedule's evaluation cadence; the rest act under lr.schedule = sa."""
 
     cycle_steps: int = 0  # env steps per cycle; 0 = total_steps / num_cycles
@@ -270,7 +270,7 @@ class SAConfig:
     max_rollbacks: int = 3  # rejections in a row before the learning rate decays
     t0: float = 0.1  # temperature scale T_0 of the Metropolis acceptance of a worse cycle
     kappa: float = 1.0  # κ: T = T_0·exp(κ·(H − H_0)/n_actions), H the policy entropy
-    # Ablation switches (docs/design.md, "SA ablation switches"); all true is SPEC §3.
+    # Ablation switches (docs/design.md, "SA ablation switches"); all true is docs/task.md §3.
     metropolis: bool = True  # accept a worse cycle with probability exp(−ΔE/T); false: every worse cycle is rejected
     rollback: bool = True  # a rejected cycle restores the snapshot; false: its updates are kept (still counted a reject)
     plateau_decay: bool = True  # rule 3 decays the lr (stall or rejections in a row); false: only a non-finite step decays it
@@ -281,7 +281,7 @@ class SAConfig:
 class TrainConfig:
     total_steps: int = 20_000_000  # env steps of the whole run
     seed: int = 0  # seed of the parameters, the envs and the sampling
-    # Training scene mix (the evaluation mix is env.sampling's, SPEC §1: 0.2 and no blocking placement).
+    # Training scene mix (the evaluation mix is env.sampling's, docs/task.md §1: 0.2 and no blocking placement).
     # −1 = the same as env.sampling.obstacle_prob / blocking_prob.
     obstacle_prob: float = -1.0
     blocking_prob: float = -1.0  # fraction of training obstacle scenes with the blocking placement; −1 = env.sampling's
@@ -313,7 +313,7 @@ def _paper() -> Config:
 def _obstacle_aware(base: Config) -> Config:
     """What the obstacle ablation chose (docs/design.md, docs/results.md): the relative observation
     layout, a training mix of 80 % obstacle scenes with 60 % of those on the approach path, and a
-    privileged critic.  Evaluation keeps the SPEC's mix (env.sampling)."""
+    privileged critic.  Evaluation keeps the evaluation mix (docs/task.md §2.8) (env.sampling)."""
     return dataclasses.replace(
         base,
         env=dataclasses.replace(base.env, task=dataclasses.replace(base.env.task, obs_layout="relative")),
@@ -357,7 +357,8 @@ def _cpu_quick() -> Config:
 
 def _gpu() -> Config:
     # Physics backend: none runs, the preset trains in kinematic mode (env.control.impl stays "jax"); a
-    # dynamic-mode GPU run adds env.control.mode=dynamic and env.control.impl=warp (pip install -e .[warp]).
+    # The preset trains in the lagged mode (no physics; env.control.impl stays "jax"); a dynamic-mode GPU run
+    # adds env.control.mode=dynamic and env.control.impl=warp (pip install "sagrasp_jax[warp]").
     base = _robot_grade(_obstacle_aware(Config()))
     return dataclasses.replace(
         base,
@@ -758,9 +759,7 @@ def _set(obj: Any, path: list[str], text: str, full_key: str) -> Any:
     if full_key in REMOVED_KEYS:
         raise ConfigError(f"config key {full_key!r} was replaced by {REMOVED_KEYS[full_key]}")
     if head not in names:
-        raise ConfigError(
-            f"unknown config key {full_key!r}; valid keys: {', '.join(valid_keys())}"
-        )
+        raise ConfigError(unknown_key_message(full_key))
     current = getattr(obj, head)
     if len(path) == 1:
         if dataclasses.is_dataclass(current):
@@ -768,9 +767,74 @@ def _set(obj: Any, path: list[str], text: str, full_key: str) -> Any:
         value = _parse_value(text, _field_types(type(obj))[head], full_key)
     else:
         if not dataclasses.is_dataclass(current):
-            raise ConfigError(f"unknown config key {full_key!r}; valid keys: {', '.join(valid_keys())}")
+            raise ConfigError(unknown_key_message(full_key))
         value = _set(current, path[1:], text, full_key)
     return dataclasses.replace(obj, **{head: value})
+
+
+def unknown_key_message(key: str) -> str:
+    """An unknown key names the nearest valid keys (difflib), not all of them."""
+    import difflib
+
+    keys = valid_keys()
+    leaf = key.rsplit(".", 1)[-1]
+    near = difflib.get_close_matches(key, keys, n=4, cutoff=0.6)
+    near += [k for k in keys if k not in near and difflib.SequenceMatcher(None, leaf, k.rsplit(".", 1)[-1]).ratio() >= 0.8]
+    hint = f"; did you mean {', '.join(near[:5])}?" if near else ""
+    return f"unknown config key {key!r}{hint} (--list-keys lists every key)"
+
+
+CONFIG_FILE_SUFFIXES = (".json", ".yaml", ".yml")
+
+
+def _flatten(data: Any, prefix: str, path: str) -> list[tuple[str, Any]]:
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: {prefix.rstrip('.') or 'the file'} must be a mapping of config keys, got {data!r}")
+    out: list[tuple[str, Any]] = []
+    for name, value in data.items():
+        key = f"{prefix}{name}"
+        out += _flatten(value, key + ".", path) if isinstance(value, dict) else [(key, value)]
+    return out
+
+
+def _override_text(key: str, value: Any, path: str) -> str:
+    """A file's value as the ``--set`` text that means it (so both are checked alike)."""
+    if value is None:
+        raise ConfigError(f"{path}: {key} has no value (null)")
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (list, tuple)):
+        return json.dumps(list(value))
+    return str(value)
+
+
+def file_overrides(path: str) -> list[str]:
+    """``--config FILE``: the file's keys as ``key=value`` overrides, applied over the chosen preset
+    like ``--set`` (keys it leaves out keep the preset's values).  JSON; YAML (``.yaml``/``.yml``)
+    when PyYAML is installed.  Sections may nest (``{"ppo": {"num_envs": 512}}``) or be dotted
+    (``{"ppo.num_envs": 512}``).  A file that cannot be read or parsed raises ConfigError."""
+    if not path.lower().endswith(CONFIG_FILE_SUFFIXES):
+        raise ConfigError(f"--config {path}: expected a {', '.join(CONFIG_FILE_SUFFIXES)} file")
+    try:
+        with open(path, encoding="utf-8") as f:
+            text = f.read()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"--config {path}: cannot read it ({exc})") from None
+    if path.lower().endswith(".json"):
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise ConfigError(f"--config {path}: not valid JSON ({exc})") from None
+    else:
+        try:
+            import yaml
+        except ImportError:
+            raise ConfigError(f"--config {path}: reading YAML needs PyYAML (pip install pyyaml), or use JSON") from None
+        try:
+            data = yaml.safe_load(text)
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"--config {path}: not valid YAML ({exc})") from None
+    return [f"{key}={_override_text(key, value, path)}" for key, value in _flatten(data, "", f"--config {path}")]
 
 
 def apply_overrides(cfg: Config, overrides: list[str]) -> Config:

@@ -1,4 +1,4 @@
-"""One control step (SPEC §2 steps 1-4), written once for every backend.
+"""One control step (docs/task.md §2 steps 1-4), written once for every backend.
 
 The MJX env, the PyBullet reference env and the deployment runtime all turn a
 policy action into a new joint target through ``control_step``; keeping a single
@@ -17,10 +17,10 @@ from typing import Any, NamedTuple
 from sagrasp_jax.config import ControlConfig
 from sagrasp_jax.robot import RobotModel, forward_kinematics, tilt
 
-# Zero-based indices of the two wrist joints that the fine-tuning corrects (SPEC §2
+# Zero-based indices of the two wrist joints that the fine-tuning corrects (docs/task.md §2
 # step 3: "joints 4 and 5"); fixed by the task definition, not a tunable.
 FINE_JOINTS = (3, 4)
-ACTION_SIZE = 6  # one joint-target increment per arm joint (SPEC §2 step 1)
+ACTION_SIZE = 6  # one joint-target increment per arm joint (docs/task.md §2 step 1)
 
 
 class ControlResult(NamedTuple):
@@ -75,12 +75,12 @@ def control_step(
     target_pos: Any,
     action: Any,
 ) -> ControlResult:
-    """SPEC §2 steps 1-4: action → Δq → slow-down → wrist fine-tuning → clipped new target.
+    """docs/task.md §2 steps 1-4: action → Δq → slow-down → wrist fine-tuning → clipped new target.
 
     The gates (distance, tilt) are measured at the measured joints ``q_now`` before the
     move, so a policy cannot dodge them by the step it is taking.  ``q_target``
     accumulates and is never re-based on ``q_now`` (the real controller tracks targets).
-    Order matters and follows the SPEC: the correction is added to the already slowed
+    Order matters and follows docs/task.md §2.1: the correction is added to the already slowed
     Δq, then joints 4 and 5 are re-capped at ±q_max so the per-step joint limit is hard.
     """
     q_target = xp.asarray(q_target)

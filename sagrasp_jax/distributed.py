@@ -1,5 +1,5 @@
 """Multi-process training through ``jax.distributed``: one process per host, the global env batch
-split over every device of every process (SPEC §3 "Multiple devices").
+split over every device of every process (docs/task.md §3 "Multiple devices").
 
 Start the same command on every host, each with its ``--process-id``::
 

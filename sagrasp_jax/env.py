@@ -1,7 +1,9 @@
-"""The grasping MDP of SPEC §2 as a pure-JAX, Brax-compatible environment (MuJoCo-MJX physics).
+"""The grasping MDP of docs/task.md §2 as a pure-JAX environment (MuJoCo-MJX physics).
 
 ``GraspEnv(cfg).reset(rng)`` / ``.step(state, action)`` work on one env; ``jax.vmap``
-them for batches (``wrappers.AutoReset`` does, with fresh-sample auto-reset).  The
+them for batches (``wrappers.AutoReset`` does, with fresh-sample auto-reset).  Its states are
+``brax.envs.base.State`` but it is not a brax env: brax's wrappers (``training.wrap``) need
+``envs.BraxGraspEnv`` (``envs.load("grasp-kinematic")``), which keeps their conventions.  The
 control step, reward, sampling and collision maths come from the backend-agnostic
 modules that the PyBullet reference env and the deployment runtime share.
 
@@ -27,12 +29,12 @@ import jax
 import jax.numpy as jnp
 from brax.envs.base import State
 
-from sagrasp_jax import collision, control, episode, observation, robot, sampling
+from sagrasp_jax import assets, collision, control, episode, observation, robot, sampling
 from sagrasp_jax import config as config_mod
 from sagrasp_jax.config import EnvConfig
 
-MJCF_SCENE = os.path.join(os.path.dirname(robot.URDF_PATH), "..", "mjcf", "scene.xml")
-MJCF_ROBOT = os.path.join(os.path.dirname(robot.URDF_PATH), "..", "mjcf", "aubo_i5_eg2.xml")  # the dynamic mode's model
+MJCF_SCENE = assets.MJCF_SCENE
+MJCF_ROBOT = assets.MJCF_ROBOT  # the dynamic mode's model
 
 EPISODE_KEYS = episode.EPISODE_KEYS
 
@@ -40,7 +42,7 @@ OBS_SIZE = observation.OBS_SIZE  # the paper layout's 17; an env's own size is `
 
 
 class GraspEnv:
-    """AUBO-i5 + EG2 gripper reaching a cuboid among random obstacles (SPEC §1-§2)."""
+    """AUBO-i5 + EG2 gripper reaching a cuboid among random obstacles (docs/task.md §1-§2)."""
 
     action_size = control.ACTION_SIZE
 

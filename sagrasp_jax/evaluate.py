@@ -32,12 +32,17 @@ import sys
 import time
 from typing import Any, Callable
 
-import jax
+from sagrasp_jax import extras
+
+if __name__ == "__main__":  # a missing extra ends in one line naming it (exit 2), not an import traceback
+    extras.require_cli("train", prog="python -m sagrasp_jax.evaluate")
+
+import jax  # noqa: E402
 import numpy as np
 
 from sagrasp_jax import ppo, run_dir
 from sagrasp_jax.checkpoint import CheckpointError
-from sagrasp_jax.config import EVAL_CONDITIONS, SEED_RANGE, Config, ConfigError, blocking_sampling, check_range
+from sagrasp_jax.config import EVAL_CONDITIONS, SEED_RANGE, Config, ConfigError, blocking_sampling, check_range, file_overrides
 from sagrasp_jax.run_dir import RunDirError
 
 EvalEnvFactory = Callable[[Config], ppo.Env]
@@ -53,9 +58,9 @@ def default_eval_env(cfg: Config) -> ppo.Env:
 
 
 def scene_config(cfg: Config, scenes: str) -> Config:
-    """The evaluation's config: ``mix`` = the run's own env (SPEC mix, obstacle_prob 0.2);
+    """The evaluation's config: ``mix`` = the run's own env (the evaluation mix, obstacle_prob 0.2);
     ``blocking`` = every episode has an obstacle on the straight approach path (sampling.py's
-    blocking placement, SPEC §1 feasibility rules kept)."""
+    blocking placement, docs/task.md §1 feasibility rules kept)."""
     if scenes not in SCENE_SETS:
         raise ConfigError(f"--scenes must be one of {', '.join(SCENE_SETS)}, got {scenes!r}")
     if scenes == "mix":
@@ -319,7 +324,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=None, help="evaluation seed (default sa.eval_seed + 1)")
     p.add_argument("--max-steps", type=int, default=None, help="step cap per episode (default env.task.max_steps)")
     p.add_argument("--scenes", default="mix", choices=SCENE_SETS,
-                   help="mix: the SPEC's scene mix (20 %% obstacle episodes); blocking: every episode has an obstacle "
+                   help="mix: the task's evaluation mix (20 %% obstacle episodes); blocking: every episode has an obstacle "
                         "on the straight approach path (the file name says so)")
     p.add_argument("--out", default=None,
                    help="result JSON (default RUN/evaluation-<EPISODES>ep-seed<SEED>[-<MAX_STEPS>steps].json)")
@@ -332,10 +337,14 @@ def main(argv: list[str] | None = None) -> int:
                    help="a named evaluation env (config.EVAL_CONDITIONS), applied before --set: kinematic, dynamic "
                         "(every transfer knob off), robot (dynamic, every knob on at the real arm's levels), "
                         "robot-latency2 (the same with up to 2 steps of latency), kinematic-target-error")
+    p.add_argument("--config", default=None, metavar="FILE",
+                   help="env.* keys from a JSON (or YAML) file, applied before --set (same rules as --set)")
     args = p.parse_args(argv)
-    if args.condition:
-        args.overrides = [*EVAL_CONDITIONS[args.condition], *args.overrides]
     try:
+        if args.config is not None:
+            args.overrides = file_overrides(args.config) + list(args.overrides)
+        if args.condition:  # the named condition first, then the file, then --set
+            args.overrides = [*EVAL_CONDITIONS[args.condition], *args.overrides]
         check_options(args.episodes, args.seed, args.max_steps)
         cfg = run_dir.load_config(args.run)
         ckpt = run_dir.load_checkpoint(args.run, cfg)

@@ -34,7 +34,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from sagrasp_jax import __version__, runtime
+from sagrasp_jax import __version__, extras, runtime
 from sagrasp_jax.runtime import NumpyPolicy
 
 NPZ_FILE = "policy.npz"
@@ -235,7 +235,7 @@ def _export(run: str, out_dir: str, cfg: Any, params: Any, normaliser: Any, coun
             obs = check_observations(policy)
             diff = float(np.abs(onnx_actions(onnx_path, obs) - policy(obs)).max())
         except ImportError:
-            manifest["onnx_check"] = "skipped: onnxruntime not installed (pip install -e .[export])"
+            manifest["onnx_check"] = f"skipped: onnxruntime not installed ({extras.install_hint(('export',))})"
         else:
             manifest["onnx_check"] = {"observations": len(obs), "max_abs_action_diff": diff}
             if not diff <= AGREEMENT_TOL:
@@ -251,6 +251,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--no-onnx", action="store_true", help="write only policy.npz")
     p.add_argument("--opset", type=int, default=DEFAULT_OPSET, help=f"ONNX opset (>= 17, default {DEFAULT_OPSET})")
     args = p.parse_args(argv)
+    try:
+        extras.require("train", what="reading a run's checkpoint")
+        extras.require(*(() if args.no_onnx else ("export",)), what="ONNX export (--no-onnx writes policy.npz only)")
+    except extras.MissingExtra as exc:
+        extras.exit_missing(exc, p.prog)
     try:
         manifest = export_run(args.run, args.out, onnx=not args.no_onnx, opset=args.opset)
     except (ExportError, runtime.PolicyFormatError, OSError) as exc:

@@ -1,7 +1,7 @@
 """Learning-rate schedules of the trainer: one interface, five rules (``lr.schedule``).
 
 * ``constant``: ``ppo.learning_rate`` throughout (the paper's PPO); the lr never moves.
-* ``sa``: SPEC §3's simulated-annealing plateau schedule (``sa_schedule``), on the host once
+* ``sa``: docs/task.md §3's simulated-annealing plateau schedule (``sa_schedule``), on the host once
   per cycle; a reject restores the snapshot.
 * ``kl-adaptive``: brax ≥ 0.14 / rsl_rl, on the device after every minibatch's KL: lr ÷
   ``kl_factor`` above 2·``desired_kl``, × ``kl_factor`` below ``desired_kl`` / 2, kept in
@@ -162,7 +162,7 @@ def observe(rule: Rule, state: ScheduleState, *, device_lr: float, progress: flo
 
 def end_cycle(rule: Rule, sa_cfg: SAConfig, state: ScheduleState, metric: float, entropy: float,
               rng: np.random.Generator | float, n_actions: int = 6) -> tuple[ScheduleState, Decision]:
-    """The end-of-cycle decision.  ``sa``: SPEC §3 (``sa_schedule.update``: one uniform draw of
+    """The end-of-cycle decision.  ``sa``: docs/task.md §3 (``sa_schedule.update``: one uniform draw of
     ``rng``); with ``sa.rollback`` off a reject does not restore.  Every other schedule keeps the
     cycle's updates (and draws nothing)."""
     if rule.name != "sa":

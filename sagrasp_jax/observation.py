@@ -3,7 +3,7 @@ env, parity, export and the deployment loop (``xp`` = numpy or jax.numpy; no jax
 
 Layouts (``env.task.obs_layout``; a policy file records its entry names and its config):
 
-* ``paper`` — the 17 numbers the paper lists (SPEC §2): q1..q6, gripper centre, target centre,
+* ``paper`` — the 17 numbers the paper lists (docs/task.md §2): q1..q6, gripper centre, target centre,
   nearest obstacle centre, Δpo, θgz; with no obstacle the centre is the sentinel
   ``no_obstacle_pos`` and Δpo the clip value.  Kept for reproduction and parity with the paper.
 * ``relative`` — the same 13 robot/target numbers, then per obstacle slot, nearest first: a

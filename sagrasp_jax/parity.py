@@ -3,7 +3,7 @@
 ``python -m sagrasp_jax.parity [--episodes 1000] [--quick] [--mode kinematic|dynamic]
 [--policy policy.npz] [--out parity.json] [--seed S]``
 
-Why: users must be able to trust that the fast env is the paper's task.  Following SPEC §2's
+Why: users must be able to trust that the fast env is the paper's task.  Following docs/task.md §2's
 parity rules, JAX runs in float64 (x64), observation noise is off in both envs, and both start
 every episode from the identical explicit ``ResetSpec``, drawn from NumPy uniforms with the
 shared sampler.  Float32 against float64 at the slow-down, fine-tune and success thresholds
@@ -43,7 +43,12 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
-import numpy as np
+from sagrasp_jax import extras
+
+if __name__ == "__main__":  # a missing extra ends in one line naming it (exit 2), not an import traceback
+    extras.require_cli("train", "reference", prog="python -m sagrasp_jax.parity")
+
+import numpy as np  # noqa: E402
 
 from sagrasp_jax import fileio, robot, sampling, scripted, shapes
 from sagrasp_jax.episode import EPISODE_KEYS
@@ -160,7 +165,7 @@ class JaxSide:
         import jax.numpy as jnp
 
         if not jax.config.jax_enable_x64:
-            raise RuntimeError("parity needs jax_enable_x64 (SPEC §2 parity rules); run_parity enables it")
+            raise RuntimeError("parity needs jax_enable_x64 (docs/task.md §2 parity rules); run_parity enables it")
         from sagrasp_jax.env import GraspEnv
 
         self.jax, self.jnp = jax, jnp
@@ -333,7 +338,8 @@ class _SourceRun:
         """Step PyBullet episode ``k`` and compare it with the JAX step while both run; returns
         (observation, still alive, still comparing, flags agreed)."""
         t0 = time.perf_counter()
-        obs, rew, term, _, info = self.pb_envs[k].step(action)
+        obs, rew, term, trunc, info = self.pb_envs[k].step(action)
+        term = term or trunc  # a timeout (truncated) ends the episode as in the JAX env
         self.pb_time += time.perf_counter() - t0
         self.pb_steps += 1
         p_flags = _flags_of(term, info["success"], info["collision"], info["timeout"])
@@ -360,7 +366,8 @@ class _SourceRun:
         probe.force_state(prev["q"][k], prev["q_target"][k], prev["qd"][k], steps=int(prev["steps"][k]),
                           d_prev=float(prev["d_prev"][k]), clean=bool(prev["clean"][k]),
                           obstacle_dist_prev=float(prev["obstacle_dist_prev"][k]))
-        s_obs, s_rew, s_term, _, s_info = probe.step(action)
+        s_obs, s_rew, s_term, s_trunc, s_info = probe.step(action)
+        s_term = s_term or s_trunc
         s_flags = _flags_of(s_term, s_info["success"], s_info["collision"], s_info["timeout"])
         self.single_flag_agree[0] += int(_compare_step(self.single, j_obs, j_row, s_obs, _pybullet_row(s_rew, s_info),
                                                        j_flags, s_flags))

@@ -1,8 +1,8 @@
-"""Physical grasp check (SPEC §2): does the kinematic success pose really hold the cube?
+"""Physical grasp check (docs/task.md §2): does the kinematic success pose really hold the cube?
 
 Training scores a grasp kinematically (gripper centre over the cube, pointing down, no
 collision).  This check replays the end of an episode with physics on CPU MuJoCo, from
-``mjcf/scene.xml`` adapted in memory with ``mujoco.MjSpec`` for that episode:
+``sagrasp_jax/mjcf/scene.xml`` adapted in memory with ``mujoco.MjSpec`` for that episode:
 
 * the target, a mocap body in the training model, gets a free joint (it can be lifted) and
   the episode's pose; the obstacle slots get the episode's shape, size and pose;
@@ -28,18 +28,19 @@ from typing import Any, Callable
 import mujoco
 import numpy as np
 
+from sagrasp_jax import assets
 from sagrasp_jax import robot as robot_mod
 from sagrasp_jax import shapes
 from sagrasp_jax.robot import lift_pose
 from sagrasp_jax.sampling import ResetSpec
 
-SCENE_XML = os.path.normpath(os.path.join(os.path.dirname(robot_mod.URDF_PATH), "..", "mjcf", "scene.xml"))
+SCENE_XML = assets.MJCF_SCENE
 PHYSICS_DT = 0.002  # s; finer than the training model's 0.01 s: pad-cube contacts under squeeze
 SETTLE_S = 0.1  # s with fingers open before closing (the cube settles on the table)
 CLOSE_S = 0.5  # s for the fingers to close and squeeze
 LIFT_S = 1.0  # s ramp of the arm servo targets to the lift pose
 HOLD_S = 0.5  # s holding the lifted pose before measuring
-LIFT_HEIGHT = 0.05  # m, SPEC §2
+LIFT_HEIGHT = 0.05  # m, docs/task.md §2
 HOLD_TOLERANCE = 0.01  # m the cube may lag behind the gripper's rise (soft contacts slip a few mm)
 ARM_DOF = 6
 FrameCallback = Callable[["GraspScene"], None]
@@ -214,7 +215,7 @@ def physical_grasp_check(q_final: Any, reset_spec: ResetSpec, *, lift: float = L
     gripper_rise = float(scene.gripper_centre[2] - centre0[2])
     contacts = scene.pad_contacts()
     local = scene.cube_in_gripper_frame()
-    # Pad inner faces sit at ±(finger joint value) along the finger axis (0 = closed, SPEC §1).
+    # Pad inner faces sit at ±(finger joint value) along the finger axis (0 = closed, docs/task.md §1).
     half_gap = float(np.mean(scene.fingers))
     criteria = {
         "rose_with_gripper": cube_rise >= gripper_rise - HOLD_TOLERANCE,

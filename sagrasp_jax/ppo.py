@@ -111,7 +111,7 @@ class EvalResult(NamedTuple):
 
 def make_networks(net: NetworkConfig, obs_size: int, action_size: int, obs_clip: float,
                   critic_extra: int = 0) -> PPONetworks:
-    """brax PPO networks whose preprocessor normalises with the running stats and clips (SPEC §2).
+    """brax PPO networks whose preprocessor normalises with the running stats and clips (docs/task.md §2).
 
     With ``critic_extra`` > 0 the value network also reads that many privileged inputs appended
     to the observation (already scaled by the env, not normalised): an asymmetric actor-critic
@@ -489,7 +489,7 @@ def update_normaliser(normaliser: Normaliser, obs: jax.Array, cfg: PPOConfig,
                       hand_scaled: np.ndarray | None = None, axis_name: str | None = None) -> Normaliser:
     """Running mean/std update (std floored at ``obs_std_floor``); ``hand_scaled`` entries stay at
     mean 0, std 1 — observation entries already scaled by hand (and 0 when absent), which a
-    normaliser fitted on mostly obstacle-free data would turn into outliers (SPEC §2, Layouts)."""
+    normaliser fitted on mostly obstacle-free data would turn into outliers (docs/task.md §2, Layouts)."""
     normaliser = running_statistics.update(normaliser, obs, std_min_value=cfg.obs_std_floor, pmap_axis_name=axis_name)
     if hand_scaled is None or not np.any(hand_scaled):
         return normaliser

@@ -26,7 +26,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from sagrasp_jax import fileio
+from sagrasp_jax import extras, fileio
 from sagrasp_jax.config import SEED_RANGE, ConfigError, check_range
 from sagrasp_jax.deploy.safety import PolicyMismatch
 from sagrasp_jax.runtime import PolicyFormatError, load_policy
@@ -51,6 +51,8 @@ def _gl_error(exc: BaseException) -> RenderError:
 
 def _mujoco() -> Any:
     """Import MuJoCo, turning a broken GL backend (it is chosen at import time) into a RenderError."""
+    if "mujoco" in extras.missing("render"):
+        raise extras.MissingExtra(("render",), ["mujoco"], "rendering a video")
     try:
         import mujoco
     except Exception as exc:  # a missing GL library surfaces as AttributeError/OSError/ImportError from PyOpenGL
@@ -59,11 +61,10 @@ def _mujoco() -> Any:
 
 
 def _imageio() -> Any:
-    try:
-        import imageio.v2 as imageio
-        import imageio_ffmpeg  # noqa: F401  (the mp4 writer; fail here, not after rendering)
-    except ImportError as exc:
-        raise RenderError(f"writing mp4 needs imageio and imageio-ffmpeg: pip install -e .[render] ({exc})") from None
+    extras.require("render", what="writing mp4")
+    import imageio.v2 as imageio
+    import imageio_ffmpeg  # noqa: F401  (the mp4 writer; fail here, not after rendering)
+
     return imageio
 
 
@@ -184,7 +185,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         write_video(args.out, frames, args.fps)
         if args.png:
             write_png(args.png, frames[still])
-    except (RenderError, PolicyFormatError, PolicyMismatch, ConfigError, OSError) as exc:
+    except (RenderError, PolicyFormatError, PolicyMismatch, ConfigError, OSError, extras.MissingExtra) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     for i, r in enumerate(reports):

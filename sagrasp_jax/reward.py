@@ -1,4 +1,4 @@
-"""Reward, success test and terminal-outcome precedence (SPEC §2), for every backend.
+"""Reward, success test and terminal-outcome precedence (docs/task.md §2), for every backend.
 
 R = F_d·R_distance + F_s·R_success + F_o·R_obstacle with progress-dependent weights.
 Written once, with the array module passed in (``xp`` = numpy or jax.numpy) and no
@@ -100,7 +100,7 @@ def _as_bool(xp: Any, flag: Any) -> Any:
 
 
 def resolve_outcome(xp: Any, collision: Any, success_raw: Any, timeout: Any) -> Outcome:
-    """Apply the SPEC's precedence collision > success > timeout to raw per-step flags.
+    """Apply the task's precedence (docs/task.md §2.7) collision > success > timeout to raw per-step flags.
 
     A step can satisfy several raw conditions at once (e.g. the success pose reached
     while touching the table, or success on the 200th step); exactly one verdict must

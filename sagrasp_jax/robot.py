@@ -1,6 +1,6 @@
 """Robot facts read from the project URDF, and forward kinematics for NumPy and JAX.
 
-The URDF (``urdf/aubo_i5_eg2.urdf``) is the only place where joint origins, limits
+The URDF (``sagrasp_jax/urdf/aubo_i5_eg2.urdf``) is the only place where joint origins, limits
 and collision geometry are written.  ``load_robot`` parses it once into plain NumPy
 constants; ``forward_kinematics(xp, robot, q)`` then runs with ``xp = numpy`` (the
 PyBullet reference env, the deployment runtime) or ``xp = jax.numpy`` (the MJX env)
@@ -17,7 +17,9 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-URDF_PATH = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "urdf", "aubo_i5_eg2.urdf")
+from sagrasp_jax import assets
+
+URDF_PATH = assets.URDF  # shipped in the package (sagrasp_jax/urdf/), found through importlib.resources
 
 ARM_JOINTS = (
     "shoulder_joint",
@@ -348,7 +350,7 @@ def solve_home_pose(
 ) -> np.ndarray:
     """Damped-least-squares IK: gripper centre at ``target``, approach axis along −z.
 
-    Seeded from SPEC §2's vector so that the solver stays on the branch the SPEC
+    Seeded from docs/task.md §2's vector so that the solver stays on the branch the task
     pins (other branches reach the same pose at a joint limit).
     """
     robot = robot or load_robot()

@@ -1,4 +1,4 @@
-"""Simulated-annealing learning-rate plateau schedule of SA-PPO (SPEC §3).
+"""Simulated-annealing learning-rate plateau schedule of SA-PPO (docs/task.md §3).
 
 A small, pure, host-side state machine (the ``sa`` schedule of ``sagrasp_jax.lr_schedule``,
 which hands it the trainer's calls): :func:`update` runs once per *cycle* (never per PPO
@@ -185,7 +185,7 @@ def update(
     rng: np.random.Generator | float,
     n_actions: int = 6,
 ) -> tuple[SAState, Decision]:
-    """One end-of-cycle decision (SPEC §3 rules 1-3).
+    """One end-of-cycle decision (docs/task.md §3 rules 1-3).
 
     ``rng`` is a NumPy Generator (exactly one ``random()`` draw per call, used or not)
     or an already drawn uniform in [0, 1).  The first finite evaluation is always

@@ -1,4 +1,4 @@
-"""Episode-start sampling (SPEC §1): target pose, dynamic obstacles, start-pose noise.
+"""Episode-start sampling (docs/task.md §1): target pose, dynamic obstacles, start-pose noise.
 
 The maths is backend-agnostic and takes its randomness as a flat vector of uniform
 numbers in [0, 1) (``uniforms_needed(cfg)`` long).  The MJX env draws it with
@@ -9,7 +9,7 @@ jits, vmaps and costs the same for every env.
 
 Obstacle kinds are ``cfg.obstacle_kinds`` (entries of ``shapes.SHAPES``: each says how its size,
 height and yaw are drawn and holds its SDF, footprint and bounding radius); a slot's candidates are
-split evenly among them.  Feasibility of an obstacle (SPEC §1): (a) horizontal clearance from its surface to the
+split evenly among them.  Feasibility of an obstacle (docs/task.md §1): (a) horizontal clearance from its surface to the
 target centre ≥ ``target_clearance``; (b) every robot primitive at the (noisy) start
 pose ≥ ``robot_clearance`` from the obstacle — measured between the obstacle's exact shape
 and the robot's sphere cover (``collision.py``) less the cover's capsule dip, so never optimistic; (c) the two
@@ -174,7 +174,7 @@ class _Candidates(NamedTuple):
     kind: Any
     size: Any
     yaw: Any
-    pos: Any  # disc placement (SPEC §1); the blocking placement may move slot 0's
+    pos: Any  # disc placement (docs/task.md §1); the blocking placement may move slot 0's
     rest_z: Any  # centre height of the kinds resting on the table (None if every kind floats)
     order: Any  # visiting position of each candidate (first feasible in this order wins)
 
@@ -235,7 +235,7 @@ def _draw_obstacles(xp: Any, cfg: SamplingConfig, groups: _KindGroups, u_obs: An
 
 def _obstacle_to_robot(xp: Any, robot: RobotModel, kin: Kinematics, kind: int, pos: Any, yaw: Any, size: Any) -> Any:
     """Distance (...,) from obstacle candidates of one static kind (exact shapes) to the robot's
-    conservative sphere cover (collision.py): the SPEC's "every robot collision geometry"."""
+    conservative sphere cover (collision.py): docs/task.md §2.8's "every robot collision geometry"."""
     cover = collision.sphere_cover(robot)
     spheres = collision.cover_centres(xp, robot, kin)  # (S, 3)
     sdf = shapes.sdf(xp, kind, pos[..., None, :], yaw[..., None], size[..., None, :], spheres)
@@ -279,7 +279,7 @@ def _blocking_placement(xp: Any, cfg: SamplingConfig, task: TaskConfig, groups: 
 
 def _feasible(xp: Any, robot: RobotModel, cfg: SamplingConfig, groups: _KindGroups, kin: Kinematics,
               cand: _Candidates, pos: Any, target_xy: Any) -> Any:
-    """SPEC §1 (a) and (b) per candidate (attempts, slots, n_o): footprint clear of the target,
+    """docs/task.md §1 (a) and (b) per candidate (attempts, slots, n_o): footprint clear of the target,
     exact shape clear of the robot's cover at the start pose."""
     d = target_xy[:, None, None, :] - pos[..., :2]
     footprints: dict[Any, list[int]] = {}  # kinds sharing a footprint function share its value
@@ -296,7 +296,7 @@ def _feasible(xp: Any, robot: RobotModel, cfg: SamplingConfig, groups: _KindGrou
 def _choose(xp: Any, cfg: SamplingConfig, u_present: Any, u_count: Any, has_t: Any, ok: Any, order: Any, pos: Any,
             bound: Any) -> tuple[Any, Any, Any, Any, Any]:
     """The first feasible candidate of each slot in visiting order (slot 1 must also keep clear of
-    slot 0's, bounding spheres apart, SPEC §1 (c)), then the first attempt whose scene is feasible.
+    slot 0's, bounding spheres apart, docs/task.md §1 (c)), then the first attempt whose scene is feasible.
     Returns (attempt index, chosen candidate per slot (slots,), whether any attempt worked, the
     fallback flag, the wanted obstacle count)."""
     n_o = ok.shape[-1]

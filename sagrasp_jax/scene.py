@@ -1,6 +1,6 @@
 """The work cell as plain data: one description that builds both the MJCF and the PyBullet scene.
 
-World frame = AUBO-i5 base frame (SPEC §1).  Static parts (table, gantry, camera
+World frame = AUBO-i5 base frame (docs/task.md §1).  Static parts (table, gantry, camera
 with its bracket) are fixed primitives; the target and the dynamic obstacle slots
 only declare their geometry limits here, their poses are sampled per episode
 (``sampling.py``).  No other module writes a coordinate of the cell.
@@ -14,7 +14,7 @@ import numpy as np
 
 from sagrasp_jax.robot import BOX
 
-# Hand-eye calibration camera -> robot base, millimetres (paper Eq. 13, SPEC §5).
+# Hand-eye calibration camera -> robot base, millimetres (paper Eq. 13, docs/task.md §5).
 T_CAM_BASE_MM = np.array(
     [
         [-0.9961, 0.0219, 0.0854, -162.08],
@@ -81,7 +81,7 @@ class CameraSpec:
 
 @dataclass(frozen=True)
 class ObstacleSlots:
-    """Dynamic obstacles: up to ``count`` slots, each holding one shape of ``shapes.SHAPES`` (SPEC §1)."""
+    """Dynamic obstacles: up to ``count`` slots, each holding one shape of ``shapes.SHAPES`` (docs/task.md §1)."""
 
     count: int = 2
     rgba: tuple[float, float, float, float] = (0.95, 0.95, 0.95, 1.0)

@@ -13,7 +13,7 @@ Everything that differs between kinds is in the entry, and everything else reads
   (centre at ``half_height``), whether a yaw is drawn;
 * the per-kind maths: signed distance (``sdf``), nearest surface point (``surface``), a
   bounding radius (two obstacles must not overlap), the horizontal footprint gap to a point
-  (``footprint``: the target-clearance test, SPEC §1 (a)), written once on x/y/z component
+  (``footprint``: the target-clearance test, docs/task.md §1 (a)), written once on x/y/z component
   arrays (XLA fuses those into a few elementwise loops; the same maths on a trailing axis of
   length 3 is several times slower on CPU);
 * the builders: the MJCF slots (``tools/urdf_to_mjcf.py``, one geom per kind in every slot),
@@ -256,7 +256,7 @@ SHAPES: tuple[ObstacleShape, ...] = (SPHERE_SHAPE, CYLINDER_SHAPE, BOX_SHAPE, CA
 BY_ID: dict[int, ObstacleShape] = {s.id: s for s in SHAPES}
 BY_NAME: dict[str, ObstacleShape] = {s.name: s for s in SHAPES}
 NAMES: tuple[str, ...] = tuple(BY_NAME)
-PAPER_KINDS: tuple[str, ...] = ("sphere", "cylinder", "box")  # SPEC §1: the default env.sampling.obstacle_kinds
+PAPER_KINDS: tuple[str, ...] = ("sphere", "cylinder", "box")  # docs/task.md §1: the default env.sampling.obstacle_kinds
 
 
 def shapes_of(names: Sequence[str]) -> tuple[ObstacleShape, ...]:
@@ -330,7 +330,7 @@ def bounding_radius(xp: Any, kind: Any, size: Any, kinds: Sequence[int] | None =
 def footprint_gap(xp: Any, kind: Any, pos: Any, yaw: Any, size: Any, point_xy: Any,
                   kinds: Sequence[int] | None = None) -> Any:
     """Horizontal distance (...,) from the obstacle's footprint (its outline seen from above) to a
-    point: SPEC §1 (a)'s "horizontal clearance from the obstacle's surface to the target centre"."""
+    point: docs/task.md §1 (a)'s "horizontal clearance from the obstacle's surface to the target centre"."""
     d = point_xy - pos[..., :2]
     return _dispatch(xp, kind, kinds, lambda s: s.footprint(xp, d, yaw, size))
 

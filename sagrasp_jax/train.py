@@ -32,13 +32,18 @@ import time
 from dataclasses import dataclass
 from typing import Any, Callable, TextIO
 
-import jax
+from sagrasp_jax import extras
+
+if __name__ == "__main__":  # a missing extra ends in one line naming it (exit 2), not an import traceback
+    extras.require_cli("train", prog="python -m sagrasp_jax.train")
+
+import jax  # noqa: E402
 import numpy as np
 
 from sagrasp_jax import checkpoint, distributed, fileio, lr_schedule, observation, ppo, run_dir, sa_schedule
 from sagrasp_jax.checkpoint import CheckpointError
 from sagrasp_jax.config import (
-    LR_SCHEDULES, PRESETS, SEED_RANGE, Config, ConfigError, apply_overrides, check_range, get_config,
+    LR_SCHEDULES, PRESETS, SEED_RANGE, Config, ConfigError, apply_overrides, check_range, file_overrides, get_config,
     training_env_config, validate,
 )
 from sagrasp_jax.run_dir import (  # noqa: F401  (the run-folder names and readers, re-exported for callers)
@@ -70,16 +75,17 @@ def default_envs(cfg: Config) -> tuple[ppo.Env, ppo.Env]:
     from sagrasp_jax.env import GraspEnv
     from sagrasp_jax.wrappers import AutoReset
 
-    # training episodes follow the training mix (train.obstacle_prob / blocking_prob), evaluation the SPEC's
+    # training episodes follow the training mix (train.obstacle_prob / blocking_prob), evaluation the task's (docs/task.md §2.8)
     return AutoReset(GraspEnv(training_env_config(cfg), privileged=cfg.ppo.privileged_critic)), GraspEnv(cfg.env)
 
 
 def build_config(preset: str = "cpu-quick", algo: str | None = None, seed: int | None = None,
                  total_steps: int | None = None, overrides: list[str] | None = None,
-                 lr_schedule: str | None = None) -> Config:
-    """Preset + ``--algo`` or ``--lr-schedule`` + ``--seed`` + ``--total-steps`` + ``--set`` overrides,
-    validated.  ``algo`` is shorthand for a schedule (``ALGO_SCHEDULES``); giving both is refused
-    unless they agree; neither means ``sa``.  ``--set lr.schedule=…`` in ``overrides`` wins over both."""
+                 lr_schedule: str | None = None, config_file: str | None = None) -> Config:
+    """Preset, then ``--config`` FILE, then ``--algo`` or ``--lr-schedule``, ``--seed``,
+    ``--total-steps``, then ``--set`` overrides, validated.  ``algo`` is shorthand for a schedule
+    (``ALGO_SCHEDULES``); giving both is refused unless they agree; neither means ``sa`` unless the
+    file sets ``lr.schedule``.  ``--set lr.schedule=…`` in ``overrides`` wins over all."""
     if algo is not None and algo not in ALGOS:
         raise ConfigError(f"unknown algo {algo!r}; valid algos: {', '.join(ALGOS)}")
     if lr_schedule is not None and lr_schedule not in LR_SCHEDULES:
@@ -87,7 +93,11 @@ def build_config(preset: str = "cpu-quick", algo: str | None = None, seed: int |
     if algo is not None and lr_schedule is not None and ALGO_SCHEDULES[algo] != lr_schedule:
         raise ConfigError(f"--algo {algo} means --lr-schedule {ALGO_SCHEDULES[algo]}, not {lr_schedule}; give one of them")
     cfg = get_config(preset)
-    sets = [f"lr.schedule={lr_schedule or ALGO_SCHEDULES[algo or 'sa-ppo']}"]
+    from_file = file_overrides(config_file) if config_file is not None else []
+    chosen = lr_schedule or (ALGO_SCHEDULES[algo] if algo else None)
+    file_sets_schedule = any(item.split("=", 1)[0].strip() == "lr.schedule" for item in from_file)
+    sets = [] if chosen is None and file_sets_schedule else [f"lr.schedule={ALGO_SCHEDULES['sa-ppo']}"]
+    sets += from_file + ([f"lr.schedule={chosen}"] if chosen else [])
     if seed is not None:
         sets.append(f"train.seed={seed}")
     if total_steps is not None:
@@ -545,7 +555,11 @@ class _ListKeys(argparse.Action):
         preset = namespace.preset or "cpu-quick"
         if preset not in PRESETS:
             parser.error(f"unknown preset {preset!r}; valid presets: {', '.join(PRESETS)}")
-        print(describe_keys(preset))
+        try:
+            print(describe_keys(preset), flush=True)
+        except BrokenPipeError:  # `--list-keys | head`: the reader left; that is not an error
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())  # Python's exit-time flush must not fail again
         parser.exit()
 
 
@@ -561,6 +575,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="run folder (refused if it exists and is not empty, unless --resume)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="config override, repeatable (e.g. ppo.num_envs=512)")
+    p.add_argument("--config", default=None, metavar="FILE",
+                   help="config keys from a JSON (or YAML, with PyYAML) file, over --preset's values; --algo, --seed, "
+                        "--total-steps and --set apply over it")
     p.add_argument("--total-steps", type=int, default=None)
     p.add_argument("--init-from", default=None, metavar="RUN",
                    help="start from RUN's final policy, value network and normaliser (fresh optimizer and SA state), "
@@ -597,15 +614,15 @@ def resolve_config(args: argparse.Namespace) -> Config:
     overrides = list(args.overrides)
     if args.init_from is not None:
         overrides.append(f"train.init_from={os.path.abspath(args.init_from)}")
-    explicit = any(v is not None for v in (args.preset, args.algo, args.lr_schedule, args.seed, args.total_steps)) \
-        or overrides
+    explicit = any(v is not None for v in (args.preset, args.algo, args.lr_schedule, args.seed, args.total_steps,
+                                           args.config)) or overrides
     if args.resume and not explicit:
         if not os.path.isfile(os.path.join(args.out, CONFIG_FILE)) and not os.path.isfile(os.path.join(args.out, CHECKPOINT_FILE)):
             raise RunDirError(f"{args.out}: cannot resume, no {CONFIG_FILE} and no {CHECKPOINT_FILE} there (the run "
                               "wrote neither); start it again without --resume, or pass its config options")
         return run_dir.load_config(args.out)
     return build_config(args.preset or "cpu-quick", args.algo, args.seed, args.total_steps, overrides,
-                        args.lr_schedule)
+                        args.lr_schedule, args.config)
 
 
 def cpu_devices_for(cfg: Config, processes: int = 1) -> int:

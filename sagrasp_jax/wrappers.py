@@ -1,4 +1,4 @@
-"""Training wrapper: auto-reset from *freshly sampled* episode starts (SPEC §2).
+"""Training wrapper: auto-reset from *freshly sampled* episode starts (docs/task.md §2).
 
 brax's ``AutoResetWrapper`` restores each slot's first reset state, so a slot would
 replay one scene forever.  Here every env carries a *pending* start — a complete,

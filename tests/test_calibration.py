@@ -1,4 +1,4 @@
-"""Camera → base transform of SPEC §5 and the target checks before the arm moves."""
+"""Camera → base transform of docs/task.md §5 and the target checks before the arm moves."""
 
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ CAMERA_ORIGIN_M = np.array([-0.16208, -0.40337, 1.40824])
 
 
 def test_default_matches_spec_by_hand():
-    # The printed matrix itself (SPEC §5), so an edit of the shared copy in scene.py shows up here.
+    # The printed matrix itself (docs/task.md §5), so an edit of the shared copy in scene.py shows up here.
     assert T_CAM_BASE_MM[0].tolist() == [-0.9961, 0.0219, 0.0854, -162.08]
     assert T_CAM_BASE_MM[2].tolist() == [-0.0848, 0.0265, -0.9960, 1408.24]
     cal = CameraCalibration.default()
@@ -32,7 +32,7 @@ def test_default_matches_spec_by_hand():
     np.testing.assert_allclose(cal.cam_to_base([0.0, 0.0, 1.0]), [-0.07668, -0.37877, 0.41224], atol=2e-4)
     # Same point given in millimetres.
     np.testing.assert_allclose(cal.cam_to_base([0.0, 0.0, 1000.0], units="mm"), cal.cam_to_base([0, 0, 1]), atol=1e-12)
-    # The optical axis meets the table near (-0.04, -0.37) (SPEC §1).
+    # The optical axis meets the table near (-0.04, -0.37) (docs/task.md §1).
     axis = cal.matrix[:3, 2]
     hit = CAMERA_ORIGIN_M - CAMERA_ORIGIN_M[2] / axis[2] * axis
     assert abs(hit[0] + 0.04) < 0.005 and abs(hit[1] + 0.37) < 0.005

@@ -1,4 +1,4 @@
-"""Robot-obstacle distance and contact (SPEC §2 "Collision", obstacle issue item 2).
+"""Robot-obstacle distance and contact (docs/task.md §2 "Collision", obstacle issue item 2).
 
 The per-step obstacle query runs against ``collision.fine_cover``: spheres within FINE_ERROR (4 mm)
 of the robot's URDF primitives both ways.  Checked against the exact primitive-pair distances of

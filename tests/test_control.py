@@ -92,7 +92,7 @@ def test_finetune_gate(dq5: float, dist: float, active: bool) -> None:
 
 
 def test_unclipped_correction_matches_damped_least_squares() -> None:
-    """Check the closed-form 2x2 solve against numpy.linalg on the SPEC formula."""
+    """Check the closed-form 2x2 solve against numpy.linalg on the formula of docs/task.md §2.1."""
     q = tilted(0.3)
     q[3] += 0.2  # make wrist 1 contribute as well
     kin = forward_kinematics(np, ROBOT, q)

@@ -217,7 +217,7 @@ def test_init_from_refuses_other_privileged_inputs(monkeypatch):
 def test_warp_backend_matches_jax_over_a_few_steps():
     mjx_warp = pytest.importorskip("mujoco.mjx.warp")
     if not getattr(mjx_warp, "WARP_INSTALLED", False):
-        pytest.skip("the warp extra is not installed (pip install -e .[warp])")
+        pytest.skip('the warp extra is not installed (pip install "sagrasp_jax[warp]")')
     try:
         warp_env = GraspEnv(_cfg("dynamic", "env.control.impl=warp").env)
         _, w = _rollout(_cfg("dynamic", "env.control.impl=warp"))

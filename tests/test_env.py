@@ -1,4 +1,4 @@
-"""The MJX/JAX grasp env (SPEC §2): sampling, observation, collisions, solvability, batching, auto-reset."""
+"""The MJX/JAX grasp env (docs/task.md §2): sampling, observation, collisions, solvability, batching, auto-reset."""
 
 from __future__ import annotations
 
@@ -269,7 +269,7 @@ def test_scripted_controller_solves_the_task(mode):
     success, steps = jax.jit(run)(jax.random.split(jax.random.PRNGKey(42), n))
     success, steps = np.asarray(success), np.asarray(steps)
     assert success.mean() >= 0.95
-    assert 17 <= steps[success > 0].mean() <= 60  # physical limit ≈ 17.6 steps (SPEC §6)
+    assert 17 <= steps[success > 0].mean() <= 60  # physical limit ≈ 17.6 steps (docs/task.md §6)
 
 
 def test_vmap_equals_single_env():
@@ -387,7 +387,7 @@ def test_dynamic_mode_tracks_kinematic_mode():
 
 @pytest.mark.parametrize("rc_mode, hovering_wins", [("entry", False), ("per_step", True)])
 def test_hovering_inside_the_grab_zone_does_not_pay_by_default(rc_mode, hovering_wins):
-    """End to end through ``step`` (SPEC §2): from one state with the cube 4 cm below the gripper,
+    """End to end through ``step`` (docs/task.md §2): from one state with the cube 4 cm below the gripper,
     hovering until timeout earns less than grasping under rc_mode='entry', more under 'per_step'."""
     cfg = env_config(obstacle_prob=0.0)
     cfg = dataclasses.replace(cfg, reward=dataclasses.replace(cfg.reward, rc_mode=rc_mode),

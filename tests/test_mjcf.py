@@ -1,4 +1,4 @@
-"""Generated MJCF: up to date with the URDF and scene, loads in MJX, camera where the SPEC says."""
+"""Generated MJCF: up to date with the URDF and scene, loads in MJX, camera where docs/task.md §1.3 says."""
 
 import math
 import os
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import sagrasp_jax  # noqa: F401
-from sagrasp_jax import config, robot, scene
+from sagrasp_jax import assets, config, robot, scene
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 TOOL = os.path.join(ROOT, "tools", "urdf_to_mjcf.py")
@@ -19,8 +19,8 @@ def test_committed_mjcf_is_what_the_tool_generates(tmp_path):
     out = subprocess.run([sys.executable, TOOL, "--out-dir", str(tmp_path)], capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
     for name in ("aubo_i5_eg2.xml", "scene.xml"):
-        with open(os.path.join(ROOT, "mjcf", name)) as committed, open(tmp_path / name) as fresh:
-            assert committed.read() == fresh.read(), f"mjcf/{name} is stale: run python tools/urdf_to_mjcf.py"
+        with open(os.path.join(assets.MJCF_DIR, name)) as committed, open(tmp_path / name) as fresh:
+            assert committed.read() == fresh.read(), f"sagrasp_jax/mjcf/{name} is stale: run python tools/urdf_to_mjcf.py"
 
 
 @pytest.mark.parametrize("content, needle", [(None, "not found"), ("<robot><link>", "malformed"),
@@ -40,7 +40,7 @@ def test_bad_urdf_exits_nonzero_and_writes_nothing(tmp_path, content, needle):
 def test_scene_contents():
     import mujoco
 
-    model = mujoco.MjModel.from_xml_path(os.path.join(ROOT, "mjcf", "scene.xml"))
+    model = mujoco.MjModel.from_xml_path(assets.MJCF_SCENE)
     names = {model.geom(i).name for i in range(model.ngeom)}
     for part in scene.SCENE.static_parts:
         assert part.name in names
@@ -57,7 +57,7 @@ def test_mjx_accepts_scene_and_steps_without_nan():
     import mujoco
     from mujoco import mjx
 
-    model = mujoco.MjModel.from_xml_path(os.path.join(ROOT, "mjcf", "scene.xml"))
+    model = mujoco.MjModel.from_xml_path(assets.MJCF_SCENE)
     model.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_CONTACT
     mx = mjx.put_model(model)
     home = jnp.concatenate([jnp.asarray(config.HOME_Q, jnp.float32), jnp.full(2, 0.033)])
@@ -75,7 +75,7 @@ def test_mjx_accepts_scene_and_steps_without_nan():
 def test_camera_pose_and_field_of_view_cover_the_target_region():
     import mujoco
 
-    model = mujoco.MjModel.from_xml_path(os.path.join(ROOT, "mjcf", "scene.xml"))
+    model = mujoco.MjModel.from_xml_path(assets.MJCF_SCENE)
     data = mujoco.MjData(model)
     mujoco.mj_forward(model, data)
     cam = data.camera("depth_camera")
@@ -98,7 +98,7 @@ def test_dynamic_servo_tracks_a_small_step():
     """Position servos + gravity compensation: hold the home pose and follow a 0.05 rad step."""
     import mujoco
 
-    model = mujoco.MjModel.from_xml_path(os.path.join(ROOT, "mjcf", "scene.xml"))
+    model = mujoco.MjModel.from_xml_path(assets.MJCF_SCENE)
     data = mujoco.MjData(model)
     home = np.array(config.HOME_Q)
     data.qpos[:6] = home

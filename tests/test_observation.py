@@ -1,4 +1,4 @@
-"""Observation layouts (SPEC §2 "Layouts"): the paper's 17 numbers and the relative obstacle encoding,
+"""Observation layouts (docs/task.md §2 "Layouts"): the paper's 17 numbers and the relative obstacle encoding,
 hand-computed for no obstacle, one, and two (sorted nearest first); the normaliser leaves the
 hand-scaled entries alone; NumPy and JAX build the same vector."""
 

@@ -1,4 +1,4 @@
-"""The parity harness (SPEC §2 parity rules): it passes on the real pair of envs, and it can fail.
+"""The parity harness (docs/task.md §2 parity rules): it passes on the real pair of envs, and it can fail.
 
 The harness runs JAX in float64; switching x64 on inside the shared pytest process would change
 every later test's dtypes, so the end-to-end runs go through the CLI in a subprocess.

@@ -233,7 +233,7 @@ def _obstacle_episode(cfg: RewardConfig, path: list[tuple[float, float]], end: d
 @pytest.mark.parametrize("gamma", [1.0, PPOConfig().gamma])
 @pytest.mark.parametrize("progress", [0.0, 0.5, 1.0])
 def test_lingering_near_an_obstacle_beats_crashing_only_under_change(gamma: float, progress: float) -> None:
-    """SPEC §2: from the same state 2 cm from an obstacle and 10 cm from the cube, working past it
+    """docs/task.md §2: from the same state 2 cm from an obstacle and 10 cm from the cube, working past it
     for 40 steps and then grasping earns more than crashing into it now under the default
     near_miss_mode="change", and less under the paper's per_step term (the trap stays documented)."""
     start = (0.10, 0.02)
@@ -268,7 +268,7 @@ def _episode_return(cfg: RewardConfig, distances: list[float], last: dict, progr
 @pytest.mark.parametrize("gamma", [1.0, PPOConfig().gamma])
 @pytest.mark.parametrize("progress", [0.0, 1.0])
 def test_hovering_trap_only_under_per_step(gamma: float, progress: float) -> None:
-    """SPEC §2: from the same state inside d_grab, hovering until timeout earns less than
+    """docs/task.md §2: from the same state inside d_grab, hovering until timeout earns less than
     completing the grasp under rc_mode="entry", and more under the paper's per_step."""
     start = 0.04  # already inside d_grab, 20 steps into the episode
     remaining = TASK.max_steps - 20

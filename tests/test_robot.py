@@ -1,4 +1,4 @@
-"""Robot facts: URDF-driven FK against the SPEC checkpoints, standard DH, MuJoCo, MJX and PyBullet."""
+"""Robot facts: URDF-driven FK against the flange checkpoints of docs/task.md §1.2, standard DH, MuJoCo, MJX and PyBullet."""
 
 import math
 
@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 
 import sagrasp_jax  # noqa: F401  (sets XLA_FLAGS before jax)
-from sagrasp_jax import config, robot, scene
+from sagrasp_jax import assets, config, robot, scene
 
 ROBOT = robot.load_robot()
 
 
 def dh_flange(q: np.ndarray) -> np.ndarray:
-    """Standard DH of SPEC §1: (θ, d, a, α)."""
+    """Standard DH of docs/task.md §1: (θ, d, a, α)."""
     rows = [
         (q[0], 0.122, 0.0, math.pi / 2),
         (q[1] + math.pi / 2, 0.0, 0.408, 0.0),
@@ -76,7 +76,7 @@ def test_jax_fk_equals_numpy_and_mjx_kinematics():
     kin_jx = jax.jit(jax.vmap(lambda q: robot.forward_kinematics(jnp, ROBOT, q)))(jnp.asarray(qs, jnp.float32))
     assert np.abs(np.asarray(kin_jx.gripper_centre) - kin_np.gripper_centre).max() < 1e-5  # float32
 
-    model = mujoco.MjModel.from_xml_path("mjcf/aubo_i5_eg2.xml")
+    model = mujoco.MjModel.from_xml_path(assets.MJCF_ROBOT)
     mx = mjx.put_model(model)
 
     def mjx_sites(q):
@@ -95,7 +95,7 @@ def test_jax_fk_equals_numpy_and_mjx_kinematics():
 def test_fk_equals_cpu_mujoco_in_float64():
     import mujoco
 
-    model = mujoco.MjModel.from_xml_path("mjcf/aubo_i5_eg2.xml")
+    model = mujoco.MjModel.from_xml_path(assets.MJCF_ROBOT)
     data = mujoco.MjData(model)
     qs = random_qs(200, seed=2)
     kin = robot.forward_kinematics(np, ROBOT, qs)

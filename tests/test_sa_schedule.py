@@ -1,4 +1,4 @@
-"""The SA-PPO learning-rate plateau schedule (SPEC §3) as a state machine."""
+"""The SA-PPO learning-rate plateau schedule (docs/task.md §3) as a state machine."""
 
 from __future__ import annotations
 

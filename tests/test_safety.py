@@ -109,7 +109,7 @@ def test_out_of_workspace_refused(layer):
         layer.check_pose(_ik((0.55, -0.20, 0.35)))
     with pytest.raises(SafetyViolation, match=r"gripper centre y = 0\.3200 m .* \[-0\.850, 0\.300\]"):
         layer.check_pose(_ik((0.45, 0.32, 0.40)))
-    # Zero pose: arm straight up, gripper centre at z = 1.0085 m (flange checkpoint of SPEC §1).
+    # Zero pose: arm straight up, gripper centre at z = 1.0085 m (flange checkpoint of docs/task.md §1).
     with pytest.raises(SafetyViolation, match=r"gripper centre z = 1\.0085 m .* \[0\.000, 1\.000\]"):
         layer.check_pose(np.zeros(6))
     roomy = SafetyLayer(workspace=WorkspaceBox(upper=(0.5, 0.3, 1.2)))

@@ -2,10 +2,10 @@
 
 * ``sampling.path_clearance`` / ``is_blocking``: the straight segment from the start gripper centre
   to the grasp point, against obstacles built by hand;
-* the blocking placement generator: every scene it accepts blocks and obeys SPEC §1's feasibility
+* the blocking placement generator: every scene it accepts blocks and obeys docs/task.md §1's feasibility
   rules;
 * the training mix (``train.obstacle_prob`` / ``blocking_prob``) differs from the evaluation mix
-  when configured, and evaluation stays at the SPEC's 0.2.
+  when configured, and evaluation stays at the task's 0.2.
 """
 
 from __future__ import annotations
@@ -94,7 +94,7 @@ def test_blocking_generator_obeys_feasibility_and_blocks():
     assert np.array_equal(~present, spec.fallback)
     clear = jax.jit(jax.vmap(lambda s: sampling.path_clearance(jnp, ROBOT, TASK, s)))(jax.tree_util.tree_map(jnp.asarray, spec))
     assert np.all(np.asarray(clear)[present, 0] < cfg.blocking_margin)
-    for i in np.nonzero(present)[0][:300]:  # SPEC §1 (a) and (b), against the exact robot geometry
+    for i in np.nonzero(present)[0][:300]:  # docs/task.md §1 (a) and (b), against the exact robot geometry
         kind, pos, yaw, size = spec.obstacle_kind[i, 0], spec.obstacle_pos[i, 0], spec.obstacle_yaw[i, 0], spec.obstacle_size[i, 0]
         assert shapes.footprint_gap(np, kind, pos, yaw, size, spec.target_pos[i, :2]) >= cfg.target_clearance - 1e-5
         kin = robot.forward_kinematics(np, ROBOT, spec.q0[i].astype(float))
@@ -106,7 +106,7 @@ def test_blocking_generator_obeys_feasibility_and_blocks():
 
 def test_training_mix_differs_from_the_evaluation_mix():
     cfg = train.build_config("cpu-quick", overrides=["train.obstacle_prob=0.6", "train.blocking_prob=0.5"])
-    assert cfg.env.sampling.obstacle_prob == 0.2 and cfg.env.sampling.blocking_prob == 0.0  # evaluation: SPEC mix
+    assert cfg.env.sampling.obstacle_prob == 0.2 and cfg.env.sampling.blocking_prob == 0.0  # evaluation: the task's mix
     train_env = config.training_env_config(cfg)
     assert train_env.sampling.obstacle_prob == 0.6 and train_env.sampling.blocking_prob == 0.5
     assert train_env.sampling.scene_redraws == config.BLOCKING_SCENE_REDRAWS  # blocking placements need more tries

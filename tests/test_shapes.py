@@ -19,7 +19,7 @@ import sagrasp_jax  # noqa: F401
 import jax
 import jax.numpy as jnp
 
-from sagrasp_jax import collision, config, robot, sampling, shapes
+from sagrasp_jax import assets, collision, config, robot, sampling, shapes
 from sagrasp_jax.reference import exact_geometry as geometry
 
 ROBOT = robot.load_robot()
@@ -182,7 +182,7 @@ def test_capsules_are_drawn_lying_on_the_table_and_feasible(capsule_resets):
     cfg, spec = capsule_resets
     s = cfg.sampling
     active = spec.obstacle_active
-    # every scene wants obstacles here: 3 % fallbacks are 0.6 % of resets at the paper's 0.2 (SPEC: < 1 %)
+    # every scene wants obstacles here: 3 % fallbacks are 0.6 % of resets at the paper's 0.2 (docs/task.md §2.8: < 1 %)
     assert spec.fallback.mean() < 0.03 and np.array_equal(active[:, 0], spec.fallback == 0)
     kinds = spec.obstacle_kind[active]
     for k in (robot.SPHERE, robot.CYLINDER, robot.BOX, robot.CAPSULE):  # uniform draw, filtered by feasibility
@@ -193,7 +193,7 @@ def test_capsules_are_drawn_lying_on_the_table_and_feasible(capsule_resets):
     assert np.all((2 * size[:, 1] >= s.capsule_length[0] - 1e-6) & (2 * size[:, 1] <= s.capsule_length[1] + 1e-6))
     np.testing.assert_allclose(pos[:, 2], size[:, 0], atol=1e-6)  # lying on the table
     assert yaw.min() < -2.5 and yaw.max() > 2.5  # yaw uniform in [−π, π)
-    for i, j in list(zip(rows, slots))[:150]:  # SPEC §1 (a), (b) against the exact robot geometry
+    for i, j in list(zip(rows, slots))[:150]:  # docs/task.md §1 (a), (b) against the exact robot geometry
         p, w, z = spec.obstacle_pos[i, j], spec.obstacle_yaw[i, j], spec.obstacle_size[i, j]
         assert shapes.footprint_gap(np, robot.CAPSULE, p, w, z, spec.target_pos[i, :2]) >= s.target_clearance - 1e-5
         kin = robot.forward_kinematics(np, ROBOT, spec.q0[i].astype(float))
@@ -247,7 +247,7 @@ def test_capsule_in_the_mjcf_slots_and_the_physical_scene():
 
     from sagrasp_jax.physical import GraspScene
 
-    model = mujoco.MjModel.from_xml_path(os.path.join(os.path.dirname(robot.URDF_PATH), "..", "mjcf", "scene.xml"))
+    model = mujoco.MjModel.from_xml_path(assets.MJCF_SCENE)
     for slot in range(2):
         for shape in shapes.SHAPES:
             assert model.geom(f"obstacle_{slot}_{shape.name}").type[0] == {

@@ -1,4 +1,4 @@
-"""Deployment on the real AUBO-i5 or its PyBullet twin, without JAX (SPEC §5).
+"""Deployment on the real AUBO-i5 or its PyBullet twin, without JAX (docs/task.md §5).
 
 ``calibration`` maps camera detections to the robot base frame and refuses targets outside
 the trained region; ``safety`` refuses dangerous joint commands; ``loop`` runs the exported

@@ -46,7 +46,7 @@ from sagrasp_jax.deploy.calibration import (
     detected_top_to_cube_centre,
     validate_target,
 )
-from sagrasp_jax import shapes
+from sagrasp_jax import extras, shapes
 from sagrasp_jax.deploy.loop import DeployError, Obstacle, format_report, run_episode, scene_spec, with_obstacle_kinds
 from sagrasp_jax.deploy.safety import SafetyViolation, check_policy_constants, check_policy_scene, deployment_env
 from sagrasp_jax.deploy.transfer import TransferErrors
@@ -157,7 +157,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--units", choices=UNITS, default="mm", help="units of the detections (default mm)")
     p.add_argument("--obstacle", nargs="+", action="append", default=[], metavar="KIND_X_Y_Z_SIZE",
                    help="detected obstacle: " + " | ".join(f"{s.name} {s.cli_usage}" for s in shapes.SHAPES))
-    p.add_argument("--calibration", default=None, help="4×4 camera->base matrix (.json/.npy/.txt; default SPEC §5)")
+    p.add_argument("--calibration", default=None, help="4×4 camera->base matrix (.json/.npy/.txt; default docs/task.md §5)")
     p.add_argument("--calibration-units", choices=UNITS, default="mm", help="translation units of --calibration")
     p.add_argument("--base-z-offset", type=float, default=0.0, help="controller base height in the URDF frame, m")
     p.add_argument("--base-yaw", type=float, default=0.0, help="controller base yaw about z relative to the URDF, rad")
@@ -250,7 +250,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         env_cfg = with_obstacle_kinds(env_cfg, obstacles)
         spec = scene_spec(q_home, centre, yaw, obstacles, env_cfg)
         twin_errors, true_spec = _twin_errors(args, spec)
-    except (InputRefused, TargetRejected, CalibrationError, PolicyFormatError, ValueError) as exc:
+        if args.backend == "twin":
+            extras.require("twin", what="--backend twin (the PyBullet digital twin)")
+    except (InputRefused, TargetRejected, CalibrationError, PolicyFormatError, ValueError, extras.MissingExtra) as exc:
         _emit(args, {"outcome": "input_refused", "message": str(exc), "input": given},
               f"error: refused before moving: {exc}", error=True)
         return 2

@@ -1,4 +1,4 @@
-"""Camera → robot-base transform and the checks a detected target must pass (SPEC §5).
+"""Camera → robot-base transform and the checks a detected target must pass (docs/task.md §5).
 
 The hand-eye calibration maps a camera point to the robot controller's base frame,
 ``p_ctrl = R·p_cam + t``.  The simulation's world frame is the URDF base frame; the
@@ -15,7 +15,7 @@ two deployment settings follow the camera transform::
   URDF frame, from the same comparison: ``atan2`` of the two horizontal directions.
 
 Both default to 0 because the paper's calibration was done in the frame our URDF
-reproduces (SPEC §1); set them only after measuring a difference.
+reproduces (docs/task.md §1); set them only after measuring a difference.
 
 Everything here is NumPy; lengths are metres unless a ``units`` argument says "mm".
 """
@@ -134,7 +134,7 @@ class CameraCalibration:
     base_z_offset: float = 0.0  # m, see module docstring
     base_yaw: float = 0.0  # rad, see module docstring
     orthonormality_error: float = 0.0  # max|RᵀR − I| of the matrix as given
-    source: str = "SPEC §5 default"
+    source: str = "docs/task.md §5 default"
     matrix: np.ndarray = field(init=False, repr=False)  # 4×4 camera -> world, metres, corrections included
 
     def __post_init__(self) -> None:
@@ -179,8 +179,8 @@ class CameraCalibration:
 
     @classmethod
     def default(cls, base_z_offset: float = 0.0, base_yaw: float = 0.0) -> "CameraCalibration":
-        """The paper's printed calibration (SPEC §5)."""
-        return cls.from_matrix(T_CAM_BASE_MM, "mm", base_z_offset, base_yaw, "SPEC §5 default")
+        """The paper's printed calibration (docs/task.md §5)."""
+        return cls.from_matrix(T_CAM_BASE_MM, "mm", base_z_offset, base_yaw, "docs/task.md §5 default")
 
     @classmethod
     def from_file(
@@ -269,7 +269,7 @@ def validate_target(
 def validate_obstacle_clearance(target: Any, kind: Any, pos: Any, yaw: Any, size: Any,
                                 sampling_cfg: SamplingConfig | None = None, names: Any = None) -> None:
     """Refuse obstacles whose footprint comes nearer the cube centre than training ever put one
-    (``env.sampling.target_clearance``, horizontal, SPEC §1 (a); 0.10 m): the policy was never
+    (``env.sampling.target_clearance``, horizontal, docs/task.md §1 (a); 0.10 m): the policy was never
     trained to reach past an obstacle that close, so the scene is refused before anything moves.
 
     ``kind``, ``pos``, ``yaw``, ``size`` describe the active obstacles (N,), (N, 3), (N,), (N, 3);

@@ -1,4 +1,4 @@
-"""The closed deployment loop: observe, act with the exported policy, check, command (SPEC §5).
+"""The closed deployment loop: observe, act with the exported policy, check, command (docs/task.md §5).
 
 Why it is built the way it is: a policy only transfers if it sees what it saw in training and
 its actions mean what they meant there.  So every number here comes from the modules the
@@ -43,7 +43,7 @@ from sagrasp_jax.robot import IKError, RobotModel, approach_pose, forward_kinema
 from sagrasp_jax.runtime import NumpyPolicy
 from sagrasp_jax.sampling import ResetSpec
 
-LIFT_HEIGHT = 0.05  # m, SPEC §2/§5: lift after closing the gripper
+LIFT_HEIGHT = 0.05  # m, docs/task.md §2/§5: lift after closing the gripper
 LIFT_MIN_STEPS = 10  # control periods the lift takes at least (0.5 s: ≤ 0.1 m/s)
 CENTRE_MIN_STEPS = 4  # control periods the final centring takes at least (it moves a few mm)
 CENTRE_SETTLE_STEPS = 6  # control periods the centring pose is held before closing (3 steps of latency, servo lag)

@@ -1,23 +1,24 @@
-"""Safety layer between the policy and the real arm: refuse, never clip (SPEC §5).
+"""Safety layer between the policy and the real arm: refuse, never clip (docs/task.md §5).
 
 Every joint target the deployment loop is about to send passes ``SafetyLayer.check``.
 A command that breaks a rule raises ``SafetyViolation`` naming the joint or axis, the
 value and the limit; the loop must then stop the arm.  Clipping silently would hide a
 policy, calibration or control-step bug behind a motion nobody asked for.
 
-Every limit comes from the robot description (``urdf/aubo_i5_eg2.urdf`` via
+Every limit comes from the robot description (``sagrasp_jax/urdf/aubo_i5_eg2.urdf`` via
 ``robot.load_robot``) and the deployment's own settings (``DeploySettings``: the controller's
-command period and the largest joint-target change per command, SPEC §2; the cell's cube size,
-target region and obstacle clearance, SPEC §1), **never from a policy file**: a policy is data from elsewhere, and an edited one must not be able to loosen
-a limit.  A policy trained with other control constants or for another cell is refused before
-anything moves (``check_policy_constants``, ``check_policy_scene``).
+command period and the largest joint-target change per command, docs/task.md §2; the cell's cube
+size, target region and obstacle clearance, docs/task.md §1.4-1.5), **never from a policy file**: a
+policy is data from elsewhere, and an edited one must not be able to loosen a limit.  A policy trained
+with other control constants or for another cell is refused before anything moves
+(``check_policy_constants``, ``check_policy_scene``).
 
 Rules (all NumPy):
 
 1. joint limits: ``q_lower ≤ q ≤ q_upper`` per joint (URDF);
 2. per-step motion: ``|q − q_prev| ≤ min(velocity_limit·control_dt, max_step)`` per joint
    (URDF velocity limits, ``DeploySettings``), with ``q_prev`` the previous commanded target
-   (the target accumulates, SPEC §2 step 4); with the defaults max_step = 0.05 rad is the
+   (the target accumulates, docs/task.md §2 step 4); with the defaults max_step = 0.05 rad is the
    binding bound (2.5964 rad/s × 0.05 s = 0.13 rad);
 3. workspace box for the gripper centre (``WorkspaceBox``, derivation below);
 4. table: every primitive on a moving link above the shoulder (upper arm, forearm, wrists,
@@ -27,7 +28,7 @@ Rules (all NumPy):
 5. optionally, a caller-supplied ``collision_check(q) -> message | None``: the deployment loop
    wires ``collision.check`` (self-collision, the cell, the obstacles and the cube) here.
 
-Default workspace box (world = URDF base frame, metres), derived from SPEC §1:
+Default workspace box (world = URDF base frame, metres), derived from docs/task.md §1:
 
 * x ∈ [−0.50, 0.50]: the gantry posts' inner faces are at |x| = 0.58; 0.50 keeps the
   gripper body (half-width 0.045) 3.5 cm clear of them, and leaves 0.13 m beyond the
@@ -86,8 +87,8 @@ class WorkspaceBox:
             raise ValueError(f"workspace box lower {self.lower} must be below upper {self.upper} on every axis")
 
 
-_SPEC_CONTROL = ControlConfig()  # SPEC §2's constants: the code's, not a policy file's
-_SPEC_SAMPLING = SamplingConfig()  # SPEC §1's trained region and clearance: the code's, not a policy file's
+_TASK_CONTROL = ControlConfig()  # docs/task.md §2's constants: the code's, not a policy file's
+_TASK_SAMPLING = SamplingConfig()  # docs/task.md §1.4's trained region and clearance: the code's, not a policy file's
 # The cell facts a policy file records and the deployment checks with (env.sampling keys): units for messages.
 SCENE_KEYS = {"target_size": "m, full extents", "target_x": "m", "target_y": "m", "target_radius": "m",
               "target_clearance": "m"}
@@ -95,24 +96,24 @@ SCENE_KEYS = {"target_size": "m, full extents", "target_x": "m", "target_y": "m"
 
 @dataclass(frozen=True)
 class DeploySettings:
-    """The deployment's own constants (SPEC §2, §5), fixed here and not read from any policy.
+    """The deployment's own constants (docs/task.md §2, §5), fixed here and not read from any policy.
 
     ``control_dt``: the controller's command period (s, 20 Hz); ``max_step``: the largest change
-    of one joint's target per command (rad, SPEC §2's q_max).  A policy must have been trained
+    of one joint's target per command (rad, docs/task.md §2's q_max).  A policy must have been trained
     with exactly these (``check_policy_constants``).
     """
 
-    control_dt: float = _SPEC_CONTROL.control_dt
-    max_step: float = _SPEC_CONTROL.q_max
+    control_dt: float = _TASK_CONTROL.control_dt
+    max_step: float = _TASK_CONTROL.q_max
     workspace: WorkspaceBox = WorkspaceBox()
     table_clearance: float = 0.0
-    # The cell (SPEC §1, ``scene.SCENE``): the cube's full extents, the region its centre may be in and the
+    # The cell (docs/task.md §1, ``scene.SCENE``): the cube's full extents, the region its centre may be in and the
     # closest an obstacle may stand to it.  Targets, obstacles and collisions are checked with these.
     target_size: tuple[float, float, float] = SCENE.target_size
-    target_x: tuple[float, float] = _SPEC_SAMPLING.target_x
-    target_y: tuple[float, float] = _SPEC_SAMPLING.target_y
-    target_radius: tuple[float, float] = _SPEC_SAMPLING.target_radius
-    target_clearance: float = _SPEC_SAMPLING.target_clearance
+    target_x: tuple[float, float] = _TASK_SAMPLING.target_x
+    target_y: tuple[float, float] = _TASK_SAMPLING.target_y
+    target_radius: tuple[float, float] = _TASK_SAMPLING.target_radius
+    target_clearance: float = _TASK_SAMPLING.target_clearance
 
     def __post_init__(self) -> None:
         for name in ("control_dt", "max_step"):

@@ -26,13 +26,12 @@ from typing import Any
 
 import numpy as np
 
+from sagrasp_jax import extras
 from sagrasp_jax.fileio import stdout_fd_to
 
-try:
-    with stdout_fd_to("stderr"):  # PyBullet's C code prints banners on fd 1; keep stdout for reports (--json)
-        import pybullet as pb
-except ImportError as exc:  # pragma: no cover - exercised only without the extra
-    raise ImportError("the PyBullet twin needs pybullet: pip install -e .[reference]") from exc
+extras.require("twin", what="the PyBullet twin")
+with stdout_fd_to("stderr"):  # PyBullet's C code prints banners on fd 1; keep stdout for reports (--json)
+    import pybullet as pb
 
 from sagrasp_jax import control, shapes
 from sagrasp_jax import robot as robot_mod

@@ -1,22 +1,38 @@
-"""PyBullet reference implementation of the task, registered with Gymnasium as ``SAGrasp-PyBullet-v0``.
+"""PyBullet reference implementation of the task, registered with Gymnasium.
 
-Importing this package registers the env id (when gymnasium is installed: it is in the
-``reference`` extra), so ``gymnasium.make("SAGrasp-PyBullet-v0")`` works after
-``import sagrasp_jax.reference``, and ``gymnasium.make("sagrasp_jax.reference:SAGrasp-PyBullet-v0")``
-works without it.  PyBullet itself is imported only when the env is built.  Nothing here
-imports jax.
+Importing this package registers one env id per observation layout
+(``observation.LAYOUT_NAMES``): ``SAGrasp-PyBullet-paper-v0`` (the paper's 17 numbers),
+``SAGrasp-PyBullet-relative-v0`` (29, what ``cpu-quick`` and ``gpu`` policies see), and any
+layout added later; ``SAGrasp-PyBullet-v0`` stays the paper layout.  The ids are registered
+when gymnasium is installed (the ``reference`` extra), so ``gymnasium.make(ENV_ID)`` works
+after ``import sagrasp_jax.reference`` and ``gymnasium.make("sagrasp_jax.reference:SAGrasp-PyBullet-v0")``
+works without it.  Timeouts end an episode with ``truncated=True`` (Gymnasium's time-limit
+convention; the −1 timeout reward is still paid, docs/task.md §2.7).  PyBullet itself is imported
+only when an env is built.  Nothing here imports jax.
 """
 
 from __future__ import annotations
 
-ENV_ID = "SAGrasp-PyBullet-v0"
+from sagrasp_jax.observation import LAYOUT_NAMES
+
+ENV_ID = "SAGrasp-PyBullet-v0"  # the paper layout
 ENTRY_POINT = "sagrasp_jax.reference.pybullet_env:PyBulletGraspEnv"
+
+
+def env_id(layout: str) -> str:
+    """The registered id of the env observing through ``layout``."""
+    return f"SAGrasp-PyBullet-{layout}-v0"
+
+
+ENV_IDS = {name: env_id(name) for name in LAYOUT_NAMES}
 
 try:
     import gymnasium as _gym
 except ImportError:  # pragma: no cover - the reference extra is not installed
     _gym = None
 
-if _gym is not None and ENV_ID not in _gym.registry:
-    # No max_episode_steps: the env ends its own episodes (a timeout is a terminal verdict, SPEC §2).
-    _gym.register(id=ENV_ID, entry_point=ENTRY_POINT)
+if _gym is not None:
+    # No max_episode_steps: the env ends its own episodes (env.task.max_steps, truncated at the timeout).
+    for _name, _id in {**ENV_IDS, ENV_ID: ENV_ID}.items():
+        if _id not in _gym.registry:
+            _gym.register(id=_id, entry_point=ENTRY_POINT, kwargs={"obs_layout": "paper" if _id == ENV_ID else _name})

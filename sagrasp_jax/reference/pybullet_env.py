@@ -1,4 +1,4 @@
-"""PyBullet reference implementation of the grasping MDP (SPEC §1-§2), as a Gymnasium env.
+"""PyBullet reference implementation of the grasping MDP (docs/task.md §1-§2), as a Gymnasium env.
 
 Why it exists: the MJX/JAX env (``sagrasp_jax.env.GraspEnv``) is fast but new; this env
 rebuilds the same task in the simulator the paper used, from the same URDF and the same
@@ -30,8 +30,13 @@ compensates gravity): the robot is the only dynamic body, so the world runs with
 unless ``gravity_compensation=False``.  Contacts of the robot are switched off (collision
 filter mask 0) in both modes, as in the MJX env: collisions are the analytic rules of
 ``collision.check``.  The scene bodies keep their collision shapes, so PyBullet's own distance
-queries (``pybullet_distance``) can cross-check those rules.  A timeout is ``terminated``
-(SPEC §2: the −1 is the task's verdict), so ``truncated`` is always False.
+queries (``pybullet_distance``) can cross-check those rules.  A timeout ends the episode with
+``truncated=True, terminated=False`` (Gymnasium's time-limit convention) and still pays the task's
+−1 verdict; collision and success are ``terminated``.
+
+gymnasium is needed only for the env class (the ``reference`` extra); the PyBullet helpers here
+(shapes, quaternions, ``disconnect``) are shared with the deployment twin, which needs pybullet
+alone (the ``twin`` extra).
 """
 
 from __future__ import annotations
@@ -44,16 +49,18 @@ from typing import Any, SupportsFloat
 
 import numpy as np
 
+from sagrasp_jax import extras
+
+extras.require("twin", what="the PyBullet reference env")
+import pybullet as pb  # noqa: E402
+
 try:
     import gymnasium as gym
     from gymnasium import spaces
-    import pybullet as pb
-except ImportError as exc:  # pragma: no cover - exercised only without the extra
-    raise ImportError(
-        "the PyBullet reference env needs pybullet and gymnasium: pip install -e .[reference]"
-    ) from exc
+except ImportError:  # the twin uses this module's PyBullet helpers without gymnasium
+    gym = spaces = None
 
-from sagrasp_jax import collision, config, control, episode, fileio, observation, robot, sampling, shapes
+from sagrasp_jax import assets, collision, config, control, episode, fileio, observation, robot, sampling, shapes
 from sagrasp_jax.config import EnvConfig
 from sagrasp_jax.robot import BOX, CAPSULE, CYLINDER, SPHERE, Kinematics
 from sagrasp_jax.scene import SCENE
@@ -139,7 +146,7 @@ def _as_numpy_spec(spec: sampling.ResetSpec) -> sampling.ResetSpec:
 
 @dataclasses.dataclass(frozen=True)
 class ServoModel:
-    """The MJX env's arm position servos, read from ``mjcf/aubo_i5_eg2.xml``.
+    """The MJX env's arm position servos, read from ``sagrasp_jax/mjcf/aubo_i5_eg2.xml``.
 
     MuJoCo's law per joint i (``mjx.forward.fwd_actuation``): f_i = clip(kp_i·(u_i − q_i) − kv_i·v_i,
     forcerange_i), plus the gravity torque where ``actgravcomp_i`` (the servo carries the arm's
@@ -162,7 +169,7 @@ def load_servo_model(xml_path: str | None = None) -> ServoModel:
     """The servo constants of the MJCF the MJX env loads (one source: ``tools/urdf_to_mjcf.py``)."""
     import mujoco
 
-    path = xml_path or os.path.normpath(os.path.join(os.path.dirname(robot.URDF_PATH), "..", "mjcf", "aubo_i5_eg2.xml"))
+    path = xml_path or assets.MJCF_ROBOT
     m = mujoco.MjModel.from_xml_path(path)
     rows = []
     for name in robot.ARM_JOINTS:
@@ -190,7 +197,17 @@ def disconnect(client: int) -> int:
             pass
     return -1
 
-class PyBulletGraspEnv(gym.Env):
+RENDER_MODES = ("human", "rgb_array")
+
+
+def _advertised_render_modes() -> list[str]:
+    """``human`` needs a display: a headless Linux machine advertises ``rgb_array`` only (so that
+    ``gymnasium.utils.env_checker.check_env`` with its defaults does not open a GUI there)."""
+    headless = sys.platform.startswith("linux") and not os.environ.get("DISPLAY")
+    return [m for m in RENDER_MODES if not (headless and m == "human")]
+
+
+class PyBulletGraspEnv(gym.Env if gym is not None else object):  # type: ignore[misc]
     """AUBO-i5 + EG2 gripper reaching a cuboid among random obstacles, simulated in PyBullet.
 
     ``reset(options={"reset_spec": spec})`` starts from an explicit ``sampling.ResetSpec``
@@ -199,7 +216,7 @@ class PyBulletGraspEnv(gym.Env):
     reward weights) is an attribute, or ``options={"progress": p}`` at reset.
     """
 
-    metadata = {"render_modes": ["human", "rgb_array"], "render_fps": 20}
+    metadata = {"render_modes": _advertised_render_modes(), "render_fps": 20}
 
     def __init__(
         self,
@@ -210,16 +227,22 @@ class PyBulletGraspEnv(gym.Env):
         velocity_gains: tuple[float, ...] | None = None,
         gravity_compensation: bool = True,
         servo: str = "mujoco",
+        obs_layout: str | None = None,
     ) -> None:
+        if gym is None:
+            raise extras.MissingExtra(("reference",), ["gymnasium"], "the PyBullet reference env (a Gymnasium env)")
         cfg = cfg if cfg is not None else config.get_config("paper").env
+        if obs_layout is not None:
+            observation.layout(obs_layout)  # refuses an unknown name, listing the valid ones
+            cfg = dataclasses.replace(cfg, task=dataclasses.replace(cfg.task, obs_layout=obs_layout))
         if mode is not None:
             cfg = dataclasses.replace(cfg, control=dataclasses.replace(cfg.control, mode=mode))
         if cfg.control.mode not in ("kinematic", "dynamic"):
             raise ValueError(f"control mode must be 'kinematic' or 'dynamic', got {cfg.control.mode!r}")
         if servo not in SERVOS:
             raise ValueError(f"servo must be one of {', '.join(SERVOS)}, got {servo!r}")
-        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
-            raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}")
+        if render_mode is not None and render_mode not in RENDER_MODES:
+            raise ValueError(f"render_mode must be one of {list(RENDER_MODES)} or None, got {render_mode!r}")
         if cfg.sampling.max_obstacles != SCENE.obstacles.count:
             raise ValueError(f"the scene has {SCENE.obstacles.count} obstacle slots, config asks for {cfg.sampling.max_obstacles}")
         self.cfg = cfg
@@ -493,8 +516,11 @@ class PyBulletGraspEnv(gym.Env):
                                gripper_centre=kin.gripper_centre, tilt=tilt)
         self._tracker = step.tracker
         total, terms, outcome = float(step.reward), step.terms, step.outcome
-        terminated = bool(step.done)
-        self._done = terminated
+        # Gymnasium's convention: a time limit truncates; collision and success terminate
+        # (on one step collision > success > timeout, so a timeout flag means neither happened)
+        truncated = bool(step.done) and bool(outcome.timeout) and not (bool(outcome.collision) or bool(outcome.success))
+        terminated = bool(step.done) and not truncated
+        self._done = terminated or truncated
         obs = self._observe(self._q, kin, col, tilt)
         info: dict[str, Any] = {
             "gripper_centre": kin.gripper_centre.copy(),
@@ -511,12 +537,12 @@ class PyBulletGraspEnv(gym.Env):
             "finetuned": bool(ctl.finetuned),
             "q_target": self._q_target.copy(),
         }
-        if terminated:
+        if self._done:
             info["episode"] = {k: float(v) for k, v in step.episode.items()}
             info["is_success"] = bool(outcome.success)  # what Stable-Baselines3 logs as success rate
         if self.render_mode == "human":
             self.render()
-        return obs, total, terminated, False, info
+        return obs, total, terminated, truncated, info
 
     # -- extras ----------------------------------------------------------------------------
     def force_state(
@@ -532,7 +558,7 @@ class PyBulletGraspEnv(gym.Env):
     ) -> None:
         """Put the episode mid-way into a given state: joints ``q`` (velocities ``qd``), accumulated
         target ``q_target``, step count, previous distance, clean-so-far flag and previous Δpo.  For single-step
-        comparisons from a state forced identical to the other simulator's (SPEC §2 parity rules)."""
+        comparisons from a state forced identical to the other simulator's (docs/task.md §2 parity rules)."""
         if self._spec is None:
             raise RuntimeError("call reset() before force_state()")
         q = np.asarray(q, dtype=float)

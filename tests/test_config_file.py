@@ -1,0 +1,106 @@
+"""``--config FILE``: a JSON (or YAML) file of config keys over the chosen preset, refused like
+``--set``; ``--list-keys`` survives a closed pipe; a typo key names its nearest keys."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+from sagrasp_jax import config, evaluate, train
+from sagrasp_jax.config import ConfigError, get_config
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+LEGACY_RUN = os.path.join(REPO, "tests", "data", "legacy_v0_1")
+
+
+def write(tmp_path, data, name="cfg.json") -> str:
+    path = tmp_path / name
+    path.write_text(json.dumps(data) if name.endswith(".json") else data)
+    return str(path)
+
+
+def test_a_partial_file_keeps_the_chosen_presets_other_values(tmp_path):
+    path = write(tmp_path, {"ppo": {"num_envs": 512}, "env.task.max_steps": 150, "sa": {"metric": "success"}})
+    for preset in ("cpu-quick", "paper"):
+        cfg = train.build_config(preset, config_file=path)
+        base = get_config(preset)
+        assert cfg.ppo.num_envs == 512 and cfg.env.task.max_steps == 150 and cfg.sa.metric == "success"
+        assert cfg.ppo.network == base.ppo.network and cfg.env.task.obs_layout == base.env.task.obs_layout
+        assert cfg.train.total_steps == base.train.total_steps
+
+
+def test_lists_booleans_and_precedence(tmp_path):
+    path = write(tmp_path, {"env": {"sampling": {"obstacle_kinds": ["sphere", "box"]}, "control": {"slowdown_enabled": False}},
+                            "lr": {"schedule": "constant"}, "train": {"seed": 3}})
+    cfg = train.build_config("cpu-quick", config_file=path)
+    assert cfg.env.sampling.obstacle_kinds == ("sphere", "box") and cfg.env.control.slowdown_enabled is False
+    assert cfg.lr.schedule == "constant" and cfg.train.seed == 3  # the file's schedule wins over the default
+    cfg = train.build_config("cpu-quick", algo="sa-ppo", seed=7, config_file=path, overrides=["train.seed=9"])
+    assert cfg.lr.schedule == "sa" and cfg.train.seed == 9  # options over the file, --set over everything
+
+
+def test_yaml_file(tmp_path):
+    pytest.importorskip("yaml")
+    path = write(tmp_path, "ppo:\n  num_envs: 256\nenv.task.max_steps: 120\n", name="cfg.yaml")
+    cfg = train.build_config("cpu-quick", config_file=path)
+    assert cfg.ppo.num_envs == 256 and cfg.env.task.max_steps == 120
+
+
+@pytest.mark.parametrize("data,message", [
+    ({"ppo": {"num_env": 512}}, "did you mean ppo.num_envs"),
+    ({"ppo": {"num_envs": "many"}}, "bad value 'many' for ppo.num_envs"),
+    ({"ppo": {"num_envs": 0}}, "ppo.num_envs"),
+    ({"ppo": 5}, "is a section"),
+    ({"ppo": {"num_envs": None}}, "has no value"),
+    ([1, 2], "must be a mapping"),
+    ("{not json", "not valid JSON"),
+])
+def test_bad_files_exit_2_and_write_nothing(tmp_path, capsys, data, message):
+    path = tmp_path / "cfg.json"
+    path.write_text(data if isinstance(data, str) else json.dumps(data))
+    out = tmp_path / "run"
+    assert train.main(["--out", str(out), "--config", str(path)]) == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_missing_file_and_wrong_suffix_exit_2(tmp_path, capsys):
+    out = tmp_path / "run"
+    assert train.main(["--out", str(out), "--config", str(tmp_path / "absent.json")]) == 2
+    assert "cannot read it" in capsys.readouterr().err
+    assert train.main(["--out", str(out), "--config", str(tmp_path / "cfg.toml")]) == 2
+    assert "expected a .json" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_typo_key_suggests_the_nearest_keys_not_all_of_them():
+    with pytest.raises(ConfigError) as info:
+        config.apply_overrides(get_config("cpu-quick"), ["ppo.learning_rte=1e-4"])
+    text = str(info.value)
+    assert "did you mean ppo.learning_rate" in text and text.count(",") < 5
+    with pytest.raises(ConfigError, match="did you mean env.task.max_steps"):
+        config.apply_overrides(get_config("cpu-quick"), ["task.max_steps=10"])  # the section left out
+
+
+def test_evaluate_config_file_takes_env_keys_only(tmp_path, capsys):
+    bad = write(tmp_path, {"ppo": {"num_envs": 64}})
+    assert evaluate.main(["--run", LEGACY_RUN, "--config", bad, "--episodes", "8", "--out", str(tmp_path / "e.json")]) == 2
+    assert "env.* keys" in capsys.readouterr().err
+    typo = write(tmp_path, {"env": {"control": {"mod": "dynamic"}}}, name="typo.json")
+    assert evaluate.main(["--run", LEGACY_RUN, "--config", typo, "--episodes", "8", "--out", str(tmp_path / "e.json")]) == 2
+    assert "did you mean env.control.mode" in capsys.readouterr().err
+    assert not (tmp_path / "e.json").exists()
+
+
+def test_list_keys_survives_a_closed_pipe():
+    """``--list-keys | head``: the reader closes the pipe first; no BrokenPipeError traceback, exit 0."""
+    proc = subprocess.Popen([sys.executable, "-m", "sagrasp_jax.train", "--list-keys"], cwd=REPO,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()  # before it writes anything: the write must meet a closed pipe
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=120) == 0, err
+    assert "BrokenPipeError" not in err and "Traceback" not in err
