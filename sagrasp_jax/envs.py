@@ -50,7 +50,8 @@ from brax.envs.base import Env, State
 from sagrasp_jax import config as config_mod
 from sagrasp_jax.env import EPISODE_KEYS, GraspEnv
 
-ENVS = {"grasp-kinematic": "kinematic", "grasp-dynamic": "dynamic"}  # name -> env.control.mode
+# name -> env.control.mode: exact tracking, MJX servos, the fitted servo model (the presets' training mode)
+ENVS = {"grasp-kinematic": "kinematic", "grasp-dynamic": "dynamic", "grasp-lagged": "lagged"}
 BRAX_NAMES = {name: "sagrasp_" + name.replace("-", "_") for name in ENVS}  # ids in brax's own registry
 INNER_KEYS_ON_TOP = ("progress",)  # GraspEnv info keys the adapter keeps at the top level
 
@@ -125,7 +126,7 @@ class BraxGraspEnv(Env):
 
 def load(name: str, config: config_mod.Config | config_mod.EnvConfig | None = None,
          privileged: bool = False) -> BraxGraspEnv:
-    """The task ``name`` (``grasp-kinematic`` or ``grasp-dynamic``) as a brax env.
+    """The task ``name`` (``grasp-kinematic``, ``grasp-dynamic`` or ``grasp-lagged``) as a brax env.
 
     ``config``: a ``Config`` (its env section) or an ``EnvConfig``; default the ``cpu-quick``
     preset.  The name sets ``env.control.mode``.  ``privileged=True``: the dict observation
@@ -136,6 +137,8 @@ def load(name: str, config: config_mod.Config | config_mod.EnvConfig | None = No
     if isinstance(cfg, config_mod.Config):
         cfg = cfg.env
     env_cfg = dataclasses.replace(cfg, control=dataclasses.replace(cfg.control, mode=ENVS[name]))
+    if env_cfg.control.mode == "kinematic":  # no servos: their knobs (latency, servo gains) do not apply
+        env_cfg = dataclasses.replace(env_cfg, randomize=dataclasses.replace(env_cfg.randomize, latency=0.0, servo_gain=0.0))
     return BraxGraspEnv(env_cfg, privileged=privileged)
 
 

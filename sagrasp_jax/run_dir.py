@@ -128,15 +128,9 @@ class FolderLock:
             fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
         except OSError as exc:
             raise RunDirError(f"cannot open {self.what} {folder}: {exc.strerror or exc}") from None
-        try:
-            fcntl.flock(fd, (fcntl.LOCK_SH if self.shared else fcntl.LOCK_EX) | fcntl.LOCK_NB)
-        except OSError as exc:
-            os.close(fd)
-            if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
-                raise RunDirError(
-                    f"{folder} is in use by another process{_lock_holder(folder)} that is writing into it; "
-                    "wait until it has finished or choose another folder") from None
-            raise RunDirError(f"cannot lock {self.what} {folder}: {exc.strerror or exc}") from None
+        _flock_or_refuse(fd, fcntl.LOCK_SH if self.shared else fcntl.LOCK_EX,
+                         f"{folder} is in use by another process{_lock_holder(folder)} that is writing into it; "
+                         "wait until it has finished or choose another folder", f"{self.what} {folder}")
         self._fd = fd
         return self
 
@@ -157,6 +151,18 @@ class FolderLock:
 
     def __exit__(self, *exc: Any) -> None:
         self.release()
+
+
+def _flock_or_refuse(fd: int, mode: int, busy: str, what: str) -> None:
+    """``flock`` ``fd`` without waiting; a lock held elsewhere is a RunDirError saying ``busy`` (``fd`` is closed
+    on any failure)."""
+    try:
+        fcntl.flock(fd, mode | fcntl.LOCK_NB)
+    except OSError as exc:
+        os.close(fd)
+        if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+            raise RunDirError(busy) from None
+        raise RunDirError(f"cannot lock {what}: {exc.strerror or exc}") from None
 
 
 class ResultLock:
@@ -183,15 +189,9 @@ class ResultLock:
                 except OSError as exc:
                     raise RunDirError(f"cannot write into {self.folder_lock.what} {self.folder_lock.folder}: "
                                       f"{exc.strerror or exc}") from None
-                try:
-                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                except OSError as exc:
-                    os.close(fd)
-                    if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
-                        raise RunDirError(
-                            f"{self.file} is being written by another process{_lock_holder(self.lock_path)}; "
-                            "wait until it has finished or choose another --out") from None
-                    raise RunDirError(f"cannot lock {self.file}: {exc.strerror or exc}") from None
+                _flock_or_refuse(fd, fcntl.LOCK_EX,
+                                 f"{self.file} is being written by another process{_lock_holder(self.lock_path)}; "
+                                 "wait until it has finished or choose another --out", self.file)
                 try:
                     same = os.path.samestat(os.fstat(fd), os.stat(self.lock_path))
                 except FileNotFoundError:

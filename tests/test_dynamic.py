@@ -114,19 +114,22 @@ def test_servo_gain_and_latency_on(plain_dynamic):
 
 
 def test_latency_holds_the_previous_target_for_its_share_of_the_substeps():
+    """The first command after a reset, with latency 0, 0.4 and 1 step (0, 2 and 5 of the 5 substeps on the
+    previous target, the start pose): the later, the less the arm has moved; a whole step late, not at all."""
     env = GraspEnv(_cfg("dynamic", "env.randomize.latency=1").env)
-    q0 = jnp.asarray(config.HOME_Q, jnp.float32)
-    pipeline = env._initial_pipeline(q0)
-    advance = jax.jit(env._advance)
-    r = env._draw_randomization(jax.random.PRNGKey(0), jnp.float32)
-    r = dict(r, kp_scale=jnp.ones(6), kv_scale=jnp.ones(6))
+    start = env.reset(jax.random.PRNGKey(0))
+    draws = dict(start.info["randomize"], kp_scale=jnp.ones(6), kv_scale=jnp.ones(6))
+    step = jax.jit(env.step)
+    q0 = env.measured_joints(start)
     moved = []
-    for latency in (0.0, 0.4, 1.0):  # 0, 2 and 5 of the 5 substeps on the previous target
-        _, q = advance(pipeline, q0 + 0.05, q0, dict(r, latency=jnp.float32(latency)))
-        moved.append(float(jnp.abs(q - q0).max()))
-    _, q_plain = jax.jit(lambda p, t: env._advance(p, t, q0, None))(pipeline, q0 + 0.05)
-    assert moved[0] == pytest.approx(float(jnp.abs(q_plain - q0).max()), abs=1e-7)  # latency 0: the plain step
-    assert moved[0] > moved[1] > 0 and moved[2] < 1e-5  # a whole step late: the arm has not moved yet
+    for latency in (0.0, 0.4, 1.0):
+        state = start.replace(info=dict(start.info, randomize=dict(draws, latency=jnp.float32(latency))))
+        moved.append(float(jnp.abs(env.measured_joints(step(state, jnp.ones(6))) - q0).max()))
+    plain = GraspEnv(_cfg("dynamic").env)
+    plain_start = plain.reset(jax.random.PRNGKey(0))
+    q_plain = plain.measured_joints(jax.jit(plain.step)(plain_start, jnp.ones(6)))
+    assert moved[0] == pytest.approx(float(jnp.abs(q_plain - plain.measured_joints(plain_start)).max()), abs=1e-6)
+    assert moved[0] > moved[1] > 0 and moved[2] < 1e-4  # a whole step late: the arm has not moved yet
 
 
 def test_servo_knobs_off_track_like_the_plain_env(plain_dynamic):

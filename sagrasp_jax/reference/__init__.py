@@ -2,8 +2,9 @@
 
 Importing this package registers one env id per observation layout
 (``observation.LAYOUT_NAMES``): ``SAGrasp-PyBullet-paper-v0`` (the paper's 17 numbers),
-``SAGrasp-PyBullet-relative-v0`` (29, what ``cpu-quick`` and ``gpu`` policies see), and any
-layout added later; ``SAGrasp-PyBullet-v0`` stays the paper layout.  The ids are registered
+``SAGrasp-PyBullet-relative-v0`` (29, the second landing's policies), ``SAGrasp-PyBullet-relative_lag-v0``
+(35, what ``cpu-quick`` and ``gpu`` policies see: ``relative`` and the pending command), and any layout
+added later; ``SAGrasp-PyBullet-v0`` stays the paper layout.  The ids are registered
 when gymnasium is installed (the ``reference`` extra), so ``gymnasium.make(ENV_ID)`` works
 after ``import sagrasp_jax.reference`` and ``gymnasium.make("sagrasp_jax.reference:SAGrasp-PyBullet-v0")``
 works without it.  Timeouts end an episode with ``truncated=True`` (Gymnasium's time-limit
