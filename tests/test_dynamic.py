@@ -190,7 +190,7 @@ def test_init_from_carries_a_privileged_critic(tmp_path):
     (["--set", "ppo.privileged_critic=false", "--set", "ppo.network.policy_hidden=16"],
      "its policy cannot start this run: networks"),
     (["--set", "ppo.privileged_critic=false", "--set", "env.task.obs_layout=paper"],
-     "observation layout 'relative' ("),
+     "observation layout 'relative_lag' ("),
     ([], "ppo.privileged_critic=False vs this run's True"),  # cpu-quick has a privileged critic, the toy run none
 ])
 def test_init_from_refuses_an_unusable_run_with_exit_2(toy_run, tmp_path, capsys, sets, message):
@@ -259,7 +259,15 @@ def test_reference_servo_is_the_mjx_servo_on_pybullet_dynamics(x64):
         pipeline = env._initial_pipeline(jnp.asarray(q0))
         ref.reset(seed=0)
         ref._set_joints(q0)
-        advance = jax.jit(lambda p, t: env._advance(p, t, t, None))
+        from brax.envs.base import State
+
+        def step(p, t):  # one control period of the servos towards t, previous command t (no latency)
+            state = State(pipeline_state=p, obs=jnp.zeros(1), reward=jnp.zeros(()), done=jnp.zeros(()), metrics={},
+                          info={"q_target": t})
+            pipeline, q, _ = env._advance(state, t, None, None)
+            return pipeline, q
+
+        advance = jax.jit(step)
         for _ in range(3):
             pipeline, q = advance(pipeline, jnp.asarray(target))
             ref._apply(target)

@@ -44,7 +44,7 @@ def test_cli_writes_npz_onnx_and_manifest(exported: str, run_dir: str) -> None:
     with open(os.path.join(run_dir, "config.json")) as f:
         cfg = config_from_dict(json.load(f))
     policy = load_policy(os.path.join(exported, "policy.npz"))
-    assert policy.obs_layout == observation.layout_of(cfg.env) and len(policy.obs_layout) == 29  # relative layout
+    assert policy.obs_layout == observation.layout_of(cfg.env) and len(policy.obs_layout) == 35  # relative_lag layout
     assert policy.config_hash == config_hash(cfg)
     assert policy.package_version == sagrasp_jax.__version__
     assert policy.action_scale == cfg.env.control.q_max
@@ -66,7 +66,7 @@ def test_onnx_graph_is_plain_opset17_with_metadata(exported: str) -> None:
     assert {o.domain: o.version for o in model.opset_import}[""] >= 17
     assert [i.name for i in model.graph.input] == ["obs"] and [o.name for o in model.graph.output] == ["action"]
     dims = [d.dim_value for d in model.graph.input[0].type.tensor_type.shape.dim]
-    assert dims[1] == 29
+    assert dims[1] == 35
     meta = {p.key: p.value for p in model.metadata_props}
     policy = load_policy(os.path.join(exported, "policy.npz"))
     assert meta["config_hash"] == policy.config_hash

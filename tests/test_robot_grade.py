@@ -229,10 +229,11 @@ def test_a_29_number_policy_still_loads_evaluates_and_deploys(tmp_path) -> None:
     cfg = apply_overrides(get_config("cpu-quick"), [*KNOBS_OFF, "env.control.mode=kinematic", "env.task.obs_layout=relative"])
     names = observation.layout_of(cfg.env)
     rng = np.random.default_rng(0)
-    sizes = [len(names), 32, 32, 6]
+    sizes = [len(names), 32, 32, 12]  # the last layer: loc and scale of the 6 actions
     weights = [(0.1 * rng.standard_normal((a, b)), np.zeros(b)) for a, b in zip(sizes[:-1], sizes[1:])]
-    path = runtime.save_policy_npz(str(tmp_path / "policy.npz"), weights, "tanh", np.zeros(len(names)),
-                                   np.ones(len(names)), config.config_to_dict(cfg), obs_layout=names)
+    path = runtime.save_policy_npz(str(tmp_path / "policy.npz"), weights=weights, activation="tanh",
+                                   obs_mean=np.zeros(len(names)), obs_std=np.ones(len(names)),
+                                   config=config.config_to_dict(cfg), obs_layout=names)
     policy = runtime.load_policy(path)
     assert policy.obs_layout == names and len(names) == 29
     seen = []
