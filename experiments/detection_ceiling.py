@@ -25,12 +25,10 @@ import sys
 from typing import Any
 
 import sagrasp_jax  # noqa: F401  (XLA flags)
-import jax
 import numpy as np
 
-from sagrasp_jax import collision, evaluate, physical, ppo, robot, run_dir
+from sagrasp_jax import collision, evaluate, physical, robot, run_dir
 from sagrasp_jax.config import EVAL_CONDITIONS
-from sagrasp_jax.env import GraspEnv
 from sagrasp_jax.fileio import atomic_write_json
 from sagrasp_jax.sampling import ResetSpec
 
@@ -38,19 +36,12 @@ LEVELS_MM = (0.0, 2.0, 4.0, 5.0, 6.0, 8.0, 10.0)
 
 
 def success_poses(run: str, episodes: int, seed: int, max_steps: int) -> tuple[np.ndarray, list[ResetSpec], Any]:
-    """Final joints and true scenes of the run's kinematic successes without detection error."""
-    cfg = run_dir.load_config(run)
-    cfg = evaluate.env_overrides(cfg, list(EVAL_CONDITIONS["kinematic"]))
-    env = evaluate._FinalPoseRecorder(GraspEnv(cfg.env))
-    cfg_run, params, normaliser, _ = run_dir.load_policy_state(run, env.observation_size, env.action_size)
-    networks = ppo.make_networks(cfg_run.ppo.network, env.observation_size, env.action_size, cfg_run.ppo.obs_clip)
-    keys = ppo.eval_keys(seed, episodes)
-    result = jax.device_get(ppo.make_evaluator(networks, env, max_steps)(params, normaliser, keys))
-    specs = jax.device_get(jax.jit(jax.vmap(env.reset))(keys).info["reset"])
-    eps = {k: np.asarray(v) for k, v in result.episodes.items()}
-    q_final = np.stack([eps[f"final_q{i + 1}"] for i in range(physical.ARM_DOF)], axis=-1)
+    """Final joints and true scenes of the run's kinematic successes without detection error (obstacle-free
+    episodes), replayed as ``evaluate --physical`` does."""
+    replay = evaluate.replay_final_poses(run, episodes, seed, max_steps, list(EVAL_CONDITIONS["kinematic"]))
+    eps = replay.episodes
     idx = np.nonzero((eps["success"] > 0) & (eps["obstacle_present"] == 0))[0]
-    return q_final[idx], [ResetSpec(*(np.asarray(leaf)[i] for leaf in specs)) for i in idx], cfg.env
+    return replay.q_final[idx], [replay.spec(i) for i in idx], replay.env_cfg
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -28,8 +28,8 @@ from sagrasp_jax.fileio import atomic_write_json
 
 
 def _env(mode: str, extra: list[str], gains: dict[str, tuple[float, ...]] | None = None) -> GraspEnv:
-    knobs_off = [item.split("=")[0] + "=0" for item in config.ROBOT_KNOBS]  # the preset trains with them on
-    overrides = [*knobs_off, f"env.control.mode={mode}", "env.task.obs_noise_std=0", "env.task.obs_layout=relative_lag",
+    overrides = [*config.KNOBS_OFF,  # the preset trains with them on
+                 f"env.control.mode={mode}", "env.task.obs_noise_std=0", "env.task.obs_layout=relative_lag",
                  *extra]
     if gains:
         overrides += [f"env.control.{k}={','.join(f'{v:.6f}' for v in vals)}" for k, vals in gains.items()]

@@ -388,16 +388,16 @@ PRESETS: dict[str, typing.Callable[[], Config]] = {
 ROBOT_KNOBS: tuple[str, ...] = ("env.randomize.servo_gain=0.2", "env.randomize.latency=1",
                                 "env.randomize.joint_offset=0.005", "env.randomize.joint_noise=0.005",
                                 "env.randomize.target_error=0.005")
-_KNOBS_OFF = tuple(item.split("=")[0] + "=0" for item in ROBOT_KNOBS)
+KNOBS_OFF: tuple[str, ...] = tuple(item.split("=")[0] + "=0" for item in ROBOT_KNOBS)  # every transfer knob off
 
 # Named evaluation conditions (evaluate --condition NAME): env overrides applied over a run's own config, so a
 # policy trained with randomisation is judged without it, or with it at fixed levels, in the physics of choice.
 EVAL_CONDITIONS: dict[str, tuple[str, ...]] = {
-    "kinematic": ("env.control.mode=kinematic", *_KNOBS_OFF),  # exact joint tracking, no transfer error
-    "dynamic": ("env.control.mode=dynamic", *_KNOBS_OFF),  # MJX servos, no transfer error
+    "kinematic": ("env.control.mode=kinematic", *KNOBS_OFF),  # exact joint tracking, no transfer error
+    "dynamic": ("env.control.mode=dynamic", *KNOBS_OFF),  # MJX servos, no transfer error
     "robot": ("env.control.mode=dynamic", *ROBOT_KNOBS),  # MJX servos and every transfer knob on
     "robot-latency2": ("env.control.mode=dynamic", *ROBOT_KNOBS[:1], "env.randomize.latency=2", *ROBOT_KNOBS[2:]),
-    "kinematic-target-error": ("env.control.mode=kinematic", *_KNOBS_OFF[:-1], ROBOT_KNOBS[-1]),
+    "kinematic-target-error": ("env.control.mode=kinematic", *KNOBS_OFF[:-1], ROBOT_KNOBS[-1]),
 }
 
 

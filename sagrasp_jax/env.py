@@ -130,11 +130,10 @@ class GraspEnv:
         if queue is not None:
             current, previous, fraction = control.delayed_commands(jnp, queue, randomize["latency"].astype(dtype))
         if self.lagged:
-            gain = jnp.asarray(self.cfg.control.lag_gain, dtype)
-            if randomize is not None:
-                gain = jnp.clip(gain * randomize["kp_scale"].astype(dtype), 0.0, 1.0)
+            nominal = jnp.asarray(self.cfg.control.lag_gain, dtype)
+            gain = nominal if randomize is None else jnp.clip(nominal * randomize["kp_scale"].astype(dtype), 0.0, 1.0)
             servo = info["servo"]
-            weight = control.held_command_weight(jnp, fraction, jnp.asarray(self.cfg.control.lag_gain, dtype))
+            weight = control.held_command_weight(jnp, fraction, nominal)  # the fraction's weight: the nominal servo
             command = (1.0 - weight) * current + weight * previous
             q_new = control.servo_model_step(jnp, self.cfg.control, servo["q"], servo["q_prev"], command, gain)
             return None, q_new, {"servo": {"q": q_new, "q_prev": servo["q"]}}

@@ -30,7 +30,7 @@ import math
 import os
 import sys
 import time
-from typing import Any, Callable
+from typing import Any, Callable, NamedTuple
 
 from sagrasp_jax import extras
 
@@ -213,30 +213,18 @@ def evaluate_physical(run: str, episodes: int, seed: int, max_steps: int, lift: 
     the episode's detection error, ``reward.grasp_centre``), then closes on the true cube.
     """
     from sagrasp_jax import physical, reward, robot
-    from sagrasp_jax.env import GraspEnv
-    from sagrasp_jax.sampling import ResetSpec
 
     lift = physical.LIFT_HEIGHT if lift is None else lift
-    cfg = run_dir.load_config(run)
-    env = _FinalPoseRecorder(GraspEnv(env_overrides(cfg, overrides).env))
-    cfg, params, normaliser, _ = run_dir.load_policy_state(run, env.observation_size, env.action_size)
-    networks = ppo.make_networks(cfg.ppo.network, env.observation_size, env.action_size, cfg.ppo.obs_clip)
-    keys = ppo.eval_keys(seed, episodes)
-    result = jax.device_get(ppo.make_evaluator(networks, env, max_steps)(params, normaliser, keys))
-    first = jax.device_get(jax.jit(jax.vmap(env.reset))(keys).info)
-    specs = first["reset"]
-    target_error = np.asarray(first["randomize"]["target_error"]) if "randomize" in first else np.zeros((episodes, 3))
-    eps = {k: np.asarray(v) for k, v in result.episodes.items()}
-    q_final = np.stack([eps[f"final_q{i + 1}"] for i in range(physical.ARM_DOF)], axis=-1)
-    successes = np.nonzero(eps["success"] > 0)[0]
+    replay = replay_final_poses(run, episodes, seed, max_steps, overrides)
+    successes = np.nonzero(replay.episodes["success"] > 0)[0]
     model = robot.load_robot()
     checks = []
     for i in successes:
-        spec = ResetSpec(*(np.asarray(leaf)[i] for leaf in specs))
+        spec = replay.spec(i)
         # as the deployment loop does: centre on the *detected* cube (true + this episode's error), then close
-        goal = reward.grasp_centre(np, cfg.env.task, np.asarray(spec.target_pos) + target_error[i])
+        goal = reward.grasp_centre(np, replay.env_cfg.task, np.asarray(spec.target_pos) + replay.target_error[i])
         try:
-            q_grasp = robot.approach_pose(model, q_final[i], goal, what="centring pose")
+            q_grasp = robot.approach_pose(model, replay.q_final[i], goal, what="centring pose")
         except robot.IKError as exc:
             checks.append({"success": False, "reason": str(exc), "criteria": {"centring_pose": False}})
             continue
@@ -256,9 +244,43 @@ def evaluate_physical(run: str, episodes: int, seed: int, max_steps: int, lift: 
     }
 
 
+class FinalPoses(NamedTuple):
+    """``evaluate_run``'s episodes replayed with each episode's final arm joints (``replay_final_poses``)."""
+
+    episodes: dict[str, np.ndarray]  # per-episode records, as ``evaluate_run`` summarises them
+    q_final: np.ndarray  # (episodes, 6) the arm's measured joints when each episode ended
+    specs: Any  # the episodes' true scenes, a ResetSpec of (episodes, ...) arrays
+    target_error: np.ndarray  # (episodes, 3) the detection error each episode's policy saw (0 without one)
+    env_cfg: Any  # the evaluated env's EnvConfig
+
+    def spec(self, i: int) -> Any:
+        """Episode ``i``'s true scene as a ResetSpec of NumPy arrays."""
+        return type(self.specs)(*(np.asarray(leaf)[i] for leaf in self.specs))
+
+
+def replay_final_poses(run: str, episodes: int, seed: int, max_steps: int,
+                       overrides: list[str] | None = None) -> FinalPoses:
+    """Replay ``evaluate_run``'s episodes (same keys, same jitted evaluator, the env wrapped to copy the final
+    joints into the episode record) for what happens after them: the physical grasp check, the detection
+    ceiling study."""
+    from sagrasp_jax.env import GraspEnv
+
+    env_cfg = env_overrides(run_dir.load_config(run), overrides).env
+    env = _FinalPoseRecorder(GraspEnv(env_cfg))
+    cfg, params, normaliser, _ = run_dir.load_policy_state(run, env.observation_size, env.action_size)
+    networks = ppo.make_networks(cfg.ppo.network, env.observation_size, env.action_size, cfg.ppo.obs_clip)
+    keys = ppo.eval_keys(seed, episodes)
+    result = jax.device_get(ppo.make_evaluator(networks, env, max_steps)(params, normaliser, keys))
+    first = jax.device_get(jax.jit(jax.vmap(env.reset))(keys).info)
+    target_error = np.asarray(first["randomize"]["target_error"]) if "randomize" in first else np.zeros((episodes, 3))
+    eps = {k: np.asarray(v) for k, v in result.episodes.items()}
+    q_final = np.stack([eps[f"final_q{i + 1}"] for i in range(_FinalPoseRecorder.ARM_DOF)], axis=-1)
+    return FinalPoses(eps, q_final, first["reset"], target_error, env_cfg)
+
+
 class _FinalPoseRecorder:
-    """Env wrapper that copies the measured arm joints into ``info["episode"]`` as scalar
-    entries ``final_q1..6`` (scalars, so ``ppo.evaluate_policy`` keeps them per episode)."""
+    """Env wrapper that copies the measured arm joints (``GraspEnv.measured_joints``) into ``info["episode"]``
+    as scalar entries ``final_q1..6`` (scalars, so ``ppo.evaluate_policy`` keeps them per episode)."""
 
     ARM_DOF = 6
 
@@ -268,13 +290,8 @@ class _FinalPoseRecorder:
         self.action_size = env.action_size
 
     def _record(self, state: Any) -> Any:
-        pipeline = state.pipeline_state
-        n = self.ARM_DOF
-        if pipeline is not None:  # dynamic mode: the servos' joints
-            q = pipeline.qpos[:n].astype(state.info["q_target"].dtype)
-        else:  # lagged mode: the servo model's joints; kinematic: the target itself
-            q = state.info["servo"]["q"] if "servo" in state.info else state.info["q_target"]
-        episode = dict(state.info["episode"], **{f"final_q{i + 1}": q[i] for i in range(n)})
+        q = self.env.measured_joints(state)
+        episode = dict(state.info["episode"], **{f"final_q{i + 1}": q[i] for i in range(self.ARM_DOF)})
         return state.replace(info=dict(state.info, episode=episode))
 
     def reset(self, rng: Any) -> Any:

@@ -66,10 +66,6 @@ def layout(name: str, slots: int = 2) -> tuple[str, ...]:
     raise ValueError(f"unknown observation layout {name!r}; valid layouts: {', '.join(LAYOUT_NAMES)}")
 
 
-def sees_pending(cfg: EnvConfig) -> bool:
-    """Whether the layout observes the pending command (then every backend passes ``q_command``)."""
-    return cfg.task.obs_layout == "relative_lag"
-
 
 def layout_of(cfg: EnvConfig) -> tuple[str, ...]:
     return layout(cfg.task.obs_layout, cfg.sampling.max_obstacles)

@@ -20,7 +20,7 @@ sys.path.insert(0, os.path.dirname(__file__))
 from toy_env import AutoReset, PointReach  # noqa: E402
 
 from sagrasp_jax import train  # noqa: E402
-from sagrasp_jax.config import ROBOT_KNOBS, Config  # noqa: E402
+from sagrasp_jax.config import KNOBS_OFF, Config  # noqa: E402
 
 TOY_ITER_STEPS = 32 * 16  # num_envs × unroll_length
 
@@ -70,7 +70,7 @@ def toy_run(tmp_path_factory: pytest.TempPathFactory) -> str:
 TRAINED_STEPS = 600_000  # cpu-quick batch; ≈ 1.5-2 min on 2 cores plus compile
 TRAINED_ARGS = ["--preset", "cpu-quick", "--algo", "sa-ppo", "--seed", "0", "--total-steps", str(TRAINED_STEPS),
                 "--set", "sa.num_cycles=30", "--no-progress",
-                *(f"--set={item.split('=')[0]}=0" for item in ROBOT_KNOBS)]  # learns fast: transfer errors off
+                *(f"--set={item}" for item in KNOBS_OFF)]  # learns fast: transfer errors off
 
 
 @pytest.fixture(scope="session")

@@ -19,7 +19,7 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.join(REPO, "experiments"))
 
 
-KNOBS_OFF = [item.split("=")[0] + "=0" for item in config.ROBOT_KNOBS]
+KNOBS_OFF = list(config.KNOBS_OFF)
 
 
 def _env_cfg(*overrides: str) -> config.EnvConfig:

@@ -189,9 +189,7 @@ class PyBulletTwin:
         self._queue = np.concatenate([q[None], self._queue[:-1]], axis=0)
         if e.latency == 0 and not e.servo_lag:
             return q
-        current, previous, fraction = q, self._queue[1], 0.0
-        if e.latency > 0:
-            current, previous, fraction = control.delayed_commands(np, self._queue, float(e.latency))
+        current, previous, fraction = control.delayed_commands(np, self._queue, float(e.latency))
         if not e.servo_lag:  # exact tracking: the older command for the fraction, then the newer one
             return current
         q_now = self.read_joints()
