@@ -5,7 +5,7 @@ env vmaps ``check``; the PyBullet reference env, the sampler and the deployment
 safety layer call the same code with NumPy.
 
 Cost is what shapes this module: it runs every control step of every training env.
-Exact primitive-pair distances (``reference.exact_geometry``, the tests' oracle) for the robot's boxes and cylinders
+Exact primitive-pair distances (``tests/exact_geometry.py``, the tests' oracle) for the robot's boxes and cylinders
 against boxes and cylinders cost 10^4-10^5 flops a pair, about 1 ms per env step on a
 CPU core.  So the robot is checked through a **sphere cover**: every URDF primitive
 of a moving link is replaced by spheres (``sphere_cover``) —

@@ -6,7 +6,7 @@ primitive (self-collision, ``point_distance``), a point or a segment against the
 (``point_box_distance``, ``capsule_box_distance``: the gripper against the cube) and a
 primitive's height above the table (``plane_distance`` through ``support_radius``).  They are
 here; every other primitive-pair distance (box-box, anything-cylinder, the distance matrices)
-is a test oracle and lives in ``sagrasp_jax.reference.exact_geometry``, which also shares the
+is a test oracle and lives in ``tests/exact_geometry.py``, which also shares the
 component algebra below.
 
 Every public function takes the array module first (``xp`` = numpy or jax.numpy), has no

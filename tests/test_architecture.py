@@ -161,10 +161,17 @@ def test_jax_free_modules_stay_jax_free(graph):
     assert bad == []
 
 
-def test_the_exact_geometry_oracle_is_reference_only(graph):
-    """reference.exact_geometry holds the exact pair distances the tests check the per-step rules
+def test_the_exact_geometry_oracle_stays_outside_the_package():
+    """tests/exact_geometry.py holds the exact pair distances the tests check the per-step rules
     against; production code uses geometry's few queries and never imports the oracle."""
-    users = sorted(m for m, (deps, _) in graph.items() if "reference.exact_geometry" in deps)
+    assert os.path.isfile(os.path.join(REPO, "tests", "exact_geometry.py"))
+    def imported(file: str) -> set[str]:
+        tree = ast.parse(open(file, encoding="utf-8").read())
+        names = {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
+        names |= {f"{n.module}.{a.name}" for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) for a in n.names}
+        return names
+
+    users = sorted(m for m, file in package_modules().items() if any("exact_geometry" in i for i in imported(file)))
     assert users == []
 
 

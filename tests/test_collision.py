@@ -17,7 +17,7 @@ import pytest
 
 import sagrasp_jax  # noqa: F401
 from sagrasp_jax import collision, config, robot, sampling, shapes
-from sagrasp_jax.reference import exact_geometry as geometry
+import exact_geometry as geometry
 
 ROBOT = robot.load_robot()
 MOVING = [g for g in range(len(ROBOT.primitives)) if ROBOT.prim_link[g] >= 1]

@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 
 from sagrasp_jax import collision, config, robot, sampling, shapes
-from sagrasp_jax.reference import exact_geometry as geometry
+import exact_geometry as geometry
 from sagrasp_jax.env import GraspEnv, OBS_SIZE
 from sagrasp_jax.scene import SCENE
 from sagrasp_jax.wrappers import AutoReset

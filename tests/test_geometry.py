@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 import sagrasp_jax  # noqa: F401  (sets XLA flags before jax is imported)
-from sagrasp_jax.reference import exact_geometry as geo  # the oracle; re-exports geometry's functions
+import exact_geometry as geo  # the oracle; re-exports geometry's functions
 from sagrasp_jax.config import HOME_Q
 from sagrasp_jax.robot import BOX, CAPSULE, CYLINDER, SPHERE, forward_kinematics, load_robot, primitive_poses
 from sagrasp_jax.scene import SCENE

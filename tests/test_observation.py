@@ -11,7 +11,7 @@ import pytest
 
 import sagrasp_jax  # noqa: F401
 from sagrasp_jax import collision, config, observation, robot, sampling
-from sagrasp_jax.reference import exact_geometry as geometry
+import exact_geometry as geometry
 
 ROBOT = robot.load_robot()
 HOME = np.array(config.HOME_Q)

@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 
 from sagrasp_jax import collision, config, robot, sampling, shapes, train
-from sagrasp_jax.reference import exact_geometry as geometry
+import exact_geometry as geometry
 
 ROBOT = robot.load_robot()
 HOME = np.array(config.HOME_Q)

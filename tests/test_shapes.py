@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 
 from sagrasp_jax import assets, collision, config, robot, sampling, shapes
-from sagrasp_jax.reference import exact_geometry as geometry
+import exact_geometry as geometry
 
 ROBOT = robot.load_robot()
 PINS = os.path.join(os.path.dirname(__file__), "data", "pinned_resets.npz")

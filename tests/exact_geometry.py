@@ -5,8 +5,9 @@ box, the table plane); the per-step rules approximate the robot by spheres again
 obstacle shapes (``collision``, ``shapes``).  This module holds the rest, the exact
 primitive-pair distances that ``tests/`` (``test_geometry``, ``test_collision``, ``test_env``,
 ``test_observation``, ``test_scene_mix``) measure those approximations against, and that
-experiments may use.  It re-exports ``geometry``'s public functions, so one import gives the
-full set.  Nothing in the package imports it; it must not import jax.
+experiments may use.  It lives in ``tests/`` beside its users (``import exact_geometry``: the
+tests folder is on ``sys.path`` under pytest) and outside the package, which never needs it.  It
+re-exports ``geometry``'s public functions, so one import gives the full set; it must not import jax.
 
 Conventions as in ``geometry``: ``xp`` first, MuJoCo size convention, positive = gap.
 Exactness:
