@@ -51,7 +51,7 @@ from reproduce_paper import (  # noqa: E402
     summarise_algo, t975, write_json,
 )
 
-from sagrasp_jax import evaluate, train  # noqa: E402
+from sagrasp_jax import evaluate, run_dir, train  # noqa: E402
 from sagrasp_jax.checkpoint import CheckpointError  # noqa: E402
 from sagrasp_jax.config import LR_SCHEDULES, ConfigError, get_config  # noqa: E402
 from sagrasp_jax.run_dir import RunDirError  # noqa: E402
@@ -185,7 +185,7 @@ def run_one(variant: str, seed: int, args: argparse.Namespace, tag: str) -> dict
           + (f" and {args.blocking_episodes} blocking scenes" if args.blocking_episodes else ""), flush=True)
     mix = evaluate.evaluate_run(out, args.eval_episodes)
     blocking = evaluate.evaluate_run(out, args.blocking_episodes, scenes="blocking") if args.blocking_episodes else None
-    rows = train.read_metrics(os.path.join(out, train.METRICS_FILE))
+    rows = run_dir.read_metrics(os.path.join(out, run_dir.METRICS_FILE))
     record = {"variant": variant, "overrides": ALL_VARIANTS[variant], "seed": seed, **wanted, "mix": mix,
               "blocking_scenes": blocking, "train_wall_s": wall, "compile_s": rows[-1].get("compile_s"),
               **curve_facts(rows)}
@@ -335,7 +335,7 @@ def figures(args: argparse.Namespace, variants: list[str], seeds: list[int], ste
     except ImportError:
         print("matplotlib not installed: no figures", file=sys.stderr)
         return []
-    runs = {v: [train.read_metrics(os.path.join(args.runs_dir, f"{v}-s{s}", train.METRICS_FILE)) for s in seeds]
+    runs = {v: [run_dir.read_metrics(os.path.join(args.runs_dir, f"{v}-s{s}", run_dir.METRICS_FILE)) for s in seeds]
             for v in variants}
     kind = band_kind("auto", len(seeds))
     written = []
@@ -377,7 +377,7 @@ def paper_figures(args: argparse.Namespace, records: dict[str, list[dict[str, An
     if not set(PAPER_PAIR.values()) <= set(records) or importlib.util.find_spec("matplotlib") is None:
         return []
     evals = {a: [r["mix"] for r in sorted(records[v], key=lambda r: r["seed"])] for a, v in PAPER_PAIR.items()}
-    curves = {a: [train.read_metrics(os.path.join(args.runs_dir, f"{v}-s{s}", train.METRICS_FILE)) for s in seeds]
+    curves = {a: [run_dir.read_metrics(os.path.join(args.runs_dir, f"{v}-s{s}", run_dir.METRICS_FILE)) for s in seeds]
               for a, v in PAPER_PAIR.items()}
     results = {"meta": {"seeds": seeds, "band": band_kind("auto", len(seeds)), "total_steps": args.total_steps,
                         "eval_episodes": args.eval_episodes},

@@ -41,7 +41,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from obstacle_blind_eval import blind_study  # noqa: E402
 from reproduce_paper import check_same_config, ensure_trained, git_state, mean_ci, write_json  # noqa: E402
 
-from sagrasp_jax import evaluate, runtime, train  # noqa: E402
+from sagrasp_jax import evaluate, run_dir, runtime, train  # noqa: E402
 from sagrasp_jax.checkpoint import CheckpointError  # noqa: E402
 from sagrasp_jax.config import ConfigError  # noqa: E402
 
@@ -97,8 +97,8 @@ def run_one(name: str, on: set[str], seed: int, args: argparse.Namespace, tag: s
     print(f"{tag}: evaluating", flush=True)
     mix = evaluate.evaluate_run(out, args.eval_episodes)
     blocking = evaluate.evaluate_run(out, args.eval_episodes, scenes="blocking")
-    blind = blind_study(runtime.load_policy(os.path.join(out, train.POLICY_FILE)), args.blind_episodes, seed=5)
-    with open(os.path.join(out, train.METRICS_FILE), encoding="utf-8") as f:
+    blind = blind_study(runtime.load_policy(os.path.join(out, run_dir.POLICY_FILE)), args.blind_episodes, seed=5)
+    with open(os.path.join(out, run_dir.METRICS_FILE), encoding="utf-8") as f:
         last = [json.loads(line) for line in f if line.strip()][-1]
     record = {
         "variant": name, "levers": sorted(on), "seed": seed, "eval_episodes": args.eval_episodes,

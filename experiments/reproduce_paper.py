@@ -38,7 +38,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from sagrasp_jax import evaluate, fileio, train
+from sagrasp_jax import evaluate, fileio, run_dir, train
 from sagrasp_jax.checkpoint import CheckpointError
 from sagrasp_jax.config import ConfigError, config_from_dict, config_to_dict
 
@@ -102,18 +102,18 @@ def run_state(out: str) -> str:
     """'new' | 'partial' (checkpoint, not finished) | 'trained' | 'evaluated' | 'stale' (no checkpoint)."""
     if not os.path.isdir(out) or not os.listdir(out):
         return "new"
-    if os.path.isfile(os.path.join(out, EVAL_FILE)) and os.path.isfile(os.path.join(out, train.POLICY_FILE)):
+    if os.path.isfile(os.path.join(out, EVAL_FILE)) and os.path.isfile(os.path.join(out, run_dir.POLICY_FILE)):
         return "evaluated"
-    if os.path.isfile(os.path.join(out, train.POLICY_FILE)):
+    if os.path.isfile(os.path.join(out, run_dir.POLICY_FILE)):
         return "trained"
-    if os.path.isfile(os.path.join(out, train.CHECKPOINT_FILE)):
+    if os.path.isfile(os.path.join(out, run_dir.CHECKPOINT_FILE)):
         return "partial"
     return "stale"
 
 
 def check_same_config(out: str, cfg: Any) -> None:
     """Refuse to reuse a run folder trained with another config."""
-    path = os.path.join(out, train.CONFIG_FILE)
+    path = os.path.join(out, run_dir.CONFIG_FILE)
     try:
         with open(path, encoding="utf-8") as f:
             saved = json.load(f)
@@ -144,7 +144,7 @@ def eval_is_current(out: str, episodes: int) -> bool:
     try:
         with open(os.path.join(out, EVAL_FILE), encoding="utf-8") as f:
             res = json.load(f)
-        with open(os.path.join(out, train.CONFIG_FILE), encoding="utf-8") as f:
+        with open(os.path.join(out, run_dir.CONFIG_FILE), encoding="utf-8") as f:
             total = json.load(f)["train"]["total_steps"]
     except (FileNotFoundError, json.JSONDecodeError, KeyError):
         return False
@@ -159,7 +159,7 @@ def ensure_trained(out: str, cfg: Any, tag: str, progress: bool) -> float | None
     checkpoint is resumed; one killed before its first checkpoint is started again.  Returns this
     call's training wall time (None: it was finished already)."""
     state = run_state(out)
-    config_written = os.path.isfile(os.path.join(out, train.CONFIG_FILE))
+    config_written = os.path.isfile(os.path.join(out, run_dir.CONFIG_FILE))
     if state != "new" and (state != "stale" or config_written):  # killed before its config: nothing to compare
         check_same_config(out, cfg)
     if state in ("trained", "evaluated"):
@@ -200,7 +200,7 @@ def train_and_evaluate(algo: str, seed: int, args: argparse.Namespace, index: in
 
 def load_curves(runs_dir: str, algo: str, seeds: Sequence[int]) -> list[list[dict[str, Any]]]:
     """metrics.jsonl rows of each seed's run."""
-    return [train.read_metrics(os.path.join(runs_dir, run_name(algo, s), train.METRICS_FILE)) for s in seeds]
+    return [run_dir.read_metrics(os.path.join(runs_dir, run_name(algo, s), run_dir.METRICS_FILE)) for s in seeds]
 
 
 def curve_matrix(runs: list[list[dict[str, Any]]], key: str) -> tuple[np.ndarray, np.ndarray]:
@@ -325,7 +325,7 @@ def env_hashes(runs_dir: str, algo: str, seeds: Sequence[int]) -> list[str]:
 
     out = []
     for s in seeds:
-        with open(os.path.join(runs_dir, run_name(algo, s), train.CONFIG_FILE), encoding="utf-8") as f:
+        with open(os.path.join(runs_dir, run_name(algo, s), run_dir.CONFIG_FILE), encoding="utf-8") as f:
             env = json.load(f)["env"]
         out.append(hashlib.sha256(json.dumps(env, sort_keys=True).encode()).hexdigest()[:12])
     return out

@@ -36,8 +36,6 @@ from sagrasp_jax.config import EnvConfig
 MJCF_SCENE = assets.MJCF_SCENE
 MJCF_ROBOT = assets.MJCF_ROBOT  # the dynamic mode's model
 
-EPISODE_KEYS = episode.EPISODE_KEYS
-
 OBS_SIZE = observation.OBS_SIZE  # the paper layout's 17; an env's own size is ``GraspEnv.observation_size``
 
 
@@ -222,7 +220,7 @@ class GraspEnv:
             "q_target": q0,
             "reset": spec,
             "tracker": episode.start(jnp, d0, col, blocking),
-            "episode": {k: zero for k in EPISODE_KEYS},
+            "episode": {k: zero for k in episode.EPISODE_KEYS},
         }
         if randomize is not None:
             info["randomize"] = randomize

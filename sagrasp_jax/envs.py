@@ -48,7 +48,8 @@ import jax.numpy as jnp
 from brax.envs.base import Env, State
 
 from sagrasp_jax import config as config_mod
-from sagrasp_jax.env import EPISODE_KEYS, GraspEnv
+from sagrasp_jax.env import GraspEnv
+from sagrasp_jax.episode import EPISODE_KEYS
 
 # name -> env.control.mode: exact tracking, MJX servos, the fitted servo model (the presets' training mode)
 ENVS = {"grasp-kinematic": "kinematic", "grasp-dynamic": "dynamic", "grasp-lagged": "lagged"}

@@ -15,7 +15,22 @@ from typing import Any, NamedTuple
 from sagrasp_jax import collision, reward
 from sagrasp_jax.config import EnvConfig
 
-EPISODE_KEYS = reward.EPISODE_KEYS
+# Per-episode metrics that every simulator reports when an episode ends (info["episode"]).
+EPISODE_KEYS = (
+    "return",
+    "r_distance",
+    "r_success",
+    "r_obstacle",
+    "success",
+    "collision",
+    "timeout",
+    "steps",
+    "obstacle_present",
+    "redraws",
+    "fallback",
+    "min_obstacle_dist",
+    "blocking",
+) + tuple(f"hit_{name}" for name in collision.HIT_KINDS)
 
 
 class Tracker(NamedTuple):

@@ -99,8 +99,8 @@ class ScheduleState(NamedTuple):
         return cls(lr=float(data["lr"]), cycle=int(data["cycle"]), rollbacks=int(data["rollbacks"]), sa=sa)
 
 
-class Decision(NamedTuple):
-    """One cycle's outcome, for the trainer and the log."""
+class CycleOutcome(NamedTuple):
+    """What the trainer does with one cycle's updates under any lr schedule: keep or restore, the next lr."""
 
     kind: DecisionKind  # accept | accept-worse | reject
     decayed: bool  # the lr was decayed by this decision (sa only)
@@ -161,30 +161,30 @@ def observe(rule: Rule, state: ScheduleState, *, device_lr: float, progress: flo
 
 
 def end_cycle(rule: Rule, sa_cfg: SAConfig, state: ScheduleState, metric: float, entropy: float,
-              rng: np.random.Generator | float, n_actions: int = 6) -> tuple[ScheduleState, Decision]:
+              rng: np.random.Generator | float, n_actions: int = 6) -> tuple[ScheduleState, CycleOutcome]:
     """The end-of-cycle decision.  ``sa``: docs/task.md §3 (``sa_schedule.update``: one uniform draw of
     ``rng``); with ``sa.rollback`` off a reject does not restore.  Every other schedule keeps the
     cycle's updates (and draws nothing)."""
     if rule.name != "sa":
-        return state._replace(cycle=state.cycle + 1), Decision("accept", False, state.lr, False)
+        return state._replace(cycle=state.cycle + 1), CycleOutcome("accept", False, state.lr, False)
     sa, d = sa_schedule.update(sa_cfg, state.sa, metric, entropy, rng, n_actions=n_actions)
     restore = d.kind == "reject" and sa_cfg.rollback
     new = state._replace(lr=sa.lr, cycle=state.cycle + 1, rollbacks=state.rollbacks + int(restore), sa=sa)
-    return new, Decision(d.kind, d.decayed, d.new_lr, restore, d.temperature, d.delta_e, d.accept_prob)
+    return new, CycleOutcome(d.kind, d.decayed, d.new_lr, restore, d.temperature, d.delta_e, d.accept_prob)
 
 
 def nonfinite(rule: Rule, sa_cfg: SAConfig, state: ScheduleState, *, snapshot_lr: float,
-              progress: float) -> tuple[ScheduleState, Decision]:
+              progress: float) -> tuple[ScheduleState, CycleOutcome]:
     """A non-finite loss or parameter: the trainer restores the snapshot and starts a fresh cycle.
     ``sa`` also decays the lr (``sa_schedule.force_reject_and_decay``); ``kl-adaptive`` goes on from
     the snapshot's lr, ``cosine`` / ``linear`` from the rule's lr at ``progress``, ``constant`` as is."""
     if rule.name == "sa":
         sa, d = sa_schedule.force_reject_and_decay(sa_cfg, state.sa)
         new = state._replace(lr=sa.lr, cycle=state.cycle + 1, rollbacks=state.rollbacks + 1, sa=sa)
-        return new, Decision(d.kind, d.decayed, d.new_lr, True, d.temperature, d.delta_e, d.accept_prob)
+        return new, CycleOutcome(d.kind, d.decayed, d.new_lr, True, d.temperature, d.delta_e, d.accept_prob)
     lr = _next_lr(rule, state, snapshot_lr, progress)
     new = state._replace(lr=lr, cycle=state.cycle + 1, rollbacks=state.rollbacks + 1)
-    return new, Decision("reject", False, lr, True, accept_prob=0.0)
+    return new, CycleOutcome("reject", False, lr, True, accept_prob=0.0)
 
 
 def from_legacy(sa_state: dict[str, Any], name: str) -> ScheduleState:

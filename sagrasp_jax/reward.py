@@ -11,29 +11,10 @@ from __future__ import annotations
 import math
 from typing import Any, NamedTuple
 
-from sagrasp_jax import collision
 from sagrasp_jax.config import RewardConfig, TaskConfig
 
 RC_MODES = ("entry", "per_step")
 NEAR_MISS_MODES = ("change", "per_step")
-
-# Per-episode metrics that every simulator reports when an episode ends (info["episode"]).
-EPISODE_KEYS = (
-    "return",
-    "r_distance",
-    "r_success",
-    "r_obstacle",
-    "success",
-    "collision",
-    "timeout",
-    "steps",
-    "obstacle_present",
-    "redraws",
-    "fallback",
-    "min_obstacle_dist",
-    "blocking",
-) + tuple(f"hit_{name}" for name in collision.HIT_KINDS)
-
 
 class RewardTerms(NamedTuple):
     """The three reward terms and their weights, logged per episode."""

@@ -3,7 +3,7 @@
 A small, pure, host-side state machine (the ``sa`` schedule of ``sagrasp_jax.lr_schedule``,
 which hands it the trainer's calls): :func:`update` runs once per *cycle* (never per PPO
 iteration) with the cycle's evaluation metric M and the mean policy entropy H, and returns a
-new :class:`SAState` plus a :class:`Decision` that says what to do with the parameters:
+new :class:`SAState` plus an :class:`AnnealOutcome` that says what to do with the parameters:
 
 * ``"accept"`` / ``"accept-worse"``: take a snapshot (params, optimizer state,
   observation normaliser); ``state.snapshot_id`` names it.
@@ -92,8 +92,8 @@ class SAState(NamedTuple):
         return cls(**kwargs)
 
 
-class Decision(NamedTuple):
-    """What one cycle's decision was, for the trainer and the log."""
+class AnnealOutcome(NamedTuple):
+    """What the SA rule decided for one cycle (accept, accept a worse one, reject; decay), for lr_schedule."""
 
     kind: DecisionKind
     decayed: bool
@@ -155,7 +155,7 @@ def _decayed_lr(cfg: SAConfig, lr: float) -> float:
     return max(lr * cfg.decay, cfg.lr_min)
 
 
-def force_reject_and_decay(cfg: SAConfig, state: SAState) -> tuple[SAState, Decision]:
+def force_reject_and_decay(cfg: SAConfig, state: SAState) -> tuple[SAState, AnnealOutcome]:
     """Reject (restore the snapshot) and decay lr unconditionally: the non-finite escape hatch.
 
     The trainer calls this when a loss, gradient or parameter goes non-finite;
@@ -174,7 +174,7 @@ def force_reject_and_decay(cfg: SAConfig, state: SAState) -> tuple[SAState, Deci
         cycle=state.cycle + 1,
     )
     last_t = math.nan if state.temperature is None else state.temperature
-    return new, Decision("reject", True, lr, last_t, math.nan, 0.0)
+    return new, AnnealOutcome("reject", True, lr, last_t, math.nan, 0.0)
 
 
 def update(
@@ -184,7 +184,7 @@ def update(
     entropy: float,
     rng: np.random.Generator | float,
     n_actions: int = 6,
-) -> tuple[SAState, Decision]:
+) -> tuple[SAState, AnnealOutcome]:
     """One end-of-cycle decision (docs/task.md §3 rules 1-3).
 
     ``rng`` is a NumPy Generator (exactly one ``random()`` draw per call, used or not)
@@ -217,7 +217,7 @@ def update(
             n_accept=state.n_accept + 1,
             cycle=state.cycle + 1,
         )
-        return new, Decision("accept", False, state.lr, t, math.nan, 1.0)
+        return new, AnnealOutcome("accept", False, state.lr, t, math.nan, 1.0)
 
     delta_e = state.m_acc - m
     m_acc, best_m = state.m_acc, state.best_m
@@ -276,4 +276,4 @@ def update(
         n_reject=n_reject,
         cycle=state.cycle + 1,
     )
-    return new, Decision(kind, decayed, lr, t, delta_e, accept_prob)
+    return new, AnnealOutcome(kind, decayed, lr, t, delta_e, accept_prob)

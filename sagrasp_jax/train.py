@@ -46,9 +46,7 @@ from sagrasp_jax.config import (
     LR_SCHEDULES, PRESETS, SEED_RANGE, Config, ConfigError, apply_overrides, check_range, file_overrides, get_config,
     training_env_config, validate,
 )
-from sagrasp_jax.run_dir import (  # noqa: F401  (the run-folder names and readers, re-exported for callers)
-    CHECKPOINT_FILE, CONFIG_FILE, METRICS_FILE, POLICY_FILE, TB_DIR, RunDirError, RunLogger, export_policy, read_metrics,
-)
+from sagrasp_jax.run_dir import CHECKPOINT_FILE, CONFIG_FILE, POLICY_FILE, RunDirError, RunLogger, export_policy
 
 ALGOS = ("sa-ppo", "ppo")
 ALGO_SCHEDULES = {"sa-ppo": "sa", "ppo": "constant"}  # --algo is shorthand for these lr schedules
@@ -386,7 +384,7 @@ class Trainer:
         ts = self.train_state
         return ppo.to_host(self._compiled_eval(ts.params, ts.normaliser, self.eval_keys))
 
-    def anneal(self, metric: float, entropy: float) -> lr_schedule.Decision:
+    def anneal(self, metric: float, entropy: float) -> lr_schedule.CycleOutcome:
         """The lr schedule's end of cycle: accept → snapshot, reject → restore the snapshot (unless
         ``sa.rollback`` is off: then keep going from the current parameters); set the lr."""
         self.lr_state, decision = lr_schedule.end_cycle(self.rule, self.cfg.sa, self.lr_state, metric, entropy,

@@ -12,7 +12,7 @@ import numpy as np
 
 from conftest import toy_config, toy_factory
 
-from sagrasp_jax import train
+from sagrasp_jax import run_dir, train
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 WORKER = os.path.join(HERE, "two_process_worker.py")
@@ -29,9 +29,9 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _rows(run_dir: str) -> list[dict]:
+def _rows(run: str) -> list[dict]:
     return [{k: v for k, v in r.items() if k not in train.TIME_FIELDS}
-            for r in train.read_metrics(os.path.join(run_dir, train.METRICS_FILE))]
+            for r in run_dir.read_metrics(run_dir.path(run, run_dir.METRICS_FILE))]
 
 
 def test_two_processes_match_one_process_with_two_devices(tmp_path):

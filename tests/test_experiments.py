@@ -115,7 +115,7 @@ def test_schedule_variants() -> None:
     assert list(compare.SCHEDULE_VARIANTS) == ["constant", "sa", "kl-adaptive", "cosine", "linear"]
     assert compare.ABLATION_VARIANTS["sa-no-plateau-decay"] == ["lr.schedule=sa", "sa.plateau_decay=false"]
     for sets in compare.ALL_VARIANTS.values():  # every variant is a valid config
-        from sagrasp_jax import train
+        from sagrasp_jax import run_dir, train
 
         train.build_config("cpu-quick", overrides=sets)
 
@@ -138,7 +138,7 @@ def test_ensure_trained_rule_for_every_folder_state(tmp_path: pytest.TempPathFac
         out = str(tmp_path / name)
         os.makedirs(out)
         if config is not None:
-            with open(os.path.join(out, train.CONFIG_FILE), "w", encoding="utf-8") as f:
+            with open(os.path.join(out, run_dir.CONFIG_FILE), "w", encoding="utf-8") as f:
                 json.dump(config_to_dict(config), f)
         for extra in files:
             open(os.path.join(out, extra), "w").close()
@@ -147,10 +147,10 @@ def test_ensure_trained_rule_for_every_folder_state(tmp_path: pytest.TempPathFac
     foreign_stale = folder("foreign", other, "lock")  # another seed's run, killed before its checkpoint
     with pytest.raises(repro.ReproduceError, match="another config"):
         repro.ensure_trained(foreign_stale, cfg, "t", False)
-    assert sorted(os.listdir(foreign_stale)) == sorted([train.CONFIG_FILE, "lock"]) and calls == []
+    assert sorted(os.listdir(foreign_stale)) == sorted([run_dir.CONFIG_FILE, "lock"]) and calls == []
 
-    assert repro.ensure_trained(folder("done", cfg, train.POLICY_FILE), cfg, "t", False) is None and calls == []
-    partial = folder("partial", cfg, train.CHECKPOINT_FILE)
+    assert repro.ensure_trained(folder("done", cfg, run_dir.POLICY_FILE), cfg, "t", False) is None and calls == []
+    partial = folder("partial", cfg, run_dir.CHECKPOINT_FILE)
     assert repro.ensure_trained(partial, cfg, "t", False) is not None and calls[-1] == (partial, True)
     stale = folder("stale", cfg, "metrics.jsonl")
     repro.ensure_trained(stale, cfg, "t", False)

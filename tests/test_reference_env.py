@@ -17,7 +17,8 @@ gym = pytest.importorskip("gymnasium")
 
 from sagrasp_jax import config, observation, robot, sampling  # noqa: E402
 from sagrasp_jax.reference import ENV_ID, ENV_IDS  # noqa: E402
-from sagrasp_jax.reference.pybullet_env import EPISODE_KEYS, PyBulletGraspEnv  # noqa: E402
+from sagrasp_jax.episode import EPISODE_KEYS
+from sagrasp_jax.reference.pybullet_env import PyBulletGraspEnv  # noqa: E402
 
 ROBOT = robot.load_robot()
 
@@ -77,12 +78,6 @@ def test_plain_id_is_the_paper_layout():
         assert env.observation_space.shape == (17,)
     finally:
         env.close()
-
-
-def test_episode_keys_match_the_jax_env():
-    from sagrasp_jax.env import EPISODE_KEYS as JAX_KEYS
-
-    assert EPISODE_KEYS == JAX_KEYS
 
 
 def test_seeded_resets_are_reproducible_and_build_the_obstacles():

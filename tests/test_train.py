@@ -23,15 +23,15 @@ def _leaves_equal(a, b) -> bool:
                for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)))
 
 
-def _rows(run_dir):
+def _rows(run):
     return [{k: v for k, v in r.items() if k not in train.TIME_FIELDS}
-            for r in train.read_metrics(os.path.join(run_dir, train.METRICS_FILE))]
+            for r in run_dir.read_metrics(run_dir.path(run, run_dir.METRICS_FILE))]
 
 
 def test_run_folder_contents(toy_run):
     files = set(os.listdir(toy_run))
     assert {"config.json", "metrics.jsonl", "checkpoint.ckpt", "policy.npz", "tb"} <= files
-    rows = train.read_metrics(os.path.join(toy_run, train.METRICS_FILE))
+    rows = run_dir.read_metrics(os.path.join(toy_run, run_dir.METRICS_FILE))
     sched = train.make_schedule(toy_config())
     assert [r["iteration"] for r in rows] == list(range(sched.num_iterations))
     for key in ("env_steps", "steps_per_s", "compile_s", "return", "r_distance", "r_success", "r_obstacle",
@@ -51,9 +51,9 @@ def test_kill_and_resume_matches_an_uninterrupted_run(tmp_path):
     half_dir = str(tmp_path / "half")
     half = train.run(cfg, half_dir, env_factory=toy_factory(), progress=False, stop_after_cycles=3)
     assert half.sa_state.cycle == 3 and half.host.iteration < full.host.iteration
-    assert not os.path.exists(os.path.join(half_dir, train.POLICY_FILE))
+    assert not os.path.exists(os.path.join(half_dir, run_dir.POLICY_FILE))
     # A crash after the checkpoint leaves extra rows behind; the resume must drop them.
-    with open(os.path.join(half_dir, train.METRICS_FILE), "a") as f:
+    with open(os.path.join(half_dir, run_dir.METRICS_FILE), "a") as f:
         f.write(json.dumps({"iteration": 10**6, "env_steps": 0}) + "\n" + '{"iteration": 10')
     resumed = train.run(cfg, half_dir, env_factory=toy_factory(), progress=False, resume=True)
     assert _rows(half_dir) == _rows(str(tmp_path / "full"))
@@ -94,7 +94,7 @@ def test_nonfinite_iterations_are_rolled_back_and_training_continues(tmp_path):
     cfg = toy_config(cycles=4)
     out = str(tmp_path / "nan")
     tr = train.run(cfg, out, env_factory=toy_factory(nan_progress=(0.5, 0.6)), progress=False)
-    rows = train.read_metrics(os.path.join(out, train.METRICS_FILE))
+    rows = run_dir.read_metrics(os.path.join(out, run_dir.METRICS_FILE))
     events = [r for r in rows if r.get("event") == "nonfinite"]
     assert events and all(r["sa_decision"] == "reject" and r["sa_decayed"] for r in events)
     assert events[0]["loss"] is None  # NaN is logged as null, the JSON stays valid
@@ -109,7 +109,7 @@ def test_ppo_baseline_keeps_a_constant_learning_rate(tmp_path):
     assert cfg.lr.schedule == "constant"
     out = str(tmp_path / "ppo")
     train.run(cfg, out, env_factory=toy_factory(), progress=False)
-    rows = train.read_metrics(os.path.join(out, train.METRICS_FILE))
+    rows = run_dir.read_metrics(os.path.join(out, run_dir.METRICS_FILE))
     assert {r["lr"] for r in rows} == {2e-4}
     assert {r["sa_decision"] for r in rows if "sa_decision" in r} == {"accept"}
 
@@ -145,7 +145,7 @@ def test_resume_refuses_a_corrupt_checkpoint_and_changes_nothing(toy_run, tmp_pa
 
     run = str(tmp_path / "copy")
     shutil.copytree(toy_run, run)
-    ckpt = os.path.join(run, train.CHECKPOINT_FILE)
+    ckpt = os.path.join(run, run_dir.CHECKPOINT_FILE)
     with open(ckpt, "r+b") as f:
         f.seek(-100, os.SEEK_END)
         f.write(b"\0" * 10)
@@ -154,7 +154,7 @@ def test_resume_refuses_a_corrupt_checkpoint_and_changes_nothing(toy_run, tmp_pa
         train.run(toy_config(), run, env_factory=toy_factory(), progress=False, resume=True)
     assert {name: os.path.getmtime(os.path.join(run, name)) for name in os.listdir(run)} == before
     with pytest.raises(CheckpointError, match="config differs"):
-        shutil.copy(os.path.join(toy_run, train.CHECKPOINT_FILE), ckpt)
+        shutil.copy(os.path.join(toy_run, run_dir.CHECKPOINT_FILE), ckpt)
         train.run(toy_config(extra=["ppo.entropy_coef=0.01"]), run, env_factory=toy_factory(), progress=False,
                   resume=True)
 
@@ -183,7 +183,7 @@ def test_uneven_cycles_run_one_call_each_and_log_every_iteration(tmp_path):
     sched = train.make_schedule(cfg)
     assert sched.cycle_ends == (2, 5, 7, 10, 12) and sched.iterations_per_cycle == 3
     tr = train.run(cfg, str(tmp_path / "run"), env_factory=toy_factory(), progress=False)
-    rows = train.read_metrics(os.path.join(str(tmp_path / "run"), train.METRICS_FILE))
+    rows = run_dir.read_metrics(os.path.join(str(tmp_path / "run"), run_dir.METRICS_FILE))
     assert [r["iteration"] for r in rows] == list(range(12))
     assert [r["iteration"] + 1 for r in rows if "sa_decision" in r] == list(sched.cycle_ends)
     assert tr.sa_state.cycle == 5
@@ -207,7 +207,7 @@ def test_short_cpu_quick_run_learns_to_grasp(trained_run):
                                  env.observation_size)
     untrained = ppo.make_evaluator(nets, env, cfg.env.task.max_steps)(ts.params, ts.normaliser,
                                                                        ppo.eval_keys(cfg.sa.eval_seed + 1, 256))
-    rows = train.read_metrics(os.path.join(trained_run, train.METRICS_FILE))
+    rows = run_dir.read_metrics(os.path.join(trained_run, run_dir.METRICS_FILE))
     print(f"untrained success {float(untrained.success_rate):.3f}, trained {trained['success_rate']:.3f} "
           f"(CI {trained['success_ci95']}), steps/success {trained['mean_steps_per_success']}, "
           f"median train steps/s {np.median([r['steps_per_s'] for r in rows]):.0f}, compile {rows[-1]['compile_s']:.1f} s")
@@ -291,7 +291,7 @@ def test_resume_reads_a_checkpoint_from_before_lr_schedules(tmp_path):
     full = train.run(cfg, str(tmp_path / "full"), env_factory=toy_factory(), progress=False)
     half_dir = str(tmp_path / "half")
     train.run(cfg, half_dir, env_factory=toy_factory(), progress=False, stop_after_cycles=2)
-    path = os.path.join(half_dir, train.CHECKPOINT_FILE)
+    path = os.path.join(half_dir, run_dir.CHECKPOINT_FILE)
     with open(path, "rb") as f:
         blob = f.read()
     start = len(checkpoint.MAGIC) + checkpoint._LEN.size

@@ -66,7 +66,6 @@ from sagrasp_jax.robot import BOX, CAPSULE, CYLINDER, SPHERE, Kinematics
 from sagrasp_jax.scene import SCENE
 
 ENV_ID = "SAGrasp-PyBullet-v0"
-EPISODE_KEYS = episode.EPISODE_KEYS
 
 # POSITION_CONTROL gains of servo="position_control", per arm joint: positionGain kp and velocityGain kd of
 # PyBullet's motor constraint (after a substep h: v = kp·(q* − q)/h + (1 − kd)·v, whatever the arm's inertia).
