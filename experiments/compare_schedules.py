@@ -13,7 +13,7 @@ Every run trains ``--total-steps`` env steps of ``--preset`` (in process, ``trai
 0 … K−1), then ``evaluate.evaluate_run`` plays ``--eval-episodes`` fixed held-out episodes of the
 evaluation mix (success overall, without obstacle, with obstacle, blocking; steps per success)
 and ``--blocking-episodes`` of blocking-only scenes.  From ``metrics.jsonl``: env steps and
-training wall clock until the per-cycle evaluation (``sa.eval_episodes`` fixed episodes) first
+training wall clock until the per-cycle evaluation (``eval.episodes`` fixed episodes) first
 reaches 90 % and 98 % success, the final lr and the SA counts.  Reported per variant: means
 with 95 % t-intervals across seeds, pooled success with Wilson intervals, and for every variant
 a paired comparison with ``sa`` (the same seeds): mean difference, its 95 % t-interval, the

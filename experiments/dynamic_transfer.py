@@ -2,7 +2,7 @@
 randomisation (issue 18, items 3-4; docs/results.md, "Dynamic mode").
 
 Each ``--run NAME=FOLDER`` is evaluated on 1,000 episodes of the evaluation mix and 1,000 blocking-only
-scenes (``evaluate.evaluate_run``, seed ``sa.eval_seed + 1``, deterministic policy) in the dynamic env
+scenes (``evaluate.evaluate_run``, seed ``eval.seed + 1``, deterministic policy) in the dynamic env
 (``env.control.mode=dynamic``) and in the dynamic env with the transfer randomisation (``RANDOMIZE``);
 ``--kinematic NAME`` also in the kinematic env.  The training budget of each run comes from its
 ``metrics.jsonl`` (env steps, training and compile seconds) and, when the run was started through

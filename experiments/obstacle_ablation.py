@@ -49,7 +49,7 @@ LEVERS: dict[str, tuple[list[str], list[str]]] = {  # name -> (off, on) override
     "layout": (["env.task.obs_layout=paper"], ["env.task.obs_layout=relative"]),
     "near_miss": (["env.reward.near_miss_mode=per_step"], ["env.reward.near_miss_mode=change"]),
     "geometry": (["env.task.obstacle_geometry=cover"], ["env.task.obstacle_geometry=fine"]),
-    "mix": (["train.obstacle_prob=-1", "train.blocking_prob=-1"], ["train.obstacle_prob=0.8", "train.blocking_prob=0.6"]),
+    "mix": (["train.obstacle_prob=none", "train.blocking_prob=none"], ["train.obstacle_prob=0.8", "train.blocking_prob=0.6"]),
     "critic": (["ppo.privileged_critic=false"], ["ppo.privileged_critic=true"]),
 }
 RESULT_FILE = "ablation_eval.json"

@@ -1,7 +1,7 @@
 """Is a trained policy robot-grade?  Evaluate runs in every transfer condition (docs/results.md, §7).
 
 Each ``--run NAME=FOLDER`` is evaluated on ``--episodes`` fixed-seed episodes of the evaluation mix (seed
-``sa.eval_seed + 1``, deterministic policy) in the named conditions of ``config.EVAL_CONDITIONS``
+``eval.seed + 1``, deterministic policy) in the named conditions of ``config.EVAL_CONDITIONS``
 (kinematic, dynamic, robot = dynamic with every transfer knob on at the real arm's levels, robot-latency2 =
 the same with up to 2 steps of latency), optionally in the dynamic env with one knob on at a time
 (``--per-knob``, the rows of the robot-grade issue's table), on blocking-only scenes in the robot condition

@@ -45,8 +45,7 @@ class GraspEnv:
     action_size = control.ACTION_SIZE
 
     def __init__(self, cfg: EnvConfig, privileged: bool = False):
-        if cfg.control.mode not in config_mod.CONTROL_MODES:
-            raise ValueError(f"env.control.mode must be one of {', '.join(config_mod.CONTROL_MODES)}, got {cfg.control.mode!r}")
+        config_mod.check_fields(cfg, "env.")  # each key's declared type, range and choices (an EnvConfig built in code)
         self.cfg = cfg
         self.obs_layout = observation.layout_of(cfg)
         self.observation_size = len(self.obs_layout)

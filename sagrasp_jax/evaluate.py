@@ -2,7 +2,7 @@
 
 The run's latest checkpoint is played with the deterministic policy (tanh of the Gaussian
 mean) and reward weights frozen at p = 1, one episode per seed from a held-out evaluation
-seed (by default ``sa.eval_seed + 1``, so the SA selection set is not reused).  Reported:
+seed (by default ``eval.seed + 1``, so the SA selection set is not reused).  Reported:
 success rate with its 95 % Wilson interval, mean steps per successful grasp, collision rate
 (and what was hit, from the episodes' ``hit_*`` flags), timeout rate, each overall and split by
 obstacle present / absent.  The JSON goes atomically into the run folder, named by episodes and
@@ -136,8 +136,8 @@ def check_options(episodes: int, seed: int | None, max_steps: int | None) -> Non
 
 
 def resolve_options(cfg: Config, seed: int | None, max_steps: int | None) -> tuple[int, int]:
-    """The evaluation seed (default ``sa.eval_seed + 1``, held out) and step cap (default the config's)."""
-    seed = (cfg.sa.eval_seed + 1) % (SEED_RANGE[1] + 1) if seed is None else seed
+    """The evaluation seed (default ``eval.seed + 1``, held out) and step cap (default the config's)."""
+    seed = (cfg.eval.seed + 1) % (SEED_RANGE[1] + 1) if seed is None else seed
     return seed, cfg.env.task.max_steps if max_steps is None else max_steps
 
 
@@ -186,13 +186,14 @@ def evaluate_run(run: str, episodes: int = 1000, seed: int | None = None, max_st
 def trained_identity(cfg: Config, ckpt: Any) -> dict[str, Any]:
     """What was trained, in an evaluation's identity: a hash of the run's whole config (seed included;
     ``config.config_hash`` covers the env only) and its checkpoint's payload digest (a retrained run
-    at the same iteration is another evaluation)."""
+    at the same iteration is another evaluation).  The config is hashed in its first-written layout
+    (``config.identity_dict``), so a key's rename keeps the evaluation files of older runs valid."""
     import hashlib
     import json
 
-    from sagrasp_jax.config import config_to_dict
+    from sagrasp_jax.config import identity_dict
 
-    blob = json.dumps(config_to_dict(cfg), sort_keys=True).encode()
+    blob = json.dumps(identity_dict(cfg), sort_keys=True).encode()
     return {"config_sha256": hashlib.sha256(blob).hexdigest()[:16], "checkpoint_sha256": ckpt.header.get("payload_sha256")}
 
 
@@ -338,7 +339,7 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m sagrasp_jax.evaluate", description=__doc__.split("\n\n")[0])
     p.add_argument("--run", required=True, help="run folder written by sagrasp_jax.train")
     p.add_argument("--episodes", type=int, default=1000)
-    p.add_argument("--seed", type=int, default=None, help="evaluation seed (default sa.eval_seed + 1)")
+    p.add_argument("--seed", type=int, default=None, help="evaluation seed (default eval.seed + 1)")
     p.add_argument("--max-steps", type=int, default=None, help="step cap per episode (default env.task.max_steps)")
     p.add_argument("--scenes", default="mix", choices=SCENE_SETS,
                    help="mix: the task's evaluation mix (20 %% obstacle episodes); blocking: every episode has an obstacle "

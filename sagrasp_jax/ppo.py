@@ -38,15 +38,13 @@ from flax import linen
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from sagrasp_jax import lr_schedule
-from sagrasp_jax.config import NetworkConfig, PPOConfig
+from sagrasp_jax.config import ACTIVATIONS, NetworkConfig, PPOConfig
 
 Normaliser = running_statistics.RunningStatisticsState
 PPONetworks = ppo_networks.PPONetworks
 BATCH_AXIS = "batch"
 
-_ACTIVATIONS: dict[str, Callable[[jax.Array], jax.Array]] = {
-    "tanh": linen.tanh, "relu": linen.relu, "silu": linen.swish, "elu": linen.elu,
-}
+_ACTIVATIONS: dict[str, Callable[[jax.Array], jax.Array]] = {name: getattr(linen, name) for name in ACTIVATIONS}
 
 
 class Env(Protocol):

@@ -11,10 +11,7 @@ from __future__ import annotations
 import math
 from typing import Any, NamedTuple
 
-from sagrasp_jax.config import RewardConfig, TaskConfig
-
-RC_MODES = ("entry", "per_step")
-NEAR_MISS_MODES = ("change", "per_step")
+from sagrasp_jax.config import NEAR_MISS_MODES, RC_MODES, RewardConfig, TaskConfig
 
 class RewardTerms(NamedTuple):
     """The three reward terms and their weights, logged per episode."""

@@ -128,17 +128,17 @@ class Schedule:
 
 
 def make_schedule(cfg: Config) -> Schedule:
-    """Cycles of whole iterations.  By default exactly ``sa.num_cycles`` of them (fewer only when
+    """Cycles of whole iterations.  By default exactly ``eval.num_cycles`` of them (fewer only when
     there are fewer iterations): cycle k ends after round((k + 1)·N / num_cycles) of the N
-    iterations, so cycles differ by at most one iteration.  With ``sa.cycle_steps`` a cycle is
+    iterations, so cycles differ by at most one iteration.  With ``eval.cycle_steps`` a cycle is
     round(cycle_steps / steps per iteration) iterations, the last one possibly shorter."""
     per_iter = cfg.ppo.num_envs * cfg.ppo.unroll_length
     n = ppo.num_iterations(cfg.train.total_steps, cfg.ppo)
-    if cfg.sa.cycle_steps:
-        every = max(1, round(cfg.sa.cycle_steps / per_iter))
+    if cfg.eval.cycle_steps:
+        every = max(1, round(cfg.eval.cycle_steps / per_iter))
         ends = tuple(range(every, n, every)) + (n,)
     else:
-        c = min(cfg.sa.num_cycles, n)
+        c = min(cfg.eval.num_cycles, n)
         ends = tuple(((k + 1) * n * 2 + c) // (2 * c) for k in range(c))  # round half up, in integers
     return Schedule(per_iter, n, ends)
 
@@ -185,8 +185,8 @@ class Trainer:
         self._cycle = ppo.make_cycle(self.train_env, self.networks, self.optimizer, cfg.ppo, self.mesh,
                                      self.schedule.iterations_per_cycle, self.hand_scaled, self.critic_extra,
                                      self.rule)
-        keys = ppo.eval_keys(cfg.sa.eval_seed, cfg.sa.eval_episodes)
-        split = cfg.sa.eval_episodes % self.mesh.size == 0
+        keys = ppo.eval_keys(cfg.eval.seed, cfg.eval.episodes)
+        split = cfg.eval.episodes % self.mesh.size == 0
         self.eval_keys = ppo.shard_batch(keys, self.mesh) if split else ppo.replicate(keys, self.mesh)
         slots = CPU_EVAL_SLOTS if jax.default_backend() == "cpu" else None
         evaluate = ppo.make_evaluator(self.networks, self.eval_env, cfg.env.task.max_steps,

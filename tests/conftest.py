@@ -41,7 +41,7 @@ def toy_config(cycles: int = 6, algo: str = "sa-ppo", extra: list[str] | None = 
     """Small PPO batch on the toy env; ``cycles`` SA cycles of ``iterations_per_cycle`` iterations."""
     total = TOY_ITER_STEPS * iterations_per_cycle * cycles
     sets = ["ppo.num_envs=32", "ppo.unroll_length=16", "ppo.num_minibatches=4", "ppo.num_epochs=2",
-            f"sa.num_cycles={cycles}", "sa.eval_episodes=32", "env.task.max_steps=30",
+            f"eval.num_cycles={cycles}", "eval.episodes=32", "env.task.max_steps=30",
             "train.checkpoint_every_cycles=2", "train.metrics_window=64",
             "ppo.privileged_critic=false"]  # toy runs: no privileged critic unless a test sets it (toy_factory)
     return train.build_config("cpu-quick", algo, 0, total, sets + list(extra or []))
@@ -69,7 +69,7 @@ def toy_run(tmp_path_factory: pytest.TempPathFactory) -> str:
 
 TRAINED_STEPS = 600_000  # cpu-quick batch; ≈ 1.5-2 min on 2 cores plus compile
 TRAINED_ARGS = ["--preset", "cpu-quick", "--algo", "sa-ppo", "--seed", "0", "--total-steps", str(TRAINED_STEPS),
-                "--set", "sa.num_cycles=30", "--no-progress",
+                "--set", "eval.num_cycles=30", "--no-progress",
                 *(f"--set={item}" for item in KNOBS_OFF)]  # learns fast: transfer errors off
 
 

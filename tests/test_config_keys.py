@@ -27,7 +27,7 @@ def test_list_keys_shows_meaning_value_and_valid_values(capsys):
     assert "ppo.num_envs = 4096  (int; in [1, 16777216])  [paper 16; cpu-quick 256]" in text
     assert "env.sampling.obstacle_kinds = sphere,cylinder,box  (list of str; each one of sphere, cylinder, box, capsule)" in text
     assert "env.control.mode = lagged  (str; one of kinematic, dynamic, lagged)  [paper kinematic]" in text
-    assert f"sa.eval_episodes = {cfg.sa.eval_episodes}" in text
+    assert f"eval.episodes = {cfg.eval.episodes}" in text
 
 
 def test_string_lists_parse_from_bare_words_and_json():

@@ -23,7 +23,7 @@ import compare_schedules as compare  # noqa: E402
 import reproduce_paper as repro  # noqa: E402
 
 TINY_SETS = ["ppo.num_envs=64", "ppo.num_epochs=1", "ppo.num_minibatches=1", "env.task.max_steps=50",
-             "sa.eval_episodes=8", "sa.num_cycles=4"]
+             "eval.episodes=8", "eval.num_cycles=4"]
 
 
 def _sets(items: list[str]) -> list[str]:
@@ -193,7 +193,7 @@ def test_reproduce_paper_smoke(tmp_path: pytest.TempPathFactory) -> None:
     again = _run(args)
     assert again.returncode == 0, again.stderr[-3000:]
     assert again.stdout.count("done already, skipped") == 4
-    clash = _run(args[:-2] + ["--set", "sa.num_cycles=2"])
+    clash = _run(args[:-2] + ["--set", "eval.num_cycles=2"])
     assert clash.returncode == 2 and "another config" in clash.stderr
 
 

@@ -117,7 +117,7 @@ def test_training_mix_differs_from_the_evaluation_mix():
         spec = _resets(env_cfg.sampling, 4000, seed=1)
         assert abs(spec.obstacle_active[:, 0].mean() - rate) < 0.03
         assert spec.fallback.mean() < 0.02
-    # −1 (the default) means "the evaluation mix"
+    # unset (none, the default) means "the evaluation mix"
     same = train.build_config("paper", overrides=["env.sampling.obstacle_prob=0.3"])
     assert config.training_env_config(same).sampling.obstacle_prob == 0.3
     with pytest.raises(config.ConfigError, match="train.obstacle_prob"):

@@ -69,7 +69,7 @@ def test_registry_is_consistent():
         np.testing.assert_allclose(tilt @ tilt.T, np.eye(3), atol=1e-12)
         assert np.linalg.det(tilt) == pytest.approx(1.0)
         for key in shape.size_keys + ((shape.float_z,) if shape.float_z else ()):
-            assert f"env.sampling.{key}" in config._RANGES  # its size ranges are real, range-checked keys
+            assert config.key_specs()[f"env.sampling.{key}"].range  # its size ranges are real, range-checked keys
 
 
 # ------------------------------------------------------------------ every entry against exact references

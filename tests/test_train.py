@@ -162,8 +162,8 @@ def test_resume_refuses_a_corrupt_checkpoint_and_changes_nothing(toy_run, tmp_pa
 @pytest.mark.parametrize("preset", ["cpu-quick", "gpu", "paper"])
 def test_every_preset_anneals_over_exactly_num_cycles_cycles(preset):
     """Cycle k ends after round((k + 1)·N / num_cycles) of the N iterations: exactly 200 cycles
-    (or sa.num_cycles) whatever the batch shape, lengths differing by at most one iteration."""
-    for cycles, sets in ((200, []), (37, ["sa.num_cycles=37"])):
+    (or eval.num_cycles) whatever the batch shape, lengths differing by at most one iteration."""
+    for cycles, sets in ((200, []), (37, ["eval.num_cycles=37"])):
         sched = train.make_schedule(train.build_config(preset, overrides=sets))
         n = sched.num_iterations
         assert sched.num_cycles == cycles and sched.cycle_ends[-1] == n
@@ -172,14 +172,14 @@ def test_every_preset_anneals_over_exactly_num_cycles_cycles(preset):
         assert lengths.min() >= 1 and lengths.max() - lengths.min() <= 1
         assert sched.iterations_per_cycle == lengths.max()
         assert [sched.cycle_end(i) for i in range(n)] == list(np.repeat(sched.cycle_ends, lengths))
-    explicit = train.make_schedule(train.build_config("cpu-quick", overrides=["sa.cycle_steps=20000"]))
+    explicit = train.make_schedule(train.build_config("cpu-quick", overrides=["eval.cycle_steps=20000"]))
     assert explicit.iterations_per_cycle == 5 and set(np.diff((0,) + explicit.cycle_ends)[:-1]) == {5}
 
 
 def test_uneven_cycles_run_one_call_each_and_log_every_iteration(tmp_path):
     """12 iterations in 5 cycles (2, 3, 2, 3, 2 iterations): five SA decisions, one row per
     iteration, the cycle rows at the fixed ends."""
-    cfg = toy_config(cycles=6, extra=["sa.num_cycles=5"])
+    cfg = toy_config(cycles=6, extra=["eval.num_cycles=5"])
     sched = train.make_schedule(cfg)
     assert sched.cycle_ends == (2, 5, 7, 10, 12) and sched.iterations_per_cycle == 3
     tr = train.run(cfg, str(tmp_path / "run"), env_factory=toy_factory(), progress=False)
@@ -199,14 +199,14 @@ def test_short_cpu_quick_run_learns_to_grasp(trained_run):
     assert train.main(["--out", trained_run]) == 2  # a finished run is not overwritten
     assert evaluate.main(["--run", trained_run, "--episodes", "256"]) == 0
     cfg = train.build_config("cpu-quick")
-    with open(os.path.join(trained_run, run_dir.evaluation_file(256, cfg.sa.eval_seed + 1))) as f:
+    with open(os.path.join(trained_run, run_dir.evaluation_file(256, cfg.eval.seed + 1))) as f:
         trained = json.load(f)["overall"]
     env = GraspEnv(cfg.env)
     nets = ppo.make_networks(cfg.ppo.network, env.observation_size, env.action_size, cfg.ppo.obs_clip)
     ts = ppo.init_training_state(jax.random.PRNGKey(0), nets, ppo.make_optimizer(cfg.ppo, 3e-4),
                                  env.observation_size)
     untrained = ppo.make_evaluator(nets, env, cfg.env.task.max_steps)(ts.params, ts.normaliser,
-                                                                       ppo.eval_keys(cfg.sa.eval_seed + 1, 256))
+                                                                       ppo.eval_keys(cfg.eval.seed + 1, 256))
     rows = run_dir.read_metrics(os.path.join(trained_run, run_dir.METRICS_FILE))
     print(f"untrained success {float(untrained.success_rate):.3f}, trained {trained['success_rate']:.3f} "
           f"(CI {trained['success_ci95']}), steps/success {trained['mean_steps_per_success']}, "

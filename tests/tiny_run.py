@@ -15,7 +15,7 @@ import sys
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 TINY_ARGS = [
     "--preset", "cpu-quick", "--total-steps", "1024", "--seed", "0", "--no-progress",
-    "--set", "sa.num_cycles=1", "--set", "sa.eval_episodes=8", "--set", "ppo.num_envs=64",
+    "--set", "eval.num_cycles=1", "--set", "eval.episodes=8", "--set", "ppo.num_envs=64",
     "--set", "ppo.num_epochs=1", "--set", "ppo.num_minibatches=1", "--set", "env.task.max_steps=50",
 ]  # fmt: skip
 _RUNS: dict[str, str] = {}
