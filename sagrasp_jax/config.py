@@ -12,13 +12,12 @@ where a number is ours, not the paper's, the key says so.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import difflib
+import functools
 import hashlib
 import json
 import math
 import textwrap
-import types
 import typing
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -523,38 +522,37 @@ def get_config(preset: str = "cpu-quick") -> Config:
     return PRESETS[preset]()
 
 
-# ---------------------------------------------------------------------- the keys' declarations, read back
+# ---------------------------------------------------------------------- the declarations, read back
 
 class KeySpec(typing.NamedTuple):
-    """What a key's declaration says: its type, meaning, valid range and choices (a Literal's values)."""
+    """What a key's declaration says: the type of one value (of each entry of a list key), whether it is
+    a list (of ``length`` entries if fixed) or may be unset (none), its meaning, range and choices."""
 
-    annotation: Any
+    kind: type
+    listed: bool
+    length: int | None
+    optional: bool
     doc: str
     range: Range | None
     choices: tuple[Any, ...] | None
 
-
-def _optional(annotation: Any) -> bool:
-    return typing.get_origin(annotation) in (typing.Union, types.UnionType) and type(None) in typing.get_args(annotation)
-
-
-def _scalar(annotation: Any) -> type:
-    """bool, int, float or str: what one value (one entry of a list key) is."""
-    args = [a for a in typing.get_args(annotation) if a is not type(None)]
-    if typing.get_origin(annotation) is Literal:
-        return type(args[0])
-    return _scalar(args[0]) if _optional(annotation) else annotation
+    @property
+    def type_name(self) -> str:
+        listed = f"list of {f'{self.length} ' if self.length else ''}" if self.listed else ""
+        return listed + self.kind.__name__ + (" or none" if self.optional else "")
 
 
-def _entry(annotation: Any) -> Any:
-    return typing.get_args(annotation)[0] if typing.get_origin(annotation) is tuple else annotation
-
-
-def _type_name(annotation: Any) -> str:
-    if typing.get_origin(annotation) is tuple:
-        args = typing.get_args(annotation)
-        return f"list of {'' if args[-1] is Ellipsis else f'{len(args)} '}{_type_name(args[0])}"
-    return _scalar(annotation).__name__ + (" or none" if _optional(annotation) else "")
+def _spec(hint: Any, f: dataclasses.Field) -> KeySpec:
+    listed = typing.get_origin(hint) is tuple
+    args = typing.get_args(hint)
+    one = args[0] if listed else hint
+    values = [a for a in typing.get_args(one) if a is not type(None)]
+    literal = typing.get_origin(one) is Literal
+    optional = not literal and len(values) < len(typing.get_args(one))
+    kind = type(values[0]) if literal else values[0] if optional else one
+    length = len(args) if listed and args[-1] is not Ellipsis else None
+    return KeySpec(kind, listed, length, optional, f.metadata.get("doc", ""), f.metadata.get("range"),
+                   tuple(values) if literal else None)
 
 
 @functools.cache
@@ -567,21 +565,19 @@ def key_specs() -> dict[str, KeySpec]:
         for f in dataclasses.fields(cls):
             if dataclasses.is_dataclass(hints[f.name]):
                 walk(hints[f.name], f"{prefix}{f.name}.")
-                continue
-            entry = _entry(hints[f.name])
-            choices = typing.get_args(entry) if typing.get_origin(entry) is Literal else None
-            out[prefix + f.name] = KeySpec(hints[f.name], f.metadata.get("doc", ""), f.metadata.get("range"), choices)
+            else:
+                out[prefix + f.name] = _spec(hints[f.name], f)
 
     walk(Config, "")
     return out
 
 
-def valid_keys(cfg: Config | None = None) -> list[str]:
+def valid_keys() -> list[str]:
     """All dotted keys that ``apply_overrides`` accepts."""
     return list(key_specs())
 
 
-def key_descriptions(cfg: Config | None = None) -> dict[str, str]:
+def key_descriptions() -> dict[str, str]:
     """Every dotted key's description, from its declaration."""
     return {name: spec.doc for name, spec in key_specs().items()}
 
@@ -592,43 +588,22 @@ def get_key(cfg: Any, name: str) -> Any:
     return cfg
 
 
-def _problem(value: Any, annotation: Any) -> str | None:
-    """What is wrong with the type of ``value`` for a key declared ``annotation`` (None: nothing)."""
-    if value is None:
-        return None if _optional(annotation) else "expected a value"
-    if typing.get_origin(annotation) is tuple:
-        args = typing.get_args(annotation)
-        if not isinstance(value, tuple):
-            return "expected a list"
-        if args[-1] is not Ellipsis and len(value) != len(args):
-            return f"expected {len(args)} values, got {len(value)}"
-        return next((f"{p} in each entry" for v in value if (p := _problem(v, args[0]))), None)
-    kind = _scalar(annotation)
-    number = isinstance(value, (int, float)) and not isinstance(value, bool)
-    ok = {bool: isinstance(value, bool), int: number and isinstance(value, int), float: number,
-          str: isinstance(value, str)}[kind]
-    return None if ok else {bool: "expected true/false", int: "expected an integer", float: "expected a number",
-                            str: "expected a string"}[kind]
-
-
 def check_fields(section: Any, prefix: str = "") -> None:
-    """Every key of ``section`` (the config, or its part at ``prefix``, e.g. ``"env."``) has its declared
-    type, lies in its range and is one of its choices (a list key: each entry)."""
+    """Every key of ``section`` (the config, or its part at ``prefix``, e.g. ``"env."``) lies in its range and
+    is one of its choices (a list key: each entry, and as many as declared)."""
     for f in dataclasses.fields(section):
         value, name = getattr(section, f.name), prefix + f.name
         if dataclasses.is_dataclass(value):
             check_fields(value, name + ".")
             continue
         spec = key_specs()[name]
-        problem = _problem(value, spec.annotation)
-        if problem:
-            raise ConfigError(f"invalid value for {name}: {value!r} ({problem})")
-        listed = isinstance(value, tuple)
-        for v in value if listed else (value,):
-            if v is not None and spec.range and v not in spec.range:
-                raise ConfigError(f"invalid value for {name}: {value!r} ({'each entry ' * listed}must be in {spec.range})")
+        if spec.listed and (not isinstance(value, tuple) or spec.length not in (None, len(value))):
+            raise ConfigError(f"invalid value for {name}: {value!r} (expected a {spec.type_name})")
+        for v in value if spec.listed else (value,):
+            if spec.range and not (v is None and spec.optional) and v not in spec.range:
+                raise ConfigError(f"invalid value for {name}: {value!r} ({'each entry ' * spec.listed}must be in {spec.range})")
             if spec.choices and v not in spec.choices:
-                entry = f" (entry {v!r})" if listed else ""
+                entry = f" (entry {v!r})" if spec.listed else ""
                 raise ConfigError(f"{name}={value!r}{entry} is not one of {', '.join(map(str, spec.choices))}")
 
 
@@ -643,32 +618,38 @@ def _num(v: float) -> str:
     return str(v) if isinstance(v, int) else f"{v:g}"
 
 
-# ---------------------------------------------------------------------- --set, --config and --list-keys
+# ---------------------------------------------------------------------- --set, --config, saved configs
 
-def _from_text(text: str, annotation: Any, name: str) -> Any:
-    """A ``--set`` value as the key's type: ``true``/``false``, numbers, ``none`` for an unset optional key,
-    a list as ``a,b,c`` or JSON."""
+def _scalar(text: str, kind: type) -> Any:
     text = text.strip()
+    if kind is bool:
+        if text.lower() not in ("true", "1", "yes", "false", "0", "no"):
+            raise ValueError("expected true/false")
+        return text.lower() in ("true", "1", "yes")
+    if kind is int:
+        number = float(text) if any(c in text for c in ".eE") else int(text)
+        if not float(number).is_integer():
+            raise ValueError("expected an integer")
+        return int(number)
+    return float(text) if kind is float else text
+
+
+def _parse(text: str, spec: KeySpec, name: str) -> Any:
+    """A value written as text (``--set``; files and saved configs are written so too): ``true``/``false``,
+    numbers, ``none`` for an unset optional key, a list as ``a,b,c`` or JSON."""
+    text = text.strip()
+    if spec.optional and text.lower() in ("none", "null"):
+        return None
     try:
-        if typing.get_origin(annotation) is tuple:
-            items = json.loads(text) if text.startswith("[") else [t for t in text.split(",") if t.strip()]
-            entry = typing.get_args(annotation)[0]
-            return tuple(_from_text(v if isinstance(v, str) else json.dumps(v), entry, name) for v in items)
-        kind = _scalar(annotation)
-        if _optional(annotation) and text.lower() in ("none", "null"):
-            return None
-        if kind is bool:
-            if text.lower() not in ("true", "1", "yes", "false", "0", "no"):
-                raise ValueError("expected true/false")
-            return text.lower() in ("true", "1", "yes")
-        if kind is int:
-            number = float(text) if any(c in text for c in ".eE") else int(text)
-            if not float(number).is_integer():
-                raise ValueError("expected an integer")
-            return int(number)
-        return float(text) if kind is float else text
-    except (ValueError, OverflowError, json.JSONDecodeError) as exc:
-        raise ConfigError(f"bad value {text!r} for {name} ({_type_name(annotation)}): {exc}") from None
+        if not spec.listed:
+            return _scalar(text, spec.kind)
+        items = json.loads(text) if text.startswith("[") else [t for t in text.split(",") if t.strip()]
+        value = tuple(_scalar(v if isinstance(v, str) else json.dumps(v), spec.kind) for v in items)
+        if spec.length not in (None, len(value)):
+            raise ValueError(f"expected {spec.length} values, got {len(value)}")
+        return value
+    except (ValueError, OverflowError, TypeError) as exc:
+        raise ConfigError(f"bad value {text!r} for {name} ({spec.type_name}): {exc}") from None
 
 
 def current_name(name: str) -> str:
@@ -688,6 +669,11 @@ def unknown_key_message(name: str) -> str:
     return f"unknown config key {name!r}{hint} (--list-keys lists every key)"
 
 
+def _replaced(section: Any, path: list[str], value: Any) -> Any:
+    inner = value if len(path) == 1 else _replaced(getattr(section, path[0]), path[1:], value)
+    return dataclasses.replace(section, **{path[0]: inner})
+
+
 def apply_overrides(cfg: Config, overrides: list[str]) -> Config:
     """Apply ``key=value`` strings, e.g. ``ppo.num_envs=512``; validates the result."""
     for item in overrides:
@@ -695,45 +681,34 @@ def apply_overrides(cfg: Config, overrides: list[str]) -> Config:
             raise ConfigError(f"override {item!r} is not of the form key=value")
         name, text = item.split("=", 1)
         name = current_name(name.strip())
-        spec = key_specs().get(name)
-        if spec is None:
-            if any(k.startswith(name + ".") for k in key_specs()):
-                raise ConfigError(f"{name!r} is a section, not a value; set one of its keys")
-            raise ConfigError(unknown_key_message(name))
-        *path, leaf = name.split(".")
-        sections = [cfg]
-        for part in path:
-            sections.append(getattr(sections[-1], part))
-        new = dataclasses.replace(sections[-1], **{leaf: _from_text(text, spec.annotation, name)})
-        for section, part in zip(reversed(sections[:-1]), reversed(path)):
-            new = dataclasses.replace(section, **{part: new})
-        cfg = new
+        if name not in key_specs():
+            section = any(k.startswith(name + ".") for k in key_specs())
+            raise ConfigError(f"{name!r} is a section, not a value; set one of its keys" if section
+                              else unknown_key_message(name))
+        cfg = _replaced(cfg, name.split("."), _parse(text, key_specs()[name], name))
     validate(cfg)
     return cfg
 
 
-CONFIG_FILE_SUFFIXES = (".json", ".yaml", ".yml")
-
-
-def _flatten(data: Any, prefix: str, path: str) -> list[tuple[str, Any]]:
+def _flatten(data: Any, prefix: str, where: str) -> dict[str, Any]:
+    """A nested mapping of config keys as {dotted key: value}."""
     if not isinstance(data, dict):
-        raise ConfigError(f"{path}: {prefix.rstrip('.') or 'the file'} must be a mapping of config keys, got {data!r}")
-    out: list[tuple[str, Any]] = []
+        raise ConfigError(f"{where}: {prefix.rstrip('.') or 'it'} must be a mapping of config keys, got {data!r}")
+    out: dict[str, Any] = {}
     for name, value in data.items():
-        out += _flatten(value, f"{prefix}{name}.", path) if isinstance(value, dict) else [(prefix + name, value)]
+        out.update(_flatten(value, f"{prefix}{name}.", where) if isinstance(value, dict) else {prefix + name: value})
     return out
 
 
-def _override_text(name: str, value: Any, path: str) -> str:
-    """A file's value as the ``--set`` text that means it (so both are checked alike)."""
-    if value is None:
+def _as_overrides(flat: dict[str, Any], where: str) -> list[str]:
+    """A file's or saved config's values as the ``--set`` texts that mean them (so all are checked alike)."""
+    out = []
+    for name, value in flat.items():
         spec = key_specs().get(RENAMED_KEYS.get(name, name))
-        if spec is None or not _optional(spec.annotation):
-            raise ConfigError(f"{path}: {name} has no value (null)")
-        return "none"
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    return json.dumps(list(value)) if isinstance(value, (list, tuple)) else str(value)
+        if value is None and not (spec and spec.optional):
+            raise ConfigError(f"{where}: {name} has no value (null)")
+        out.append(f"{name}={value if isinstance(value, str) else json.dumps(value)}")
+    return out
 
 
 def file_overrides(path: str) -> list[str]:
@@ -741,28 +716,39 @@ def file_overrides(path: str) -> list[str]:
     like ``--set`` (keys it leaves out keep the preset's values).  JSON; YAML (``.yaml``/``.yml``)
     when PyYAML is installed.  Sections may nest (``{"ppo": {"num_envs": 512}}``) or be dotted
     (``{"ppo.num_envs": 512}``).  A file that cannot be read or parsed raises ConfigError."""
-    if not path.lower().endswith(CONFIG_FILE_SUFFIXES):
-        raise ConfigError(f"--config {path}: expected a {', '.join(CONFIG_FILE_SUFFIXES)} file")
+    where = f"--config {path}"
+    if not path.lower().endswith((".json", ".yaml", ".yml")):
+        raise ConfigError(f"{where}: expected a .json, .yaml or .yml file")
     try:
         with open(path, encoding="utf-8") as f:
             text = f.read()
     except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"--config {path}: cannot read it ({exc})") from None
+        raise ConfigError(f"{where}: cannot read it ({exc})") from None
     if path.lower().endswith(".json"):
-        try:
-            data = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise ConfigError(f"--config {path}: not valid JSON ({exc})") from None
+        load, kind, errors = json.loads, "JSON", (json.JSONDecodeError,)
     else:
         try:
             import yaml
         except ImportError:
-            raise ConfigError(f"--config {path}: reading YAML needs PyYAML (pip install pyyaml), or use JSON") from None
-        try:
-            data = yaml.safe_load(text)
-        except yaml.YAMLError as exc:
-            raise ConfigError(f"--config {path}: not valid YAML ({exc})") from None
-    return [f"{name}={_override_text(name, value, path)}" for name, value in _flatten(data, "", f"--config {path}")]
+            raise ConfigError(f"{where}: reading YAML needs PyYAML (pip install pyyaml), or use JSON") from None
+        load, kind, errors = yaml.safe_load, "YAML", (yaml.YAMLError,)
+    try:
+        data = load(text)
+    except errors as exc:
+        raise ConfigError(f"{where}: not valid {kind} ({exc})") from None
+    return _as_overrides(_flatten(data, "", where), where)
+
+
+def config_to_dict(cfg: Any) -> dict[str, Any]:
+    return dataclasses.asdict(cfg)
+
+
+def config_from_dict(data: dict[str, Any]) -> Config:
+    """Build and validate a Config from its dict, read like ``--set`` over the defaults; an older layout
+    is upgraded first (keys it lacks get their legacy value)."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"saved config must be a JSON object, got {type(data).__name__}")
+    return apply_overrides(Config(), _as_overrides(_upgraded(_flatten(data, "", "saved config")), "saved config"))
 
 
 def _shown(value: Any) -> str:
@@ -780,13 +766,11 @@ def describe_keys(preset: str = "cpu-quick") -> str:
     others = {name: get_config(name) for name in PRESETS if name != preset}
     lines = [f"config keys (values of preset {preset!r}; set with --set KEY=VALUE, a list as a,b,c):", ""]
     for name, spec in key_specs().items():
-        value = get_key(cfg, name)
-        each = "each " if typing.get_origin(spec.annotation) is tuple else ""
+        value, each = get_key(cfg, name), "each " * spec.listed
         valid = (f"; {each}in {spec.range}" if spec.range else "") + \
             (f"; {each}one of {', '.join(map(str, spec.choices))}" if spec.choices else "")
         differ = [f"{other} {_shown(get_key(c, name))}" for other, c in others.items() if get_key(c, name) != value]
-        lines.append(f"{name} = {_shown(value)}  ({_type_name(spec.annotation)}{valid})"
-                     + (f"  [{'; '.join(differ)}]" if differ else ""))
+        lines.append(f"{name} = {_shown(value)}  ({spec.type_name}{valid})" + (f"  [{'; '.join(differ)}]" if differ else ""))
         lines += textwrap.wrap(spec.doc, 100, initial_indent="    ", subsequent_indent="    ") or ["    (no description)"]
     return "\n".join(lines)
 
@@ -822,30 +806,7 @@ def validate(cfg: Config) -> None:
                           f"= {cfg.ppo.num_envs} × {cfg.ppo.unroll_length}")
 
 
-# ---------------------------------------------------------------------- saved configs, old layouts
-
-def config_to_dict(cfg: Any) -> dict[str, Any]:
-    return dataclasses.asdict(cfg)
-
-
-def _from_dict(cls: type, data: dict[str, Any], prefix: str) -> Any:
-    hints = typing.get_type_hints(cls)
-    unknown = set(data) - {f.name for f in dataclasses.fields(cls)}
-    if unknown:
-        raise ConfigError(f"unknown config keys in saved config: {', '.join(prefix + u for u in sorted(unknown))}")
-    kwargs = {}
-    for name, value in data.items():
-        if dataclasses.is_dataclass(hints[name]):
-            if not isinstance(value, dict):
-                raise ConfigError(f"saved config: {prefix}{name} must be a section (a JSON object), got {value!r}")
-            value = _from_dict(hints[name], value, f"{prefix}{name}.")
-        elif typing.get_origin(hints[name]) is tuple:
-            if not isinstance(value, (list, tuple)):
-                raise ConfigError(f"saved config: {prefix}{name} must be a list, got {value!r}")
-            value = tuple(value)
-        kwargs[name] = value
-    return cls(**kwargs)
-
+# ---------------------------------------------------------------------- old layouts
 
 # Keys added after the first release, with the value that reproduces what a saved config without
 # them meant (run folders, checkpoints and policy files of version 0.1 keep their behaviour).
@@ -871,96 +832,62 @@ RENAMED_KEYS: dict[str, str] = {
     "sa.eval_seed": "eval.seed",
 }
 
-# Values spelled differently now: (key, old value, new value).  The training mix was −1 for "the evaluation
-# mix's"; it is now unset (none).
-RESPELLED_VALUES: tuple[tuple[str, Any, Any], ...] = (
-    ("train.obstacle_prob", -1.0, None),
-    ("train.blocking_prob", -1.0, None),
-)
+# Values spelled differently now, key -> (old value, new value): the training mix was −1 for "the evaluation
+# mix's"; it is unset (none) now.
+RESPELLED_VALUES: dict[str, tuple[Any, Any]] = {"train.obstacle_prob": (-1.0, None), "train.blocking_prob": (-1.0, None)}
 
 
-def _parent(data: Any, name: str, create: bool = False) -> dict[str, Any] | None:
-    """The dict holding key ``name`` in a nested config dict (None if it is not there)."""
-    for part in name.split(".")[:-1]:
-        data = data.setdefault(part, {}) if create and isinstance(data, dict) else \
-            data.get(part) if isinstance(data, dict) else None
-    return data if isinstance(data, dict) else None
+def _upgraded(flat: dict[str, Any]) -> dict[str, Any]:
+    """A flattened saved config in today's layout (``upgrade_config_dict``)."""
+    out = dict(flat)
+    if "sa.enabled" in out or "sa.lr0" in out:  # before lr.schedule: SA ran from sa.lr0, plain PPO at ppo.learning_rate
+        enabled, lr0 = out.pop("sa.enabled", True), out.pop("sa.lr0", None)
+        if not isinstance(enabled, bool):
+            raise ConfigError(f"invalid value for sa.enabled in a saved config: {enabled!r} (expected true/false)")
+        out.setdefault("lr.schedule", "sa" if enabled else "constant")
+        if enabled and lr0 is not None:
+            out["ppo.learning_rate"] = lr0
+    for old, new in RENAMED_KEYS.items():
+        if old in out:
+            out.setdefault(new, out.pop(old))
+    for name, (old, new) in RESPELLED_VALUES.items():
+        if name in out and out[name] == old:
+            out[name] = new
+    for name, value in LEGACY_VALUES.items():
+        if any(k.startswith(name.rsplit(".", 1)[0] + ".") for k in flat):  # its section was saved
+            out.setdefault(name, value)
+    return out
 
 
-def _move(data: dict[str, Any], src: str, dst: str) -> None:
-    """Move key ``src`` to ``dst`` (unless ``dst`` is set); a section it leaves empty goes too."""
-    parent, leaf = _parent(data, src), src.rsplit(".", 1)[-1]
-    if parent is None or leaf not in parent:
-        return
-    value = parent.pop(leaf)
-    if not parent and "." in src:
-        grand = _parent(data, src.rsplit(".", 1)[0])
-        grand.pop(src.split(".")[-2])  # type: ignore[union-attr]
-    target = _parent(data, dst, create=True)
-    if target is not None:
-        target.setdefault(dst.rsplit(".", 1)[-1], value)
-
-
-def _respell(data: dict[str, Any], old_to_new: bool) -> None:
-    for name, old, new in RESPELLED_VALUES:
-        parent, leaf = _parent(data, name), name.rsplit(".", 1)[-1]
-        before, after = (old, new) if old_to_new else (new, old)
-        if parent is not None and leaf in parent and parent[leaf] == before:
-            parent[leaf] = after
-
-
-def _upgrade_lr_keys(out: dict[str, Any]) -> None:
-    """``sa.enabled`` / ``sa.lr0`` (before lr.schedule): SA ran from sa.lr0, plain PPO at ppo.learning_rate."""
-    sa = out.get("sa")
-    if not isinstance(sa, dict) or not ({"enabled", "lr0"} & set(sa)):
-        return
-    enabled = sa.pop("enabled", True)
-    lr0 = sa.pop("lr0", None)
-    if not isinstance(enabled, bool):
-        raise ConfigError(f"invalid value for sa.enabled in a saved config: {enabled!r} (expected true/false)")
-    lr = out.setdefault("lr", {})
-    if isinstance(lr, dict):
-        lr.setdefault("schedule", "sa" if enabled else "constant")
-    if enabled and lr0 is not None and isinstance(out.setdefault("ppo", {}), dict):
-        out["ppo"]["learning_rate"] = lr0
+def _nested(flat: dict[str, Any]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for name, value in flat.items():
+        *path, leaf = name.split(".")
+        node = out
+        for part in path:
+            node = node.setdefault(part, {})
+        node[leaf] = value
+    return out
 
 
 def upgrade_config_dict(data: dict[str, Any]) -> dict[str, Any]:
     """A saved config dict in today's layout: removed keys replaced by what means the same (``REMOVED_KEYS``),
     renamed keys under their new names (``RENAMED_KEYS``), old spellings of values respelled
     (``RESPELLED_VALUES``), and every key added since it was written at its legacy value (``LEGACY_VALUES``)."""
-    out = json.loads(json.dumps(data))
-    if not isinstance(out, dict):
-        return out
-    _upgrade_lr_keys(out)
-    for old, new in RENAMED_KEYS.items():
-        _move(out, old, new)
-    _respell(out, old_to_new=True)
-    for name, value in LEGACY_VALUES.items():
-        parent = _parent(out, name)
-        if parent is not None:
-            parent.setdefault(name.rsplit(".", 1)[-1], value)
-    return out
+    return _nested(_upgraded(_flatten(data, "", "saved config")))
 
 
 def identity_dict(cfg: Config) -> dict[str, Any]:
     """``config_to_dict(cfg)`` with renamed keys and respelled values as they were first written: what a
-    run's identity hashes (``evaluate.trained_identity``), so renames leave it, and the evaluation files
+    run's identity hashes (``evaluate.trained_identity``), so a rename leaves it, and the evaluation files
     that record it, unchanged."""
-    out = config_to_dict(cfg)
-    _respell(out, old_to_new=False)
+    flat = _flatten(config_to_dict(cfg), "", "config")
+    for name, (old, new) in RESPELLED_VALUES.items():
+        if name in flat and flat[name] == new:
+            flat[name] = old
     for old, new in RENAMED_KEYS.items():
-        _move(out, new, old)
-    return out
-
-
-def config_from_dict(data: dict[str, Any]) -> Config:
-    """Build and validate a Config from its dict; an older layout is upgraded first (``upgrade_config_dict``)."""
-    if not isinstance(data, dict):
-        raise ConfigError(f"saved config must be a JSON object, got {type(data).__name__}")
-    cfg = _from_dict(Config, upgrade_config_dict(data), "")
-    validate(cfg)
-    return cfg
+        flat[old] = flat.pop(new)
+    return _nested(flat)
 
 
 # ---------------------------------------------------------------------- derived envs and hashes

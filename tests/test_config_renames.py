@@ -91,3 +91,17 @@ def test_choices_are_declared_once_and_used_by_the_modules_that_act_on_them():
     assert reward.RC_MODES is config.RC_MODES and reward.NEAR_MISS_MODES is config.NEAR_MISS_MODES
     assert tuple(ppo._ACTIVATIONS) == config.ACTIVATIONS
     assert config.key_specs()["env.control.mode"].choices == config.CONTROL_MODES
+
+
+def test_an_env_config_built_in_code_is_checked_against_the_same_declarations():
+    import dataclasses
+
+    from sagrasp_jax.env import GraspEnv
+
+    env = config.EnvConfig()
+    bad = dataclasses.replace(env, control=dataclasses.replace(env.control, mode="fast"))
+    with pytest.raises(config.ConfigError, match="env.control.mode='fast' is not one of kinematic, dynamic, lagged"):
+        GraspEnv(bad)
+    bad = dataclasses.replace(env, sampling=dataclasses.replace(env.sampling, obstacle_prob=1.5))
+    with pytest.raises(config.ConfigError, match=r"env.sampling.obstacle_prob: 1.5 \(must be in \[0, 1\]\)"):
+        GraspEnv(bad)
