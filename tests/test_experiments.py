@@ -115,7 +115,7 @@ def test_schedule_variants() -> None:
     assert list(compare.SCHEDULE_VARIANTS) == ["constant", "sa", "kl-adaptive", "cosine", "linear"]
     assert compare.ABLATION_VARIANTS["sa-no-plateau-decay"] == ["lr.schedule=sa", "sa.plateau_decay=false"]
     for sets in compare.ALL_VARIANTS.values():  # every variant is a valid config
-        from sagrasp_jax import run_dir, train
+        from sagrasp_jax import train
 
         train.build_config("cpu-quick", overrides=sets)
 
@@ -126,7 +126,7 @@ def test_ensure_trained_rule_for_every_folder_state(tmp_path: pytest.TempPathFac
                                                     monkeypatch: pytest.MonkeyPatch) -> None:
     """The one rule of every experiment script: refuse another config before deleting anything,
     skip finished runs, resume checkpointed ones, restart ones killed before their first checkpoint."""
-    from sagrasp_jax import train
+    from sagrasp_jax import run_dir, train
     from sagrasp_jax.config import config_to_dict
 
     calls: list[tuple[str, bool]] = []
