@@ -270,7 +270,7 @@ def train_run(args_extra: list[str], work: str, name: str, cache_dir: str, budge
               stop_level: float | None, env_extra: dict[str, str] | None = None, root: str = ROOT) -> dict[str, Any]:
     """Run ``python -m sagrasp_jax.train`` and watch its metrics; stop at ``stop_level`` or the budget."""
     from bench_vs_paper_stack import watch_trainer
-    from sagrasp_jax.train import METRICS_FILE
+    from sagrasp_jax.run_dir import METRICS_FILE
 
     out = os.path.join(work, name)
     cmd = [sys.executable, "-m", "sagrasp_jax.train", "--out", out, "--no-progress", *args_extra]

@@ -70,7 +70,7 @@ def watch_trainer(cmd: list[str], cwd: str, log_path: str, metrics_path: str, po
     seconds; ``stop_reason(rows, seconds since launch)`` returning a reason SIGTERMs it (it
     checkpoints and exits).  ``on_poll(pid)`` samples the process (e.g. its memory).  Returns the
     final metric rows, the stop reason (None: it exited by itself), its exit code and the wall time."""
-    from sagrasp_jax.train import read_metrics
+    from sagrasp_jax.run_dir import read_metrics
 
     stopped: str | None = None
     t0 = time.perf_counter()
@@ -100,7 +100,7 @@ def watch_trainer(cmd: list[str], cwd: str, log_path: str, metrics_path: str, po
 def bench_ours(seconds: float, preset: str, overrides: list[str], levels: list[float], window: int,
                work: str, max_startup_s: float) -> dict[str, Any]:
     """Train our SA-PPO via the CLI until ``seconds`` of training time, then stop it and read its metrics."""
-    from sagrasp_jax.train import METRICS_FILE
+    from sagrasp_jax.run_dir import METRICS_FILE
 
     out = os.path.join(work, "ours")
     cmd = [sys.executable, "-m", "sagrasp_jax.train", "--preset", preset, "--algo", "sa-ppo", "--seed", "0",
