@@ -99,6 +99,11 @@ class RewardConfig:
     f_s0: float = 0.5  # F_s = f_s0 + f_s1·p
     f_s1: float = 1.0  # slope of F_s in p
     f_o: float = 0.5  # F_o, the weight of R_obstacle
+    # m/rad: R_distance's approach shaping measures progress on the distance to the target plus this much per radian
+    # of gripper tilt beyond tilt_free_deg (reward.approach_potential).  0 = the paper's distance alone, which pays
+    # nothing for righting a tilted gripper that hovers in place over the cube: the hovering trap (docs/design.md)
+    tilt_weight: float = 0.0
+    tilt_free_deg: float = 5.0  # deg: tilt up to this costs nothing in the approach potential (success needs ≤ 10°)
 
 
 @dataclass(frozen=True)
@@ -497,6 +502,8 @@ _RANGES: dict[str, tuple[float | str, float]] = {
     "env.reward.f_s0": (-1e3, 1e3),
     "env.reward.f_s1": (-1e3, 1e3),
     "env.reward.f_o": (-1e3, 1e3),
+    "env.reward.tilt_weight": (0.0, 10.0),
+    "env.reward.tilt_free_deg": (0.0, 90.0),
     "env.task.home_q": (-math.pi, math.pi),
     "env.task.start_noise": (0.0, 1.0),
     "env.task.obs_noise_std": (0.0, 1.0),
