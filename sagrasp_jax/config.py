@@ -327,6 +327,14 @@ def _obstacle_aware(base: Config) -> Config:
     )
 
 
+def _upright_approach(base: Config) -> Config:
+    """The hovering trap's fix (docs/design.md, "The hovering trap"): the approach shaping also counts the
+    gripper's tilt beyond 5° at 0.05 m per radian, so righting the gripper over the cube pays and a tilted
+    approach costs as it happens instead of only through the sparse success test."""
+    return dataclasses.replace(base, env=dataclasses.replace(
+        base.env, reward=dataclasses.replace(base.env.reward, tilt_weight=0.05, tilt_free_deg=5.0)))
+
+
 def _robot_grade(base: Config) -> Config:
     """What makes a policy take to the real arm (docs/design.md, "Robot-grade policy"): it trains in the
     ``lagged`` mode (the dynamic mode's servo lag and command latency at the kinematic mode's cost), observes
@@ -343,7 +351,7 @@ def _robot_grade(base: Config) -> Config:
 
 
 def _cpu_quick() -> Config:
-    base = _robot_grade(_obstacle_aware(Config()))
+    base = _robot_grade(_obstacle_aware(_upright_approach(Config())))
     return dataclasses.replace(
         base,
         ppo=dataclasses.replace(
@@ -364,7 +372,7 @@ def _gpu() -> Config:
     # Physics backend: none runs, the preset trains in kinematic mode (env.control.impl stays "jax"); a
     # The preset trains in the lagged mode (no physics; env.control.impl stays "jax"); a dynamic-mode GPU run
     # adds env.control.mode=dynamic and env.control.impl=warp (pip install "sagrasp_jax[warp]").
-    base = _robot_grade(_obstacle_aware(Config()))
+    base = _robot_grade(_obstacle_aware(_upright_approach(Config())))
     return dataclasses.replace(
         base,
         ppo=dataclasses.replace(
