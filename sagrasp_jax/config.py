@@ -104,6 +104,9 @@ class RewardConfig:
     # nothing for righting a tilted gripper that hovers in place over the cube: the hovering trap (docs/design.md)
     tilt_weight: float = 0.0
     tilt_free_deg: float = 5.0  # deg: tilt up to this costs nothing in the approach potential (success needs ≤ 10°)
+    # m: > 0: the tilt part fades in linearly as the gripper centre closes in from this distance to the target, so
+    # the approach far from the cube is free to tilt (around obstacles); 0: the tilt part counts everywhere
+    tilt_near: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -512,6 +515,7 @@ _RANGES: dict[str, tuple[float | str, float]] = {
     "env.reward.f_o": (-1e3, 1e3),
     "env.reward.tilt_weight": (0.0, 10.0),
     "env.reward.tilt_free_deg": (0.0, 90.0),
+    "env.reward.tilt_near": (0.0, 10.0),
     "env.task.home_q": (-math.pi, math.pi),
     "env.task.start_noise": (0.0, 1.0),
     "env.task.obs_noise_std": (0.0, 1.0),
