@@ -331,11 +331,11 @@ def _obstacle_aware(base: Config) -> Config:
 
 
 def _upright_approach(base: Config) -> Config:
-    """The hovering trap's fix (docs/design.md, "The hovering trap"): the approach shaping also counts the
-    gripper's tilt beyond 5° at 0.05 m per radian, so righting the gripper over the cube pays and a tilted
-    approach costs as it happens instead of only through the sparse success test."""
+    """The hovering trap's fix (docs/design.md, "The hovering trap"): within 10 cm of the cube the approach
+    shaping also counts the gripper's tilt beyond the success test's 10°, at 0.05 m per radian, so righting the
+    gripper over the cube pays; further away the approach is free to tilt around obstacles."""
     return dataclasses.replace(base, env=dataclasses.replace(
-        base.env, reward=dataclasses.replace(base.env.reward, tilt_weight=0.05, tilt_free_deg=5.0)))
+        base.env, reward=dataclasses.replace(base.env.reward, tilt_weight=0.05, tilt_free_deg=10.0, tilt_near=0.10)))
 
 
 def _robot_grade(base: Config) -> Config:

@@ -80,9 +80,9 @@ def test_righting_with_the_wrist_costs_shaping_without_the_tilt_potential(hover:
 
 
 def _upright_grasp_episode(env: GraspEnv, model: robot.RobotModel, q_hover: np.ndarray, target: np.ndarray,
-                           yaw: float, steps: int = 40) -> tuple[float, bool, float]:
+                           yaw: float, steps: int = 40) -> tuple[float, bool, float, float]:
     """Start at the hover pose and steer the joints to the upright grasp pose over the cube (IK): the summed
-    R_distance, whether the episode ended in a success, and the final distance to the cube centre."""
+    R_distance, whether the episode ended in a success, and the final distance to the cube centre and tilt."""
     goal = robot.approach_pose(model, q_hover, sampling.grasp_point(np, env.cfg.task, target), max_joint_move=1.0)
     n = env.cfg.sampling.max_obstacles
     spec = sampling.ResetSpec(
@@ -99,26 +99,44 @@ def _upright_grasp_episode(env: GraspEnv, model: robot.RobotModel, q_hover: np.n
         shaping += float(state.metrics["r_distance"])
         if bool(state.done):
             break
-    return shaping, bool(state.info["episode"]["success"]), float(state.metrics["distance"])
+    return (shaping, bool(state.info["episode"]["success"]), float(state.metrics["distance"]),
+            float(state.metrics["tilt"]))
 
 
 def test_the_tilt_potential_pays_for_an_upright_grasp_from_the_hover(hover: dict, model: robot.RobotModel) -> None:
     """Through the env's step: an upright grasp from a hover pose succeeds, and R_distance pays for the
-    righting — the tilt part of the potential, ratio·tilt_weight·(tilt − tilt_free) — besides the distance
-    part, which alone (tilt_weight = 0) is all the shaping there was."""
-    weight = config.get_config("cpu-quick").env.reward.tilt_weight
-    assert weight > 0.0, "the README preset must carry the hovering trap's fix"
-    env = GraspEnv(_env_config(weight))
-    rcfg = env.cfg.reward
+    righting — the tilt part of the potential — besides the distance part, which alone (tilt_weight = 0) is all
+    the shaping there was."""
+    rcfg = config.get_config("cpu-quick").env.reward
+    assert rcfg.tilt_weight > 0.0, "the README preset must carry the hovering trap's fix"
+    env = GraspEnv(_env_config(rcfg.tilt_weight))
     for i in (0, 2, 12):  # tilted 37°, 36° and 39°
         q, target, yaw = np.asarray(hover["q"][i]), np.asarray(hover["target_pos"][i]), float(hover["target_yaw"][i])
-        shaping, success, d_end = _upright_grasp_episode(env, model, q, target, yaw)
+        shaping, success, d_end, tilt_end = _upright_grasp_episode(env, model, q, target, yaw)
         assert success
         centre, tilt = control.gripper_state(np, model, q)
         d_start = float(np.linalg.norm(centre - target))
+        start, end = (float(reward.approach_potential(np, rcfg, d_start, tilt)),
+                      float(reward.approach_potential(np, rcfg, d_end, tilt_end)))
         # the grab zone's entry bonus is paid on the potential too (paid once the gripper is also upright)
-        entered = float(reward.approach_potential(np, rcfg, d_start, tilt) > rcfg.d_grab >= d_end)
-        distance_part = rcfg.ratio * (d_start - d_end) + rcfg.rc * entered
-        excess = math.radians(hover["tilt_deg"][i]) - math.radians(rcfg.tilt_free_deg)
+        distance_part = rcfg.ratio * (d_start - d_end) + rcfg.rc * float(start > rcfg.d_grab >= end)
         tilt_part = shaping - distance_part
-        assert 0.8 * rcfg.ratio * weight * excess < tilt_part <= rcfg.ratio * weight * excess + 1e-4
+        owed = rcfg.ratio * ((start - d_start) - (end - d_end))
+        assert tilt_part == pytest.approx(owed, abs=2e-4)
+        assert tilt_part > 0.5 * rcfg.ratio * (start - d_start) > 0.05
+
+
+def test_approach_potential_counts_tilt_only_near_the_cube_and_beyond_the_free_angle() -> None:
+    rcfg = config.get_config("cpu-quick").env.reward  # 0.05 m/rad beyond 10°, faded in from 10 cm
+    tilted = math.radians(40.0)
+    excess = math.radians(40.0 - rcfg.tilt_free_deg)
+    assert float(reward.approach_potential(np, rcfg, 0.0, tilted)) == pytest.approx(rcfg.tilt_weight * excess)
+    assert float(reward.approach_potential(np, rcfg, 0.5 * rcfg.tilt_near, tilted)) == pytest.approx(
+        0.5 * rcfg.tilt_near + 0.5 * rcfg.tilt_weight * excess)
+    assert float(reward.approach_potential(np, rcfg, rcfg.tilt_near, tilted)) == pytest.approx(rcfg.tilt_near)
+    assert float(reward.approach_potential(np, rcfg, 0.3, tilted)) == pytest.approx(0.3)  # far: the distance alone
+    assert float(reward.approach_potential(np, rcfg, 0.02, math.radians(9.0))) == pytest.approx(0.02)  # within 10°
+    paper = config.get_config("paper").env.reward
+    assert float(reward.approach_potential(np, paper, 0.02, tilted)) == 0.02  # the paper's d
+    batch = reward.approach_potential(jnp, rcfg, jnp.asarray([0.0, 0.3]), jnp.asarray([tilted, tilted]))
+    np.testing.assert_allclose(np.asarray(batch), [rcfg.tilt_weight * excess, 0.3], rtol=1e-6)
