@@ -17,8 +17,8 @@ Sections (``--sections``, default all; each prints as it goes, then one table an
   --seed S``) in a subprocess with a **fresh** persistent compilation cache (cold compile),
   polled while it runs: (c) the median per-iteration env-steps/s, (d) the overall rate
   including the SA evaluations, peak RSS, and the wall time from launch (compile included)
-  at which the fixed-seed evaluation success first reaches 90 / 95 / 98 %.  A run stops once
-  98 % is reached or after ``--budget-s``.  More ``--seeds`` run after the first, warm.
+  at which the fixed-seed evaluation success first reaches 90 / 95 / 98 / 99 %.  A run stops once
+  99 % is reached or after ``--budget-s``.  More ``--seeds`` run after the first, warm.
   Then the same command again with the now warm cache, stopped after one cycle: warm compile.
 * ``sb3``: when Stable-Baselines3 imports (this interpreter or ``--sb3-python``), SB3 PPO on
   the PyBullet reference env for ``--sb3-seconds`` (``bench_vs_paper_stack.py``'s worker,
@@ -47,7 +47,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
 sys.path.insert(0, HERE)  # the sibling experiment scripts (bench_vs_paper_stack)
 SECTIONS = ("env", "profile", "run", "sb3")
-LEVELS = (0.90, 0.95, 0.98)
+LEVELS = (0.90, 0.95, 0.98, 0.99)
 
 
 def load() -> float:
@@ -344,7 +344,7 @@ def bench_run(preset: str, seeds: list[int], overrides: list[str], budget_s: flo
         runs[f"seed{seed}"] = r
         print(f"    {r['median_iteration_env_steps_per_s']:,.0f} env-steps/s per iteration, "
               f"{r['overall_env_steps_per_s']:,.0f} overall, compile {r['compile_s']:.1f} s, start-up "
-              f"{r['startup_s']:.1f} s, time to 90/95/98 %: "
+              f"{r['startup_s']:.1f} s, time to 90/95/98/99 %: "
               + ", ".join(_fmt_reach(r["time_to_eval_success"][f"{lv:g}"]) for lv in LEVELS)
               + f" (load {r['load_during']})", flush=True)
     print("  warm compile: the same command again, stopped after one cycle ...", flush=True)
@@ -451,7 +451,7 @@ def table(result: dict[str, Any]) -> str:
             lines.append(f"{'(c) rollout + PPO update, median per iteration, ' + name:58s} "
                          f"{r['median_iteration_env_steps_per_s']:>12,.0f} env-steps/s")
             lines.append(f"{'(d) overall incl. SA evaluations, ' + name:58s} {r['overall_env_steps_per_s']:>12,.0f} env-steps/s")
-            lines.append(f"{'    time to 90 / 95 / 98 % eval success (wall incl. compile)':58s} "
+            lines.append(f"{'    time to 90 / 95 / 98 / 99 % eval success (wall incl. compile)':58s} "
                          + " / ".join(_fmt_reach(r["time_to_eval_success"][f"{lv:g}"]) for lv in LEVELS)
                          + f"  [{r['stopped_by']}, last eval {r['last_eval_success']}]")
             lines.append(f"{'    peak RSS':58s} {r['peak_rss_mb']:>12,.0f} MB")

@@ -170,6 +170,17 @@ class RewardConfig:
     f_s0: float = key(0.5, "F_s = f_s0 + f_s1·p", _REWARD)
     f_s1: float = key(1.0, "slope of F_s in p", _REWARD)
     f_o: float = key(0.5, "F_o, the weight of R_obstacle", _REWARD)
+    tilt_weight: float = key(
+        0.0, "m/rad: R_distance's approach shaping measures progress on the distance to the target plus this much per "
+        "radian of gripper tilt beyond tilt_free_deg (reward.approach_potential).  0 = the paper's distance alone, "
+        "which pays nothing for righting a tilted gripper that hovers over the cube: the hovering trap "
+        "(docs/design.md)", within(0, 10))
+    tilt_free_deg: float = key(
+        5.0, "deg: tilt up to this costs nothing in the approach potential (success needs ≤ 10°)", within(0, 90))
+    tilt_near: float = key(
+        0.0, "m: > 0: the tilt part fades in linearly as the gripper centre closes in from this distance to the "
+        "target, so the approach far from the cube is free to tilt (around obstacles); 0: it counts everywhere",
+        within(0, 10))
 
 
 @dataclass(frozen=True)
@@ -438,6 +449,14 @@ def _obstacle_aware(base: Config) -> Config:
     )
 
 
+def _upright_approach(base: Config) -> Config:
+    """The hovering trap's fix (docs/design.md, "The hovering trap"): within 10 cm of the cube the approach
+    shaping also counts the gripper's tilt beyond the success test's 10°, at 0.05 m per radian, so righting the
+    gripper over the cube pays; further away the approach is free to tilt around obstacles."""
+    return dataclasses.replace(base, env=dataclasses.replace(
+        base.env, reward=dataclasses.replace(base.env.reward, tilt_weight=0.05, tilt_free_deg=10.0, tilt_near=0.10)))
+
+
 def _robot_grade(base: Config) -> Config:
     """What makes a policy take to the real arm (docs/design.md, "Robot-grade policy"): it trains in the
     ``lagged`` mode (the dynamic mode's servo lag and command latency at the kinematic mode's cost), observes
@@ -454,7 +473,7 @@ def _robot_grade(base: Config) -> Config:
 
 
 def _cpu_quick() -> Config:
-    base = _robot_grade(_obstacle_aware(Config()))
+    base = _robot_grade(_obstacle_aware(_upright_approach(Config())))
     return dataclasses.replace(
         base,
         ppo=dataclasses.replace(
@@ -474,7 +493,7 @@ def _cpu_quick() -> Config:
 def _gpu() -> Config:
     # The preset trains in the lagged mode (no physics; env.control.impl stays "jax"); a dynamic-mode GPU run
     # adds env.control.mode=dynamic and env.control.impl=warp (pip install "sagrasp_jax[warp]").
-    base = _robot_grade(_obstacle_aware(Config()))
+    base = _robot_grade(_obstacle_aware(_upright_approach(Config())))
     return dataclasses.replace(
         base,
         ppo=dataclasses.replace(

@@ -218,7 +218,7 @@ class GraspEnv:
             "steps": jnp.zeros((), jnp.int32),
             "q_target": q0,
             "reset": spec,
-            "tracker": episode.start(jnp, d0, col, blocking),
+            "tracker": episode.start(jnp, self.cfg, d0, tilt, col, blocking),
             "episode": {k: zero for k in episode.EPISODE_KEYS},
         }
         if randomize is not None:

@@ -37,7 +37,7 @@ class Tracker(NamedTuple):
     """What an episode carries from step to step besides the robot state."""
 
     steps: Any  # () int, control steps taken
-    d_prev: Any  # () gripper centre → target distance after the previous step
+    d_prev: Any  # () approach potential (reward.approach_potential: distance to the target, tilt) after the previous step
     obstacle_dist_prev: Any  # () Δpo after the previous step (near-miss potential)
     clean: Any  # () bool: an obstacle was never nearer than near_miss_distance
     blocking: Any  # () bool: the straight approach path passes within blocking_margin of an obstacle
@@ -57,9 +57,9 @@ class Step(NamedTuple):
     episode: dict[str, Any]  # the episode's metrics (EPISODE_KEYS) as if it ended on this step
 
 
-def start(xp: Any, d0: Any, col: collision.CollisionResult, blocking: Any) -> Tracker:
-    """The tracker at the start pose (distance ``d0``, collision result ``col``)."""
-    d0 = xp.asarray(d0)
+def start(xp: Any, cfg: EnvConfig, d0: Any, tilt0: Any, col: collision.CollisionResult, blocking: Any) -> Tracker:
+    """The tracker at the start pose (distance ``d0`` to the target, tilt ``tilt0``, collision result ``col``)."""
+    d0 = reward.approach_potential(xp, cfg.reward, xp.asarray(d0), xp.asarray(tilt0, dtype=xp.asarray(d0).dtype))
     zero = xp.zeros_like(d0)
     return Tracker(
         steps=xp.zeros((), dtype=xp.int32),
@@ -77,8 +77,10 @@ def start(xp: Any, d0: Any, col: collision.CollisionResult, blocking: Any) -> Tr
 
 def advance(xp: Any, cfg: EnvConfig, tracker: Tracker, reset: Any, *, progress: Any, d_now: Any,
             col: collision.CollisionResult, gripper_centre: Any, tilt: Any) -> Step:
-    """Outcome, reward and bookkeeping of one control step that ended at the measured pose."""
+    """Outcome, reward and bookkeeping of one control step that ended at the measured pose (``d_now``: the
+    gripper centre's distance to the target, ``tilt``: θgz)."""
     dtype = tracker.d_prev.dtype
+    potential = xp.asarray(reward.approach_potential(xp, cfg.reward, d_now, tilt), dtype=dtype)
     steps = tracker.steps + 1
     success_raw = reward.success_flag(xp, cfg.task, gripper_centre, reset.target_pos, tilt)
     timeout = steps >= cfg.task.max_steps
@@ -87,13 +89,13 @@ def advance(xp: Any, cfg: EnvConfig, tracker: Tracker, reset: Any, *, progress: 
     dist = xp.asarray(col.nearest_obstacle_dist, dtype=dtype)
     clean = tracker.clean & ~(present & (dist < cfg.reward.near_miss_distance))
     total, terms = reward.step_reward(
-        xp, cfg.reward, progress=progress, d_prev=tracker.d_prev, d_now=d_now,
+        xp, cfg.reward, progress=progress, d_prev=tracker.d_prev, d_now=potential,
         collision=outcome.collision, success=outcome.success, timeout=outcome.timeout,
         obstacle_dist=dist, obstacle_present=present, clean_so_far=clean, prev_obstacle_dist=tracker.obstacle_dist_prev,
     )
     new = Tracker(
         steps=steps,
-        d_prev=xp.asarray(d_now, dtype=dtype),
+        d_prev=potential,
         obstacle_dist_prev=dist,
         clean=clean,
         blocking=tracker.blocking,

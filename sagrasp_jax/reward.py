@@ -68,6 +68,22 @@ def success_flag(xp: Any, cfg: TaskConfig, gripper_centre: Any, target_pos: Any,
     )
 
 
+def approach_potential(xp: Any, cfg: RewardConfig, distance: Any, tilt: Any) -> Any:
+    """What R_distance's approach shaping measures progress on: the gripper centre → target distance plus
+    ``tilt_weight`` metres per radian of tilt θgz beyond ``tilt_free_deg`` (with ``tilt_near`` > 0, faded in
+    linearly from that distance to the target, so only the last part of the approach is asked to be upright).
+
+    The success test needs the tilt ≤ success_tilt_deg, but the distance alone pays nothing for righting the
+    gripper: a policy that reaches the cube tilted has collected all the shaping, meets only timeouts from there
+    and hovers in place (the hovering trap, docs/design.md).  The tilt part is a potential too, so an episode's
+    shaping total still depends only on its first and last pose; with ``tilt_weight = 0`` this is the distance.
+    """
+    distance = xp.asarray(distance)
+    excess = xp.maximum(xp.asarray(tilt) - math.radians(cfg.tilt_free_deg), 0.0)
+    near = xp.clip(1.0 - distance / cfg.tilt_near, 0.0, 1.0) if cfg.tilt_near > 0 else 1.0
+    return distance + cfg.tilt_weight * near * excess
+
+
 def near_miss_closeness(xp: Any, cfg: RewardConfig, obstacle_dist: Any) -> Any:
     """c = clip(1 − Δpo/near_miss_distance, 0, 1): 0 outside the near-miss band, 1 at contact."""
     return xp.clip(1.0 - xp.asarray(obstacle_dist) / cfg.near_miss_distance, 0.0, 1.0)
@@ -110,6 +126,9 @@ def step_reward(
     ``collision``, ``success`` and ``timeout`` are the raw flags; precedence
     collision > success > timeout is applied here (``resolve_outcome``), so a colliding
     step that also meets the success pose pays the collision verdict only.
+
+    ``d_prev``/``d_now`` are approach potentials (``approach_potential``: the distance to the target, and the
+    tilt when ``tilt_weight`` > 0).
 
     * R_distance = ratio·(d_prev − d_now) + grab-zone term.  ``rc_mode="entry"``: RC·(g_t −
       g_{t−1}), g = [d ≤ d_grab] — potential-based, paid once on entry and taken back on

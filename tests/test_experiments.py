@@ -209,7 +209,7 @@ def test_bench_train_run_section_smoke(tmp_path: pytest.TempPathFactory) -> None
     assert seed0["stopped_by"] == "finished" and seed0["env_steps"] == 16384 and seed0["cycles"] == 4
     assert seed0["reset_replays"] == 0 and seed0["startup_s"] >= seed0["compile_s"] > 0
     assert 100 < seed0["peak_rss_mb"] < 8000 and seed0["median_iteration_env_steps_per_s"] > 0
-    assert set(seed0["time_to_eval_success"]) == {"0.9", "0.95", "0.98"}
+    assert set(seed0["time_to_eval_success"]) == {"0.9", "0.95", "0.98", "0.99"}
     assert 0 < run["warm"]["compile_s"] and run["warm"]["startup_s"] > 0
 
 

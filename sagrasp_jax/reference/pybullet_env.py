@@ -60,7 +60,7 @@ try:
 except ImportError:  # the twin uses this module's PyBullet helpers without gymnasium
     gym = spaces = None
 
-from sagrasp_jax import assets, collision, config, control, episode, fileio, observation, robot, sampling, shapes
+from sagrasp_jax import assets, collision, config, control, episode, fileio, observation, reward, robot, sampling, shapes
 from sagrasp_jax.config import EnvConfig
 from sagrasp_jax.robot import BOX, CAPSULE, CYLINDER, SPHERE, Kinematics
 from sagrasp_jax.scene import SCENE
@@ -492,7 +492,7 @@ class PyBulletGraspEnv(gym.Env if gym is not None else object):  # type: ignore[
         tilt = float(robot.tilt(np, kin.approach_axis))
         d0 = float(np.linalg.norm(kin.gripper_centre - spec.target_pos))
         blocking = bool(sampling.is_blocking(np, self.robot, self.cfg.sampling, self.cfg.task, spec))
-        self._tracker = episode.start(np, np.float64(d0), col, blocking)
+        self._tracker = episode.start(np, self.cfg, np.float64(d0), np.float64(tilt), col, blocking)
         self._done = False
         obs = self._observe(self._q, kin, col, tilt)
         info = {"reset_spec": spec, "gripper_centre": kin.gripper_centre.copy(), "distance": d0, "tilt": tilt}
@@ -565,7 +565,9 @@ class PyBulletGraspEnv(gym.Env if gym is not None else object):  # type: ignore[
         self._q, self._qd = self._measure()
         self._q_target = np.asarray(q_target, dtype=float).copy()
         if d_prev is None:
-            d_prev = float(np.linalg.norm(self.kinematics().gripper_centre - self._spec.target_pos))
+            kin = self.kinematics()
+            d_prev = float(reward.approach_potential(np, self.cfg.reward, np.linalg.norm(kin.gripper_centre - self._spec.target_pos),
+                                                     robot.tilt(np, kin.approach_axis)))
         tracker = self._tracker._replace(d_prev=np.float64(d_prev))
         if steps is not None:
             tracker = tracker._replace(steps=np.int32(steps))
