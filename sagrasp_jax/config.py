@@ -854,6 +854,9 @@ RENAMED_KEYS: dict[str, str] = {
 # Values spelled differently now, key -> (old value, new value): the training mix was −1 for "the evaluation
 # mix's"; it is unset (none) now.
 RESPELLED_VALUES: dict[str, tuple[Any, Any]] = {"train.obstacle_prob": (-1.0, None), "train.blocking_prob": (-1.0, None)}
+# Keys added after run folders were written, with the value that does what a config without them did: a run's
+# identity and config hash leave them out at that value, so adding a key changes no earlier run's hash.
+ADDED_KEYS: dict[str, Any] = {"env.reward.tilt_weight": 0.0, "env.reward.tilt_free_deg": 5.0, "env.reward.tilt_near": 0.0}
 
 
 def _upgraded(flat: dict[str, Any]) -> dict[str, Any]:
@@ -906,7 +909,12 @@ def identity_dict(cfg: Config) -> dict[str, Any]:
             flat[name] = old
     for old, new in RENAMED_KEYS.items():
         flat[old] = flat.pop(new)
-    return _nested(flat)
+    return _nested(_without_added(flat))
+
+
+def _without_added(flat: dict[str, Any]) -> dict[str, Any]:
+    """``flat`` without the ``ADDED_KEYS`` that hold the value a config without them meant."""
+    return {k: v for k, v in flat.items() if k not in ADDED_KEYS or v != ADDED_KEYS[k]}
 
 
 # ---------------------------------------------------------------------- derived envs and hashes
@@ -941,6 +949,8 @@ def config_hash(cfg: Config) -> str:
 
 
 def env_dict_hash(env: dict[str, Any]) -> str:
-    """``config_hash`` of a saved config's env dict as written (a policy file's integrity check)."""
+    """``config_hash`` of a saved config's env dict as written (a policy file's integrity check); ``ADDED_KEYS``
+    at the value that means their absence are left out, so older files and runs keep their hashes."""
+    env = _nested(_without_added(_flatten(env, "env.", "env")))["env"] if env else env
     blob = json.dumps(env, sort_keys=True).encode()
     return hashlib.sha256(blob).hexdigest()[:12]
