@@ -5,7 +5,7 @@ our reference env (same task as the MJX env, checked by ``sagrasp_jax.parity``),
 that the MJX/JAX trainer's throughput is compared with.  It reports env-steps/s and the
 training episodes' success rate; it is not meant to reproduce the paper's curves.
 
-    python experiments/sb3_baseline.py --total-steps 200000 --out sb3_baseline.json
+    python -m experiments.sb3_baseline --total-steps 200000 --out sb3_baseline.json
 
 Settings (docs/task.md §3 ``paper`` preset = Table 2 with SB3 defaults where it is silent): 2048 env
 steps per update as **16 envs × 128 steps** (default; ``--n-envs 1`` gives 1 env × 2048, the
@@ -36,10 +36,6 @@ from typing import Any
 import numpy as np
 
 from sagrasp_jax import fileio
-
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-if ROOT not in sys.path:
-    sys.path.insert(0, ROOT)
 
 UPDATE_STEPS = 2048  # env steps per PPO update (Table 2)
 PAPER_PPO = {
