@@ -250,7 +250,7 @@ def run_study(study: Study, variants: Variants, measure: Measure, identity: Mapp
     evaluate the ones without a current record (``measure``, and ``episodes`` in each of
     ``conditions``).  ``train_missing=False`` only collects records (a missing one is refused).
     Returns variant -> records in seed order."""
-    identity = {**identity, **({"conditions": {c: episodes for c in conditions}} if conditions else {})}
+    identity = {**identity, **({"condition_episodes": {c: episodes for c in conditions}} if conditions else {})}
     plan: dict[tuple[str, int], str] = {}
     for variant, sets in variants.items():
         for seed in study.seeds:

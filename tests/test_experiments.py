@@ -140,6 +140,12 @@ def test_seeds_and_variant_choice() -> None:
         study.pick_variants(table, "a,c", [])
     spec = study.Study("cpu-quick", 8192, (0, 1), "runs")
     assert spec.folder("+layout", 1) == os.path.join("runs", "+layout", "seed1")  # the layout of train --seeds
+    record = {"conditions": {"robot": {"overall": {"episodes": 10, "success_rate": 0.7}}}}
+    assert study.condition_rates(record) == {"success_condition_robot": 70.0} and study.condition_rates({}) == {}
+    from sagrasp_jax.config import ConfigError
+
+    with pytest.raises(ConfigError, match="unknown evaluation condition"):
+        study.Evaluation(10, condition="moon")
 
 
 def test_compare_with_reference_pairs_seeds() -> None:
