@@ -148,12 +148,18 @@ def dynamic_section(quick: bool) -> dict[str, Any]:
         out["warp"] = "not installed"
         out["equal"] = "not installed"
         return out
-    out["warp"] = bench_env.bench_jax("dynamic", batch, steps, auto_reset=False, overrides=["env.control.impl=warp"])
-    diff = float(np.max(np.abs(joint_rollout("warp", envs, equal_steps) - joint_rollout("jax", envs, equal_steps))))
-    out["equal"] = {"envs": envs, "steps": equal_steps, "max_abs_joint_diff": diff, "atol": EQUAL_ATOL,
-                    "passed": diff <= EQUAL_ATOL}
-    out["warp_over_jax"] = out["warp"]["env_steps_per_s"] / out["jax"]["env_steps_per_s"]
+    out["warp"] = section("dynamic impl=warp", lambda: bench_env.bench_jax(
+        "dynamic", batch, steps, auto_reset=False, overrides=["env.control.impl=warp"]))
+    out["equal"] = section("jax == warp", lambda: backends_equal(envs, equal_steps))
+    if out["warp"]["status"] == "ok":
+        out["warp_over_jax"] = out["warp"]["env_steps_per_s"] / out["jax"]["env_steps_per_s"]
     return out
+
+
+def backends_equal(envs: int, steps: int) -> dict[str, Any]:
+    """The warp and jax backends' joint positions over the same rollout, within EQUAL_ATOL."""
+    diff = float(np.max(np.abs(joint_rollout("warp", envs, steps) - joint_rollout("jax", envs, steps))))
+    return {"envs": envs, "steps": steps, "max_abs_joint_diff": diff, "atol": EQUAL_ATOL, "passed": diff <= EQUAL_ATOL}
 
 
 # ---------------------------------------------------------------------- the gpu preset
@@ -238,11 +244,13 @@ def table(result: dict[str, Any]) -> str:
     if d["status"] == "ok":
         for impl in ("jax", "warp"):
             row = d[impl]
-            lines.append(f"dynamic impl={impl:<5} " + (row if isinstance(row, str) else
-                         f"{_num(row['env_steps_per_s'])} env-steps/s (batch {d['batch']}, compile {row['compile_s']:.1f} s)"))
+            lines.append(f"dynamic impl={impl:<5} " + (row if isinstance(row, str) else f"ERROR {row['error']}"
+                         if row.get("status") == "error" else f"{_num(row['env_steps_per_s'])} env-steps/s "
+                         f"(batch {d['batch']}, compile {row['compile_s']:.1f} s)"))
         eq = d["equal"]
-        lines.append("jax == warp            " + (eq if isinstance(eq, str) else
-                     f"{'passed' if eq['passed'] else 'FAILED'}: max |dq| {eq['max_abs_joint_diff']:.2e} (atol {eq['atol']:g})"))
+        lines.append("jax == warp            " + (eq if isinstance(eq, str) else f"ERROR {eq['error']}"
+                     if eq["status"] == "error" else f"{'passed' if eq['passed'] else 'FAILED'}: max |dq| "
+                     f"{eq['max_abs_joint_diff']:.2e} (atol {eq['atol']:g})"))
     t = s["train"]
     if t["status"] == "ok":
         mem = t["peak_device_memory_bytes"]

@@ -29,8 +29,10 @@ def test_gpu_check_quick_writes_sane_json(tmp_path: pytest.TempPathFactory) -> N
     assert dyn["jax"]["env_steps_per_s"] > 0 and dyn["jax"]["mode"] == "dynamic" and dyn["jax"]["batch"] == 16
     if result["versions"]["warp"] == "not installed":
         assert dyn["warp"] == dyn["equal"] == "not installed"
-    else:  # MuJoCo Warp present: its rate and the equality test are numbers
-        assert dyn["warp"]["env_steps_per_s"] > 0 and dyn["equal"]["max_abs_joint_diff"] >= 0.0
+    else:  # MuJoCo Warp present: its rate and the equality test, or their errors (Warp's CPU path needs a compiler)
+        assert dyn["warp"]["status"] in ("ok", "error") and dyn["equal"]["status"] in ("ok", "error")
+        if dyn["equal"]["status"] == "ok":
+            assert dyn["equal"]["max_abs_joint_diff"] >= 0.0 and dyn["equal"]["atol"] == 1e-5
 
     tr = sections["train"]
     assert tr["status"] == "ok", tr
