@@ -47,11 +47,6 @@ PAPER_STEPS_PER_S = 375.8  # paper, SB3 + PyBullet on an RTX 4070 machine (docs/
 PAPER_TOTAL_STEPS = 20_000_000
 
 
-def atomic_write_json(path: str, data: Any) -> str:
-    """Sorted strict JSON through fileio's temp-file-and-rename."""
-    return fileio.atomic_write_json(path, data, sort_keys=True)
-
-
 def watch_trainer(cmd: list[str], cwd: str, log_path: str, metrics_path: str, poll_s: float,
                   stop_reason: Callable[[list[dict[str, Any]], float], str | None],
                   env: dict[str, str] | None = None, on_poll: Callable[[int], None] | None = None,
@@ -236,7 +231,7 @@ def sb3_worker(seconds: float, n_envs: int, seed: int, levels: list[float], wind
         "versions": {"stable_baselines3": sb3.__version__, "torch": torch.__version__, "python": platform.python_version()},
         "torch_threads": torch.get_num_threads(),
     }
-    atomic_write_json(out, result)
+    fileio.atomic_write_json(out, result, sort_keys=True)
     return 0
 
 
@@ -373,7 +368,7 @@ def main(argv: list[str] | None = None) -> int:
     table = summary_table(result)
     print(table)
     if args.out:
-        atomic_write_json(args.out, result)
+        fileio.atomic_write_json(args.out, result, sort_keys=True)
         print(f"written to {args.out}")
     return 0
 

@@ -67,10 +67,6 @@ def _import_sb3() -> tuple[Any, Any]:
     return stable_baselines3, torch
 
 
-def _atomic_write_json(path: str, data: dict[str, Any]) -> None:
-    fileio.atomic_write_json(path, data, default=float)
-
-
 def with_mode(env_cfg: Any, mode: str) -> Any:
     """The env config with the control mode set (kinematic = the paper's resetJointState stepping)."""
     return dataclasses.replace(env_cfg, control=dataclasses.replace(env_cfg.control, mode=mode))
@@ -180,7 +176,7 @@ def main(argv: list[str] | None = None) -> int:
         "seed": args.seed,
     }
     venv.close()
-    _atomic_write_json(args.out, result)
+    fileio.atomic_write_json(args.out, result, default=float)
     print(f"{steps} env steps in {wall:.1f} s: {steps / wall:.0f} env-steps/s; "
           f"success (last 100 episodes) {result['success_rate_last_100']}; written to {args.out}")
     return 0
