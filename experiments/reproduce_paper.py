@@ -55,7 +55,7 @@ def measure(episodes: int) -> study.Measure:
 
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(prog="python -m experiments.reproduce_paper", description=__doc__.split("\n\n")[0])
-    study.add_arguments(p, seeds=5, runs_dir=None)
+    study.add_arguments(p, seeds=5, runs_dir=None, variants=False)  # the paper's two, always
     p.add_argument("--first-seed", type=int, default=0, help="with a count K in --seeds: seeds FIRST .. FIRST+K-1")
     p.add_argument("--eval-episodes", type=int, default=1000)
     p.add_argument("--out-dir", required=True, help="where plots and tables go")
@@ -66,6 +66,8 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     args = p.parse_args(argv)
     if args.eval_episodes < 1:
         p.error("--eval-episodes must be >= 1")
+    if args.first_seed and not args.seeds.isdigit():
+        p.error("--first-seed goes with a count in --seeds (a range or list names its seeds itself)")
     args.runs_dir = args.runs_dir or os.path.join(args.out_dir, "runs")
     return args
 
@@ -75,7 +77,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     t0 = time.perf_counter()
     try:
         spec = study.study_from_args(args)
-        if args.first_seed and args.seeds.isdigit():
+        if args.first_seed:
             spec = dataclasses.replace(spec, seeds=tuple(s + args.first_seed for s in spec.seeds))
         records = study.run_study(spec, VARIANTS, measure(args.eval_episodes), {"eval_episodes": args.eval_episodes},
                                   RECORD_FILE, args.conditions, args.eval_episodes, train_missing=not args.plots_only)

@@ -101,12 +101,13 @@ def pick_variants(table: Variants, chosen: str | None, default: Sequence[str]) -
     return {v: tuple(table[v]) for v in names}
 
 
-def add_arguments(p: argparse.ArgumentParser, seeds: int, runs_dir: str | None) -> None:
-    """The options every study shares."""
+def add_arguments(p: argparse.ArgumentParser, seeds: int, runs_dir: str | None, variants: bool = True) -> None:
+    """The options every study shares (``--variants`` where the study lets the user choose them)."""
     p.add_argument("--preset", default="cpu-quick", help="trainer preset (cpu-quick, gpu, paper)")
     p.add_argument("--total-steps", type=int, default=None, help="env steps per run (default: the preset's)")
     p.add_argument("--seeds", default=str(seeds), help=f"K (seeds 0..K-1), A-B or A,B,... (default {seeds})")
-    p.add_argument("--variants", default=None, help="comma list of variants (default: the study's)")
+    if variants:
+        p.add_argument("--variants", default=None, help="comma list of variants (default: the study's)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="extra config override for every run, repeatable")
     p.add_argument("--condition", dest="conditions", action="append", default=[], choices=sorted(EVAL_CONDITIONS),
