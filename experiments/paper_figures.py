@@ -214,6 +214,11 @@ def markdown_table(results: dict[str, Any]) -> str:
     d_steps = "-" if d["steps_per_success"] is None else f"{d['steps_per_success']:+.1f}"
     lines += ["", f"SA-PPO − PPO, pooled: success {d['success_pct']:+.1f} points, steps per successful grasp "
                   f"{d_steps}; paper: +6 points, −11 steps."]
+    paired = results.get("paired_ppo_minus_sa_ppo", {}).get("success_pct")
+    if paired and paired["mean_diff"] is not None:
+        p = "-" if paired["p"] is None else f"{paired['p']:.2g}"
+        lines.append(f"PPO − SA-PPO seed by seed: success {paired['mean_diff']:+.1f} points (paired t-test p {p}; "
+                     f"PPO better on {paired['wins']} of {paired['n']} seeds).")
     return "\n".join(lines) + "\n"
 
 

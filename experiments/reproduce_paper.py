@@ -31,7 +31,7 @@ import sys
 import time
 from typing import Any, Sequence
 
-from experiments import paper_figures, study
+from experiments import paper_figures, stats, study
 from sagrasp_jax import fileio
 
 # The study's variants: the paper's two algorithms as learning-rate schedules (what `train --algo` means).
@@ -39,6 +39,7 @@ VARIANTS: dict[str, tuple[str, ...]] = {"ppo": ("lr.schedule=constant",), "sa-pp
 RESULTS_JSON = "results.json"
 RESULTS_MD = "results.md"
 RECORD_FILE = "evaluation.json"  # this experiment's record of each run (its --eval-episodes evaluation)
+PAIRED = (("success_pct", True), ("steps_per_success", False), ("collision_pct", False))  # ppo vs sa-ppo, seed by seed
 
 
 def measure(episodes: int) -> study.Measure:
@@ -51,6 +52,13 @@ def measure(episodes: int) -> study.Measure:
               f"{'-' if steps is None else f'{steps:.1f}'}, collision {100 * ov['collision_rate']:.1f} %", flush=True)
         return {"mix": mix}
     return run
+
+
+def per_seed(record: dict[str, Any]) -> dict[str, Any]:
+    """The paired metrics of one run."""
+    ov = record["mix"]["overall"]
+    return {"seed": record["seed"], "success_pct": study.rate(ov), "steps_per_success": ov["mean_steps_per_success"],
+            "collision_pct": study.rate(ov, "collision_rate")}
 
 
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
@@ -84,6 +92,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         evals = {v: [r["mix"] for r in recs] for v, recs in records.items()}
         results, curves = paper_figures.build_results(spec, {a: a for a in VARIANTS}, evals, args.band, args.smooth,
                                                       args.eval_episodes)
+        results["paired_ppo_minus_sa_ppo"] = stats.compare_with_reference(
+            {v: [per_seed(r) for r in recs] for v, recs in records.items()}, "sa-ppo", PAIRED)["ppo"]
         results["meta"]["wall_s_this_invocation"] = time.perf_counter() - t0
         results["meta"]["command"] = study.command("reproduce_paper", argv)
         os.makedirs(args.out_dir, exist_ok=True)

@@ -262,6 +262,8 @@ def test_reproduce_paper_smoke(tmp_path: pytest.TempPathFactory) -> None:
         lo, hi = pooled["success_ci95_wilson_pct"]
         assert 0.0 <= lo <= pooled["success_pct"] <= hi <= 100.0
         assert results["paper"][algo]["success_pct"] in (92.0, 98.0)
+    paired = results["paired_ppo_minus_sa_ppo"]  # seed by seed, PPO minus SA-PPO
+    assert paired["seeds"] == [0, 1] and paired["success_pct"]["n"] == 2
     with open(os.path.join(out, "results.md"), encoding="utf-8") as f:
         md = f.read()
     rows = [line for line in md.splitlines() if line.startswith("| PPO |") or line.startswith("| SA-PPO |")]
