@@ -10,7 +10,7 @@ all CPU devices (one per core, ``train.use_cpu_devices``; ``--devices`` picks th
 ``--pybullet`` it also times the PyBullet reference env (raw stepping, one env, kinematic and dynamic) when the
 ``reference`` extra is installed.  Prints a table and writes JSON.
 
-    python experiments/bench_env.py --out experiments/results/bench_env_cpu.json
+    python -m experiments.bench_env --out experiments/results/bench_env_cpu.json
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Training speed of the README command, in one run: env, trainer, compile, memory, time to success.
 
-    python experiments/bench_train.py --out experiments/results/bench_train_cpu.json
+    python -m experiments.bench_train --out experiments/results/bench_train_cpu.json
 
 Sections (``--sections``, default all; each prints as it goes, then one table and one JSON):
 
@@ -43,9 +43,7 @@ import tempfile
 import time
 from typing import Any, Callable
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-ROOT = os.path.dirname(HERE)
-sys.path.insert(0, HERE)  # the sibling experiment scripts (bench_vs_paper_stack)
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SECTIONS = ("env", "profile", "run", "sb3")
 LEVELS = (0.90, 0.95, 0.98, 0.99)
 
@@ -269,7 +267,7 @@ def _vm_hwm_kb(pid: int) -> int | None:
 def train_run(args_extra: list[str], work: str, name: str, cache_dir: str, budget_s: float,
               stop_level: float | None, env_extra: dict[str, str] | None = None, root: str = ROOT) -> dict[str, Any]:
     """Run ``python -m sagrasp_jax.train`` and watch its metrics; stop at ``stop_level`` or the budget."""
-    from bench_vs_paper_stack import watch_trainer
+    from experiments.bench_vs_paper_stack import watch_trainer
     from sagrasp_jax.run_dir import METRICS_FILE
 
     out = os.path.join(work, name)
@@ -402,9 +400,8 @@ def bench_bare_pybullet(steps: int = 20_000) -> dict[str, Any] | None:
 
 
 def bench_sb3_section(sb3_python: str | None, seconds: float, work: str) -> dict[str, Any]:
-    sys.path.insert(0, HERE)
-    import bench_env
-    import bench_vs_paper_stack as stack
+    from experiments import bench_env
+    from experiments import bench_vs_paper_stack as stack
 
     out: dict[str, Any] = {}
     raw = bench_env.bench_pybullet("kinematic", 2000)
@@ -522,7 +519,6 @@ def main(argv: list[str] | None = None) -> int:
     unknown = set(sections) - set(SECTIONS)
     if unknown:
         p.error(f"unknown sections {sorted(unknown)}; choose from {', '.join(SECTIONS)}")
-    sys.path.insert(0, ROOT)
     import sagrasp_jax
     import jax
 
@@ -533,7 +529,7 @@ def main(argv: list[str] | None = None) -> int:
     if hasattr(train, "use_cpu_devices"):
         train.use_cpu_devices(cfg)  # the devices the training command uses
     result: dict[str, Any] = {
-        "command": "python experiments/bench_train.py " + " ".join(sys.argv[1:] if argv is None else argv),
+        "command": "python -m experiments.bench_train " + " ".join(sys.argv[1:] if argv is None else argv),
         "machine": {"node": platform.node(), "processor": platform.processor() or platform.machine(),
                     "cpus": os.cpu_count(), "devices": len(jax.devices()), "backend": jax.default_backend(),
                     "xla_flags": os.environ.get("XLA_FLAGS", "")},

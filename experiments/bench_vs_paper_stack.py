@@ -5,7 +5,7 @@ start-up and compilation), one after the other so they never share the CPU:
 
 1. **the paper's stack**: Stable-Baselines3 PPO on the PyBullet reference env
    (``SAGrasp-PyBullet-v0``) with the paper's Table 2 settings, taken from
-   ``experiments/sb3_baseline.py`` (its ``PAPER_PPO``, ``HIDDEN``, ``OBS_CLIP``, ``UPDATE_STEPS``,
+   ``experiments.sb3_baseline`` (its ``PAPER_PPO``, ``HIDDEN``, ``OBS_CLIP``, ``UPDATE_STEPS``,
    env wrappers as there: ``DummyVecEnv`` → ``VecMonitor`` → ``VecNormalize``).  It runs in a
    separate interpreter given by ``--sb3-python`` (SB3 and torch stay out of the main venv);
    without it, or when SB3 cannot be imported there, the stack is reported as skipped;
@@ -20,7 +20,7 @@ time / env steps at which the training-episode success rate over the last ``--wi
 finished episodes first reaches each ``--success`` level ("not reached in budget" otherwise).
 Prints a ratio table and writes JSON atomically.
 
-    python experiments/bench_vs_paper_stack.py --seconds 120 --sb3-python .venv-sb3/bin/python \\
+    python -m experiments.bench_vs_paper_stack --seconds 120 --sb3-python .venv-sb3/bin/python \\
         --out experiments/results/bench_vs_paper_stack_cpu.json
 """
 
@@ -39,27 +39,12 @@ import tempfile
 import time
 from typing import Any, Callable
 
+from experiments.stats import first_reach
 from sagrasp_jax import fileio
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-HERE = os.path.dirname(os.path.abspath(__file__))
 PAPER_STEPS_PER_S = 375.8  # paper, SB3 + PyBullet on an RTX 4070 machine (docs/task.md §4)
 PAPER_TOTAL_STEPS = 20_000_000
-
-
-def atomic_write_json(path: str, data: Any) -> str:
-    """Sorted strict JSON through fileio's temp-file-and-rename."""
-    return fileio.atomic_write_json(path, data, sort_keys=True)
-
-
-def first_reach(points: list[tuple[float, int, float]], levels: list[float]) -> dict[str, Any]:
-    """For each level, the first (time_s, env_steps) whose success rate ≥ level, else 'not reached in budget'."""
-    out: dict[str, Any] = {}
-    for level in levels:
-        hit = next(((t, s) for t, s, v in points if v >= level), None)
-        out[f"{level:g}"] = ({"time_s": hit[0], "env_steps": hit[1]} if hit is not None
-                             else "not reached in budget")
-    return out
 
 
 def watch_trainer(cmd: list[str], cwd: str, log_path: str, metrics_path: str, poll_s: float,
@@ -159,8 +144,7 @@ def bench_ours(seconds: float, preset: str, overrides: list[str], levels: list[f
 def sb3_worker(seconds: float, n_envs: int, seed: int, levels: list[float], window: int, out: str) -> int:
     """Runs inside the SB3 interpreter: SB3 PPO with sb3_baseline's Table 2 settings for ``seconds``."""
     t_launch = time.perf_counter()
-    sys.path[:0] = [p for p in (HERE, ROOT) if p not in sys.path]
-    import sb3_baseline as base  # experiments/sb3_baseline.py: the settings' single source
+    from experiments import sb3_baseline as base  # the settings' single source
 
     sb3, torch = base._import_sb3()
     import numpy as np
@@ -247,7 +231,7 @@ def sb3_worker(seconds: float, n_envs: int, seed: int, levels: list[float], wind
         "versions": {"stable_baselines3": sb3.__version__, "torch": torch.__version__, "python": platform.python_version()},
         "torch_threads": torch.get_num_threads(),
     }
-    atomic_write_json(out, result)
+    fileio.atomic_write_json(out, result, sort_keys=True)
     return 0
 
 
@@ -265,7 +249,7 @@ def bench_sb3(sb3_python: str | None, seconds: float, n_envs: int, levels: list[
         return {"status": "skipped", "reason": f"{sb3_python} cannot import SB3/torch/pybullet/gymnasium: "
                                                f"{probe.stderr.strip().splitlines()[-1] if probe.stderr.strip() else ''}"}
     out = os.path.join(work, "sb3.json")
-    cmd = [exe, os.path.abspath(__file__), "--sb3-worker", "--seconds", str(seconds), "--sb3-envs", str(n_envs),
+    cmd = [exe, "-m", "experiments.bench_vs_paper_stack", "--sb3-worker", "--seconds", str(seconds), "--sb3-envs", str(n_envs),
            "--window", str(window), "--worker-out", out, "--success", *map(str, levels)]
     t0 = time.perf_counter()
     res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=timeout_s)
@@ -351,7 +335,6 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     if args.sb3_worker:
         return sb3_worker(args.seconds, args.sb3_envs, 0, args.success, args.window, args.worker_out)
-    sys.path.insert(0, ROOT)
     import sagrasp_jax  # noqa: F401  (fails early with a clear ImportError if the package is missing)
 
     with tempfile.TemporaryDirectory(prefix="bench_stack.") as work:
@@ -372,7 +355,7 @@ def main(argv: list[str] | None = None) -> int:
     result = {
         "machine": f"{platform.node()} {platform.machine()}, {os.cpu_count()} CPU cores, "
                    f"load average at end {os.getloadavg()[0]:.1f}",
-        "command": "python experiments/bench_vs_paper_stack.py " + " ".join(sys.argv[1:] if argv is None else argv),
+        "command": "python -m experiments.bench_vs_paper_stack " + " ".join(sys.argv[1:] if argv is None else argv),
         "seconds": args.seconds, "levels": args.success, "window": args.window,
         "success_note": ("time to success: first moment the training-episode success rate over the last "
                          f"{args.window} finished episodes reaches the level (training time after start-up)"),
@@ -385,7 +368,7 @@ def main(argv: list[str] | None = None) -> int:
     table = summary_table(result)
     print(table)
     if args.out:
-        atomic_write_json(args.out, result)
+        fileio.atomic_write_json(args.out, result, sort_keys=True)
         print(f"written to {args.out}")
     return 0
 

@@ -2,7 +2,7 @@
 and the 1-minute load average before and after as JSON: a training budget that other jobs on a
 shared machine disturb far less than the wall clock.
 
-    python experiments/cputime.py runs/NAME.cpu.json python -m sagrasp_jax.train ...
+    python -m experiments.cputime runs/NAME.cpu.json python -m sagrasp_jax.train ...
 """
 
 from __future__ import annotations

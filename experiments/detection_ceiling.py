@@ -15,7 +15,7 @@ target or the table), (c) held when the fingers close and lift (``physical.physi
 clear, in the band or not), and (a)–(c) together: the ceiling for that level.  Also the policy's own final offsets (how close to the middle it
 aims).  Prints a table and writes JSON.
 
-    python experiments/detection_ceiling.py --run runs/robot_s0 --poses 100 --out experiments/results/detection_ceiling.json
+    python -m experiments.detection_ceiling --run runs/robot_s0 --poses 100 --out experiments/results/detection_ceiling.json
 """
 
 from __future__ import annotations

@@ -9,7 +9,7 @@ scenes (``evaluate.evaluate_run``, seed ``eval.seed + 1``, deterministic policy)
 ``experiments/cputime.py`` (``--cpu NAME=FILE``: a JSON with ``cpu_user_s``, ``cpu_sys_s``, ``wall_s``,
 ``load_start``, ``load_end``), its process CPU time.  Prints a Markdown table and writes JSON.
 
-    python experiments/dynamic_transfer.py --run a=runs/kin --run b=runs/ft --run c=runs/scratch \\
+    python -m experiments.dynamic_transfer --run a=runs/kin --run b=runs/ft --run c=runs/scratch \\
         --kinematic a --out experiments/results/dynamic_cpu.json
 """
 

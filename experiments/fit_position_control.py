@@ -7,7 +7,7 @@ harness's ``scripted`` source) and fits kp, kd per joint by linear least squares
 ((q* − q)/h, v): the best that law can do against MuJoCo's.  It prints the gains (paste them into
 ``DYNAMIC_POSITION_GAINS`` / ``DYNAMIC_VELOCITY_GAINS``) and the fit's residual, and writes JSON.
 
-    python experiments/fit_position_control.py --out experiments/results/fit_position_control.json
+    python -m experiments.fit_position_control --out experiments/results/fit_position_control.json
 """
 
 from __future__ import annotations

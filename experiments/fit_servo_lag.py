@@ -8,7 +8,7 @@ linear least squares of the step q⁺ − q on (c − q, q − q_prev), and then
 open-loop in the dynamic and lagged envs (with and without command latency) and reports how far their
 gripper centres drift apart: the cheap model is what the policy trains in, the dynamic env is the judge.
 
-    python experiments/fit_servo_lag.py --out experiments/results/fit_servo_lag.json
+    python -m experiments.fit_servo_lag --out experiments/results/fit_servo_lag.json
 """
 
 from __future__ import annotations

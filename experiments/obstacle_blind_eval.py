@@ -4,7 +4,7 @@ seeing (the real observation) and blind (every obstacle entry replaced by its "n
 relative one), on the task's disc placement of obstacles and on blocking-only scenes.  Deterministic NumPy
 policy, reward weights at p = 1, no observation noise.
 
-    python experiments/obstacle_blind_eval.py --policy runs/quick/policy.npz --episodes 200 \
+    python -m experiments.obstacle_blind_eval --policy runs/quick/policy.npz --episodes 200 \
         --out experiments/results/obstacle_blind_eval.json
 """
 

@@ -13,7 +13,7 @@ Each variant strips one more thing the dynamic mode does not need (docs/parity.m
 Reports wall-clock and process CPU time per substep (the machine may be shared: CPU time suffers
 less from other jobs) with the 1-minute load average, prints a table and writes JSON.
 
-    python experiments/profile_mjx_step.py --out experiments/results/profile_mjx_step_cpu.json
+    python -m experiments.profile_mjx_step --out experiments/results/profile_mjx_step_cpu.json
 """
 
 from __future__ import annotations

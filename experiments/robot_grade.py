@@ -8,7 +8,7 @@ the same with up to 2 steps of latency), optionally in the dynamic env with one 
 (``--blocking``), and through the physical grasp check with and without detection error (``--physical``).
 Prints a Markdown table and writes JSON.
 
-    python experiments/robot_grade.py --run s0=runs/robot_s0 --run s1=runs/robot_s1 --run s2=runs/robot_s2 \\
+    python -m experiments.robot_grade --run s0=runs/robot_s0 --run s1=runs/robot_s1 --run s2=runs/robot_s2 \\
         --blocking --physical --out experiments/results/robot_grade_cpu.json
 """
 

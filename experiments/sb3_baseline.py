@@ -5,7 +5,7 @@ our reference env (same task as the MJX env, checked by ``sagrasp_jax.parity``),
 that the MJX/JAX trainer's throughput is compared with.  It reports env-steps/s and the
 training episodes' success rate; it is not meant to reproduce the paper's curves.
 
-    python experiments/sb3_baseline.py --total-steps 200000 --out sb3_baseline.json
+    python -m experiments.sb3_baseline --total-steps 200000 --out sb3_baseline.json
 
 Settings (docs/task.md §3 ``paper`` preset = Table 2 with SB3 defaults where it is silent): 2048 env
 steps per update as **16 envs × 128 steps** (default; ``--n-envs 1`` gives 1 env × 2048, the
@@ -37,10 +37,6 @@ import numpy as np
 
 from sagrasp_jax import fileio
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-if ROOT not in sys.path:
-    sys.path.insert(0, ROOT)
-
 UPDATE_STEPS = 2048  # env steps per PPO update (Table 2)
 PAPER_PPO = {
     "batch_size": 256,
@@ -69,10 +65,6 @@ def _import_sb3() -> tuple[Any, Any]:
             "(it pulls torch, gigabytes with CUDA wheels; keep it out of the training/CI environment)"
         ) from None
     return stable_baselines3, torch
-
-
-def _atomic_write_json(path: str, data: dict[str, Any]) -> None:
-    fileio.atomic_write_json(path, data, default=float)
 
 
 def with_mode(env_cfg: Any, mode: str) -> Any:
@@ -184,7 +176,7 @@ def main(argv: list[str] | None = None) -> int:
         "seed": args.seed,
     }
     venv.close()
-    _atomic_write_json(args.out, result)
+    fileio.atomic_write_json(args.out, result, default=float)
     print(f"{steps} env steps in {wall:.1f} s: {steps / wall:.0f} env-steps/s; "
           f"success (last 100 episodes) {result['success_rate_last_100']}; written to {args.out}")
     return 0

@@ -7,7 +7,7 @@ and compares: latency (ms), offsets (mrad) and the servo gain.  The servo gain's
 the per-step model fitted to a noise-free, latency-free log of the same arm (``truth_model``): what the
 lagged mode can represent of that arm.  Prints a table and writes JSON.
 
-    python experiments/sysid_check.py --out experiments/results/sysid_check.json
+    python -m experiments.sysid_check --out experiments/results/sysid_check.json
 """
 
 from __future__ import annotations

@@ -1,4 +1,5 @@
-"""Smoke tests of the paper-reproduction and stack-benchmark scripts (tiny budgets, real env).
+"""The study driver (``experiments.study``) and smoke tests of the studies and benchmarks built on it
+(tiny budgets, real env), run as ``python -m experiments.NAME`` from the repository root.
 
 The tiny trainer shapes equal ``tests/tiny_run.py``'s, so jax's persistent compilation cache
 built by one serves the other.
@@ -15,12 +16,13 @@ import sys
 import numpy as np
 import pytest
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, os.path.join(REPO, "experiments"))
+from experiments import bench_vs_paper_stack as bench
+from experiments import compare_schedules as compare
+from experiments import obstacle_ablation as ab
+from experiments import paper_figures, stats, study
+from experiments import reproduce_paper as repro
 
-import bench_vs_paper_stack as bench  # noqa: E402
-import compare_schedules as compare  # noqa: E402
-import reproduce_paper as repro  # noqa: E402
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 TINY_SETS = ["ppo.num_envs=64", "ppo.num_epochs=1", "ppo.num_minibatches=1", "env.task.max_steps=50",
              "eval.episodes=8", "eval.num_cycles=4"]
@@ -31,30 +33,31 @@ def _sets(items: list[str]) -> list[str]:
 
 
 def _run(args: list[str], timeout: float = 300) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, *args], cwd=REPO, capture_output=True, text=True, timeout=timeout)
+    """``python -m experiments.NAME ARGS`` from the repository root."""
+    return subprocess.run([sys.executable, "-m", *args], cwd=REPO, capture_output=True, text=True, timeout=timeout)
 
 
 # ---------------------------------------------------------------------- pure helpers
 
 def test_mean_ci_matches_t_interval() -> None:
-    ci = repro.mean_ci([1.0, 2.0, 3.0])
+    ci = stats.mean_ci([1.0, 2.0, 3.0])
     half = 4.303 * 1.0 / np.sqrt(3)
     assert ci["mean"] == pytest.approx(2.0) and ci["n"] == 3
     assert ci["ci95"] == pytest.approx([2.0 - half, 2.0 + half])
-    assert repro.mean_ci([5.0])["ci95"] == [None, None]
-    assert repro.mean_ci([None, float("nan")])["mean"] is None
+    assert stats.mean_ci([5.0])["ci95"] == [None, None]
+    assert stats.mean_ci([None, float("nan")])["mean"] is None
 
 
 def test_band_and_curve_matrix_align_seeds_on_env_steps() -> None:
     runs = [[{"env_steps": 10, "x": 1.0}, {"env_steps": 20, "x": 3.0}],
             [{"env_steps": 10, "x": 3.0}, {"env_steps": 20, "x": None}]]
-    x, y = repro.curve_matrix(runs, "x")
+    x, y = stats.curve_matrix(runs, "x")
     assert x.tolist() == [10, 20] and np.isnan(y[1, 1])
-    mean, lo, hi = repro.band(y)
+    mean, lo, hi = stats.band(y)
     assert mean.tolist() == [2.0, 3.0]
     assert lo[0] < 2.0 < hi[0] and lo[1] == hi[1] == 3.0  # one seed at step 20: no band
-    assert [v.tolist() for v in repro.band(y, "minmax")] == [[2.0, 3.0], [1.0, 3.0], [3.0, 3.0]]
-    assert repro.band_kind("auto", 2) == "minmax" and repro.band_kind("auto", 3) == "t95"
+    assert [v.tolist() for v in stats.band(y, "minmax")] == [[2.0, 3.0], [1.0, 3.0], [3.0, 3.0]]
+    assert stats.band_kind("auto", 2) == "minmax" and stats.band_kind("auto", 3) == "t95"
 
 
 def test_summarise_algo_pools_episodes() -> None:
@@ -64,7 +67,7 @@ def test_summarise_algo_pools_episodes() -> None:
         return {"overall": group, "obstacle_present": dict(group, episodes=20),
                 "obstacle_absent": dict(group, episodes=80)}
 
-    s = repro.summarise_algo([ev(0.8, 30.0), ev(0.4, 60.0)], [0, 1])
+    s = paper_figures.summarise_algo([ev(0.8, 30.0), ev(0.4, 60.0)], [0, 1])
     assert s["pooled"]["episodes"] == 200 and s["pooled"]["success_pct"] == pytest.approx(60.0)
     assert s["pooled"]["steps_per_success"] == pytest.approx((80 * 30 + 40 * 60) / 120)
     lo, hi = s["pooled"]["success_ci95_wilson_pct"]
@@ -76,23 +79,23 @@ def test_summarise_algo_pools_episodes() -> None:
 
 def test_first_reach() -> None:
     pts = [(1.0, 100, 0.1), (2.0, 200, 0.6), (3.0, 300, 0.9)]
-    out = bench.first_reach(pts, [0.5, 0.95])
+    out = stats.first_reach(pts, [0.5, 0.95])
     assert out["0.5"] == {"time_s": 2.0, "env_steps": 200}
     assert out["0.95"] == "not reached in budget"
 
 
 def test_t_test_p_values() -> None:
-    assert compare.t_test_p(2.776, 4) == pytest.approx(0.05, abs=2e-4)
-    assert compare.t_test_p(12.706, 1) == pytest.approx(0.05, abs=2e-4)
-    assert compare.t_test_p(2.045, 29) == pytest.approx(0.05, abs=2e-4)
-    assert compare.t_test_p(1.0, 1) == pytest.approx(0.5, abs=1e-9)
-    assert compare.t_test_p(0.0, 7) == pytest.approx(1.0) and compare.t_test_p(-3.0, 6) == compare.t_test_p(3.0, 6)
-    assert compare.betainc(2.0, 3.0, 0.4) == pytest.approx(0.5248, abs=1e-4)  # 1 − Σ_{k<2} C(4,k) 0.4^k 0.6^(4−k)
+    assert stats.t_test_p(2.776, 4) == pytest.approx(0.05, abs=2e-4)
+    assert stats.t_test_p(12.706, 1) == pytest.approx(0.05, abs=2e-4)
+    assert stats.t_test_p(2.045, 29) == pytest.approx(0.05, abs=2e-4)
+    assert stats.t_test_p(1.0, 1) == pytest.approx(0.5, abs=1e-9)
+    assert stats.t_test_p(0.0, 7) == pytest.approx(1.0) and stats.t_test_p(-3.0, 6) == stats.t_test_p(3.0, 6)
+    assert stats.betainc(2.0, 3.0, 0.4) == pytest.approx(0.5248, abs=1e-4)  # 1 − Σ_{k<2} C(4,k) 0.4^k 0.6^(4−k)
 
 
 def test_paired_comparison() -> None:
     a, b = [80.0, 85.0, 90.0, 70.0], [78.0, 86.0, 85.0, 66.0]
-    out = compare.paired(a, b)
+    out = stats.paired(a, b)
     d = np.array(a) - np.array(b)
     half = 3.182 * d.std(ddof=1) / 2.0
     assert out["n"] == 4 and out["mean_diff"] == pytest.approx(d.mean())
@@ -100,10 +103,10 @@ def test_paired_comparison() -> None:
     assert out["t"] == pytest.approx(d.mean() / (d.std(ddof=1) / 2.0))
     assert (out["wins"], out["ties"], out["losses"]) == (3, 0, 1)
     assert 0.1 < out["p"] < 0.3
-    assert compare.paired([100.0, 120.0], [110.0, 125.0], larger_is_better=False)["wins"] == 2  # fewer steps wins
-    missing = compare.paired([1.0, None, 3.0], [0.0, 2.0, None])
+    assert stats.paired([100.0, 120.0], [110.0, 125.0], larger_is_better=False)["wins"] == 2  # fewer steps wins
+    missing = stats.paired([1.0, None, 3.0], [0.0, 2.0, None])
     assert missing["n"] == 1 and missing["mean_diff"] == 1.0 and missing["p"] is None
-    assert compare.paired([2.0, 3.0], [1.0, 2.0])["p"] == 0.0  # the same difference on every seed
+    assert stats.paired([2.0, 3.0], [1.0, 2.0])["p"] == 0.0  # the same difference on every seed
 
 
 def test_training_time_adds_up_sessions() -> None:
@@ -111,26 +114,60 @@ def test_training_time_adds_up_sessions() -> None:
     assert compare.training_time(rows) == [1.0, 2.0, 2.5, 2.5, 3.5]
 
 
-def test_schedule_variants() -> None:
-    assert list(compare.SCHEDULE_VARIANTS) == ["constant", "sa", "kl-adaptive", "cosine", "linear"]
-    assert compare.ABLATION_VARIANTS["sa-no-plateau-decay"] == ["lr.schedule=sa", "sa.plateau_decay=false"]
-    for sets in compare.ALL_VARIANTS.values():  # every variant is a valid config
-        from sagrasp_jax import train
+def test_variant_tables_are_valid_configs() -> None:
+    from sagrasp_jax import run_dir, train
 
-        train.build_config("cpu-quick", overrides=sets)
+    assert list(compare.SCHEDULE_VARIANTS) == ["constant", "sa", "kl-adaptive", "cosine", "linear"]
+    assert compare.ABLATION_VARIANTS["sa-no-plateau-decay"] == ("lr.schedule=sa", "sa.plateau_decay=false")
+    for table in (compare.VARIANTS, ab.VARIANTS, repro.VARIANTS):
+        for sets in table.values():
+            train.build_config("cpu-quick", overrides=list(sets))
+    # the paper's algorithms as variants give the configs `train --algo` gives
+    for algo, sets in repro.VARIANTS.items():
+        assert train.build_config("cpu-quick", None, 3, 8192, list(sets)) == train.build_config("cpu-quick", algo, 3, 8192)
+
+
+def test_seeds_and_variant_choice() -> None:
+    assert study.parse_seeds("3") == (0, 1, 2) and study.parse_seeds("2-4") == (2, 3, 4)
+    assert study.parse_seeds("1,5") == (1, 5)
+    for bad in ("0", "x", "1,1", "3-1"):
+        with pytest.raises(study.StudyError, match="--seeds"):
+            study.parse_seeds(bad)
+    table = {"a": ("x=1",), "b": ()}
+    assert study.pick_variants(table, None, ["b"]) == {"b": ()}
+    assert study.pick_variants(table, " a ,b", []) == {"a": ("x=1",), "b": ()}
+    with pytest.raises(study.StudyError, match="unknown variant"):
+        study.pick_variants(table, "a,c", [])
+    spec = study.Study("cpu-quick", 8192, (0, 1), "runs")
+    assert spec.folder("+layout", 1) == os.path.join("runs", "+layout", "seed1")  # the layout of train --seeds
+    record = {"conditions": {"robot": {"overall": {"episodes": 10, "success_rate": 0.7}}}}
+    assert study.condition_rates(record) == {"success_condition_robot": 70.0} and study.condition_rates({}) == {}
+    from sagrasp_jax.config import ConfigError
+
+    with pytest.raises(ConfigError, match="unknown evaluation condition"):
+        study.Evaluation(10, condition="moon")
+
+
+def test_compare_with_reference_pairs_seeds() -> None:
+    per_seed = {"ref": [{"seed": 0, "x": 1.0}, {"seed": 1, "x": 2.0}, {"seed": 2, "x": 3.0}],
+                "v": [{"seed": 0, "x": 2.0}, {"seed": 2, "x": 3.5}]}
+    out = stats.compare_with_reference(per_seed, "ref", [("x", True)])
+    assert set(out) == {"v"} and out["v"]["seeds"] == [0, 2]
+    assert out["v"]["x"]["mean_diff"] == pytest.approx(0.75) and out["v"]["x"]["wins"] == 2
+    assert stats.compare_with_reference(per_seed, "missing", [("x", True)]) == {}
 
 
 # ---------------------------------------------------------------------- CLI smoke tests
 
 def test_ensure_trained_rule_for_every_folder_state(tmp_path: pytest.TempPathFactory,
                                                     monkeypatch: pytest.MonkeyPatch) -> None:
-    """The one rule of every experiment script: refuse another config before deleting anything,
-    skip finished runs, resume checkpointed ones, restart ones killed before their first checkpoint."""
+    """The folder rule of every study: refuse another config before deleting anything, skip finished
+    runs, continue unfinished ones only with --resume (from the checkpoint, or afresh without one)."""
     from sagrasp_jax import run_dir, train
     from sagrasp_jax.config import config_to_dict
 
     calls: list[tuple[str, bool]] = []
-    monkeypatch.setattr(repro.train, "run", lambda cfg, out, resume, progress: calls.append((out, resume)))
+    monkeypatch.setattr(study.train, "run", lambda cfg, out, resume, progress: calls.append((out, resume)))
     cfg = train.build_config("cpu-quick", None, 0, 8192, [])
     other = train.build_config("cpu-quick", None, 1, 8192, [])
 
@@ -145,44 +182,88 @@ def test_ensure_trained_rule_for_every_folder_state(tmp_path: pytest.TempPathFac
         return out
 
     foreign_stale = folder("foreign", other, "lock")  # another seed's run, killed before its checkpoint
-    with pytest.raises(repro.ReproduceError, match="another config"):
-        repro.ensure_trained(foreign_stale, cfg, "t", False)
+    with pytest.raises(study.StudyError, match="another config"):
+        study.ensure_trained(foreign_stale, cfg, "t", False, resume=True)
     assert sorted(os.listdir(foreign_stale)) == sorted([run_dir.CONFIG_FILE, "lock"]) and calls == []
 
-    assert repro.ensure_trained(folder("done", cfg, run_dir.POLICY_FILE), cfg, "t", False) is None and calls == []
+    assert study.ensure_trained(folder("done", cfg, run_dir.POLICY_FILE), cfg, "t", False, False) is None and calls == []
     partial = folder("partial", cfg, run_dir.CHECKPOINT_FILE)
-    assert repro.ensure_trained(partial, cfg, "t", False) is not None and calls[-1] == (partial, True)
+    with pytest.raises(study.StudyError, match="--resume"):
+        study.ensure_trained(partial, cfg, "t", False, resume=False)
+    assert calls == []
+    assert study.ensure_trained(partial, cfg, "t", False, resume=True) is not None and calls[-1] == (partial, True)
     stale = folder("stale", cfg, "metrics.jsonl")
-    repro.ensure_trained(stale, cfg, "t", False)
+    study.ensure_trained(stale, cfg, "t", False, resume=True)
     assert calls[-1] == (stale, False) and not os.path.exists(stale)  # removed, then trained afresh (fake run)
     bare = folder("bare", None, "lock")  # killed before its config was written
-    repro.ensure_trained(bare, cfg, "t", False)
+    study.ensure_trained(bare, cfg, "t", False, resume=True)
     assert calls[-1] == (bare, False) and len(calls) == 3
+
+
+def test_run_study_trains_evaluates_skips_and_refuses_before_training(tmp_path: pytest.TempPathFactory,
+                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    """variants × seeds into <runs>/<variant>/seed<S>/, one record each; a second call skips them all;
+    an unfinished folder anywhere stops the study (without --resume) before anything trains."""
+    from sagrasp_jax import run_dir, train
+    from sagrasp_jax.config import config_to_dict
+
+    trained: list[str] = []
+
+    def fake_run(cfg: object, out: str, resume: bool, progress: bool) -> None:
+        os.makedirs(out, exist_ok=True)
+        with open(os.path.join(out, run_dir.CONFIG_FILE), "w", encoding="utf-8") as f:
+            json.dump(config_to_dict(cfg), f)
+        open(os.path.join(out, run_dir.POLICY_FILE), "w").close()
+        trained.append(out)
+
+    monkeypatch.setattr(study.train, "run", fake_run)
+    spec = study.Study("cpu-quick", 8192, (0, 2), str(tmp_path / "runs"), progress=False)
+    table = {"a": ("ppo.num_envs=64",), "b": ("ppo.num_envs=128",)}
+    measure = lambda folder, variant, seed: {"score": 10.0 * seed + len(variant)}  # noqa: E731
+    records = study.run_study(spec, table, measure, {"episodes": 4}, "rec.json")
+    assert [r["seed"] for r in records["a"]] == [0, 2] and records["b"][1]["score"] == 21.0
+    assert records["a"][0]["overrides"] == ["ppo.num_envs=64"] and records["a"][0]["episodes"] == 4
+    assert sorted(os.path.relpath(t, spec.runs_dir) for t in trained) == [
+        os.path.join(v, f"seed{s}") for v in "ab" for s in (0, 2)]
+    again = study.run_study(spec, table, measure, {"episodes": 4}, "rec.json")
+    assert again == records and len(trained) == 4
+    with pytest.raises(study.StudyError, match="another config"):  # the same folders under another variant's config
+        study.run_study(spec, {"a": table["b"]}, measure, {"episodes": 4}, "rec.json")
+    unfinished = spec.folder("c", 2)
+    os.makedirs(unfinished)
+    with open(os.path.join(unfinished, run_dir.CONFIG_FILE), "w", encoding="utf-8") as f:
+        json.dump(config_to_dict(spec.config((), 2)), f)
+    open(os.path.join(unfinished, run_dir.CHECKPOINT_FILE), "w").close()
+    with pytest.raises(study.StudyError, match="--resume"):
+        study.run_study(spec, {"new": (), "c": ()}, measure, {"episodes": 4}, "rec.json")
+    assert len(trained) == 4 and not os.path.exists(spec.folder("new", 0))  # nothing trained
 
 
 def test_reproduce_paper_smoke(tmp_path: pytest.TempPathFactory) -> None:
     pytest.importorskip("matplotlib")
     out, runs = str(tmp_path / "out"), str(tmp_path / "runs")
-    args = ["experiments/reproduce_paper.py", "--preset", "cpu-quick", "--total-steps", "8192", "--seeds", "2",
+    args = ["experiments.reproduce_paper", "--preset", "cpu-quick", "--total-steps", "8192", "--seeds", "2",
             "--eval-episodes", "16", "--out-dir", out, "--runs-dir", runs, "--no-progress", *_sets(TINY_SETS)]
     res = _run(args)
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
-    for name in ["results.json", "results.md", "sa_schedule.png", "fig15_summary.png"] + [c[0] for c in repro.CURVES]:
+    for name in ["results.json", "results.md", "sa_schedule.png", "fig15_summary.png"] + [c[0] for c in paper_figures.CURVES]:
         assert os.path.getsize(os.path.join(out, name)) > 0, name
-    for algo in repro.ALGOS:
+    for algo in repro.VARIANTS:
         for seed in (0, 1):
-            run = os.path.join(runs, f"{algo}-s{seed}")
+            run = os.path.join(runs, algo, f"seed{seed}")
             for name in ("config.json", "metrics.jsonl", "checkpoint.ckpt", "policy.npz", "evaluation.json"):
                 assert os.path.isfile(os.path.join(run, name)), (run, name)
     with open(os.path.join(out, "results.json"), encoding="utf-8") as f:
         results = json.load(f)
     assert results["meta"]["seeds"] == [0, 1] and results["meta"]["total_steps"] == 8192
-    for algo in repro.ALGOS:
+    for algo in repro.VARIANTS:
         pooled = results["algos"][algo]["pooled"]
         assert pooled["episodes"] == 32 and 0.0 <= pooled["success_pct"] <= 100.0
         lo, hi = pooled["success_ci95_wilson_pct"]
         assert 0.0 <= lo <= pooled["success_pct"] <= hi <= 100.0
         assert results["paper"][algo]["success_pct"] in (92.0, 98.0)
+    paired = results["paired_ppo_minus_sa_ppo"]  # seed by seed, PPO minus SA-PPO
+    assert paired["seeds"] == [0, 1] and paired["success_pct"]["n"] == 2
     with open(os.path.join(out, "results.md"), encoding="utf-8") as f:
         md = f.read()
     rows = [line for line in md.splitlines() if line.startswith("| PPO |") or line.startswith("| SA-PPO |")]
@@ -200,7 +281,7 @@ def test_reproduce_paper_smoke(tmp_path: pytest.TempPathFactory) -> None:
 def test_bench_train_run_section_smoke(tmp_path: pytest.TempPathFactory) -> None:
     """The README-command section: a cold-cache run watched to its end, then the warm-cache restart."""
     out = str(tmp_path / "bench.json")
-    res = _run(["experiments/bench_train.py", "--sections", "run", "--seeds", "0", "--budget-s", "240", "--out", out,
+    res = _run(["experiments.bench_train", "--sections", "run", "--seeds", "0", "--budget-s", "240", "--out", out,
                 *_sets(TINY_SETS + ["train.total_steps=16384"])], timeout=400)
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
     with open(out, encoding="utf-8") as f:
@@ -215,7 +296,7 @@ def test_bench_train_run_section_smoke(tmp_path: pytest.TempPathFactory) -> None
 
 def test_bench_vs_paper_stack_smoke_without_sb3(tmp_path: pytest.TempPathFactory) -> None:
     out = str(tmp_path / "bench.json")
-    args = ["experiments/bench_vs_paper_stack.py", "--seconds", "2", "--window", "16", "--success", "0.5",
+    args = ["experiments.bench_vs_paper_stack", "--seconds", "2", "--window", "16", "--success", "0.5",
             "--out", out, *_sets(TINY_SETS + ["train.total_steps=200000"])]
     res = _run(args)
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
@@ -240,7 +321,7 @@ def test_bench_sb3_missing_interpreter_is_skipped(tmp_path: pytest.TempPathFacto
 
 def test_compare_schedules_smoke(tmp_path: pytest.TempPathFactory) -> None:
     out, runs = str(tmp_path / "results" / "cmp.json"), str(tmp_path / "runs")  # results/ does not exist yet
-    args = ["experiments/compare_schedules.py", "--preset", "cpu-quick", "--total-steps", "8192", "--seeds", "1",
+    args = ["experiments.compare_schedules", "--preset", "cpu-quick", "--total-steps", "8192", "--seeds", "1",
             "--variants", "constant,sa", "--eval-episodes", "16", "--blocking-episodes", "8", "--out", out,
             "--runs-dir", runs, "--no-progress", *_sets(TINY_SETS)]
     res = _run(args)
@@ -260,7 +341,7 @@ def test_compare_schedules_smoke(tmp_path: pytest.TempPathFactory) -> None:
     assert "| constant |" in res.stdout and "Paired with `sa`" in res.stdout
     if importlib.util.find_spec("matplotlib") is not None:
         assert os.path.getsize(out[:-5] + "_curves.png") > 0 and os.path.getsize(out[:-5] + "_lr.png") > 0
-        for name in ["fig15_summary.png", "sa_schedule.png"] + [c[0] for c in repro.CURVES]:  # Figures 11-15
+        for name in ["fig15_summary.png", "sa_schedule.png"] + [c[0] for c in paper_figures.CURVES]:  # Figures 11-15
             assert os.path.getsize(os.path.join(out[:-5] + "_figures", name)) > 0, name
     again = _run(args)
     assert again.returncode == 0, again.stderr[-3000:]
@@ -280,8 +361,6 @@ def _ablation_record(seed: int, overall: float, obstacle: float, blocking: float
 
 
 def test_obstacle_ablation_variants_and_overrides() -> None:
-    import obstacle_ablation as ab
-
     names = ab.variants(leave_one_out=True)
     assert names["base"] == set() and names["all"] == set(ab.LEVERS) and names["+mix"] == {"mix"}
     assert names["all-critic"] == set(ab.LEVERS) - {"critic"} and len(names) == 2 + 2 * len(ab.LEVERS)
@@ -291,8 +370,6 @@ def test_obstacle_ablation_variants_and_overrides() -> None:
 
 
 def test_obstacle_ablation_summary_counts_runs_that_never_learned() -> None:
-    import obstacle_ablation as ab
-
     records = [_ablation_record(0, 0.98, 0.90, 0.80), _ablation_record(1, 0.004, 0.02, 0.04),
                _ablation_record(2, 0.96, 0.86, 0.70)]
     s = ab.summarise(records)
