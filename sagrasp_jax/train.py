@@ -1,11 +1,13 @@
 """SA-PPO / PPO trainer: ``python -m sagrasp_jax.train --preset cpu-quick --out runs/NAME``.
 
-The loop is a handful of named steps on a :class:`Trainer`: ``run_iteration`` (one jitted PPO
-iteration: rollout + update), ``evaluate`` (fixed-seed deterministic episodes at p = 1),
-``anneal`` (the lr schedule's end of cycle, ``lr_schedule.end_cycle``: SA's decision on the
-evaluation metric), ``save_checkpoint``.  ``--algo sa-ppo`` / ``--algo ppo`` are
-``--lr-schedule sa`` / ``--lr-schedule constant``; ``--lr-schedule`` also takes kl-adaptive,
-cosine and linear.
+The loop is a handful of named steps on a :class:`Trainer`: ``run_calls`` (one jitted call of a
+cycle's PPO iterations: rollouts + updates), ``end_cycles`` (fixed-seed deterministic evaluation
+at p = 1, then the lr schedule's end of cycle, ``lr_schedule.end_cycle``: SA's decision on the
+evaluation metric), ``save_checkpoint``.  Its state is a device-side ``RunnerState`` and a
+host-side ``HostState`` per seed; ``train`` hands every metrics row to callbacks (metrics.jsonl,
+TensorBoard, the progress bar).  ``--algo sa-ppo`` / ``--algo ppo`` are ``--lr-schedule sa`` /
+``--lr-schedule constant``; ``--lr-schedule`` also takes kl-adaptive, cosine and linear.
+``--seeds 0-4`` trains a seed group in one compiled program, one run folder per seed.
 Everything that changes the numbers lives in jax arrays or in the checkpoint's host state,
 so a killed run resumed from its last checkpoint continues exactly as if uninterrupted.
 
@@ -322,6 +324,7 @@ class Trainer:
         self._compiled_eval: Any = None
         self.compile_s: dict[str, float] = {}
         resumed = resume if isinstance(resume, list) else [resume] * len(self.seeds)
+        self._reset = rollout.make_reset(self.train_env, self.mesh)
         self.runner = self._fresh_runner(resumed)
         self.hosts = [HostState.fresh(self.rule, c.train.seed) for c in self.cfgs]
         if any(resumed):
@@ -336,8 +339,7 @@ class Trainer:
         if cfg.train.init_from and not resuming:  # --init-from: another run's policy and normaliser
             ts = run_dir.init_policy_state(ts, cfg, self.obs_size, self.action_size)
         train_state = sharding.replicate(ts, self.mesh)
-        reset = rollout.make_reset(self.train_env, self.mesh)
-        env_state = reset(sharding.shard_batch(jax.random.split(k_env, cfg.ppo.num_envs), self.mesh))
+        env_state = self._reset(sharding.shard_batch(jax.random.split(k_env, cfg.ppo.num_envs), self.mesh))
         window = sharding.replicate(metrics_window.init_window(self.window_keys, cfg.train.metrics_window), self.mesh)
         return RunnerState(train_state, train_state, env_state, sharding.replicate(k_train, self.mesh), window)
 
@@ -957,6 +959,8 @@ def run(cfg: Config, out: str, *, resume: bool = False, env_factory: EnvFactory 
                 locks.enter_context(run_dir.FolderLock(out, create=True, what="seed-group folder"))
                 if not resume and os.listdir(out):
                     raise RunDirError(f"{out} exists and is not empty; choose a new --out or pass --resume")
+                if os.path.exists(os.path.join(out, CONFIG_FILE)):
+                    raise RunDirError(f"{out} holds a single run, not a seed group; resume it without --seeds")
             for folder in folders if primary else ():
                 locks.enter_context(run_dir.FolderLock(folder, create=True, what="run folder"))
             modes = ([run_dir.prepare_training(f, c, resume) for f, c in zip(folders, cfgs)] if primary

@@ -18,13 +18,15 @@ import pytest
 
 from conftest import toy_config, toy_factory
 
-from sagrasp_jax import actor_critic, evaluate, runtime, train
+from sagrasp_jax import actor_critic, evaluate, lr_schedule, runtime, train
 
 GROUP = [0, 2]
 ALONE = 2  # the group's second seed, also trained alone
 # A group's seed and the same seed alone run the same maths, but vmapped reductions round
-# differently (float32): after one iteration the parameters agree to this absolute tolerance.
-FIRST_ITERATION_ATOL = 1e-5
+# differently (float32): after one iteration the parameters agree to this absolute tolerance, but for
+# the first-layer weights of an input whose std sits at the floor (the toy's constant feature): its
+# normalised value is the mean's rounding error / the floor, noise that Adam turns into full steps.
+FIRST_ITERATION_ATOL = 2e-5
 
 
 def _cfg():
@@ -92,8 +94,14 @@ def test_first_iteration_matches_the_separate_run_within_float_rounding(tmp_path
     group_rows = group.run_calls([1, 1])
     alone_row = alone.run_iteration()
     assert group_rows[1][0]["loss"] == pytest.approx(alone_row["loss"], rel=1e-4)
-    for a, b in zip(jax.tree_util.tree_leaves(_seed(group.train_state, 1)), jax.tree_util.tree_leaves(alone.train_state)):
-        np.testing.assert_allclose(a, b, atol=FIRST_ITERATION_ATOL, rtol=0)
+    ts = _seed(group.train_state, 1)
+    np.testing.assert_allclose(ts.normaliser.std, alone.train_state.normaliser.std, rtol=1e-5)
+    informative = np.asarray(ts.normaliser.std) > _cfg().ppo.obs_std_floor * 1.001
+    assert informative.sum() == 6  # the toy's 7th observation entry is constant
+    for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(ts.params), jax.tree_util.tree_leaves(alone.train_state.params)):
+        a, b = np.asarray(a), np.asarray(b)
+        rows = informative if a.ndim == 2 and a.shape[0] == informative.size else slice(None)
+        np.testing.assert_allclose(a[rows], b[rows], atol=FIRST_ITERATION_ATOL, rtol=0, err_msg=jax.tree_util.keystr(path))
 
 
 def test_killed_group_resumes_bit_for_bit(runs, tmp_path):
@@ -128,10 +136,12 @@ def test_a_non_finite_seed_rolls_back_alone(tmp_path):
     assert "event" not in rows[0][-1] and rows[1][-1]["event"] == "nonfinite"
     assert [h.nonfinite for h in tr.hosts] == [0, 1]
     assert _leaves_equal(_seed(tr.train_state, 0), _seed(reference.train_state, 0))  # seed 0 ran on undisturbed
-    assert _leaves_equal(_seed(tr.train_state, 1), _seed(tr.snapshot, 1))  # seed 1 back at its snapshot
+    restored, snapshot = _seed(tr.train_state, 1), _seed(tr.snapshot, 1)  # seed 1 back at its snapshot ...
+    assert _leaves_equal((restored.params, restored.normaliser, restored.opt_state[1].inner_state),
+                         (snapshot.params, snapshot.normaliser, snapshot.opt_state[1].inner_state))
     lrs = np.asarray(actor_critic.learning_rate_of(tr.train_state.opt_state))
     assert lrs[0] == np.float32(cfg.ppo.learning_rate)
-    assert lrs[1] == np.float32(cfg.ppo.learning_rate * cfg.sa.decay)  # SA: a forced reject and decay, seed 1 only
+    assert lrs[1] == np.float32(cfg.ppo.learning_rate * cfg.sa.decay)  # ... with SA's forced reject and decay
 
 
 def test_seed_lists():
@@ -161,3 +171,23 @@ def test_a_group_refuses_a_folder_in_use(tmp_path, capsys):
     assert train.main(["--out", str(out), "--seeds", "0-1", "--total-steps", "1000"]) == 2
     assert "exists and is not empty" in capsys.readouterr().err
     assert sorted(os.listdir(out)) == ["seed1"]  # nothing added
+
+
+@pytest.mark.parametrize("schedule", ["kl-adaptive", "cosine"])
+def test_every_seed_keeps_its_own_learning_rate(tmp_path, schedule):
+    """The lr is a per-seed entry of the optimizer state: kl-adaptive adapts each seed's to its own KL
+    inside the call, cosine follows each seed's own progress; the host state follows the device's."""
+    cfg = toy_config(cycles=3, extra=[f"lr.schedule={schedule}"])
+    tr = train.Trainer(cfg, str(tmp_path), env_factory=toy_factory(), progress=False, seeds=GROUP)
+    tr.run_calls([2, 1])  # seed 2 one iteration behind
+    rows = tr.run_calls([1, 2])
+    device = np.asarray(actor_critic.learning_rate_of(tr.train_state.opt_state))
+    np.testing.assert_array_equal(device, np.float32([h.lr_state.lr for h in tr.hosts]))
+    assert [r[-1]["lr"] for r in rows] == pytest.approx(device.tolist(), rel=1e-6)
+    if schedule == "kl-adaptive":
+        assert device[0] != device[1]  # each adapted to its own KL
+    else:
+        rule = tr.rule
+        for host, lr in zip(tr.hosts, device):
+            expected = lr_schedule.progress_lr(np, rule, np.float32(host.iteration / train.make_schedule(cfg).num_iterations))
+            assert lr == pytest.approx(float(expected), rel=1e-5)
