@@ -176,18 +176,20 @@ def test_a_group_refuses_a_folder_in_use(tmp_path, capsys):
 @pytest.mark.parametrize("schedule", ["kl-adaptive", "cosine"])
 def test_every_seed_keeps_its_own_learning_rate(tmp_path, schedule):
     """The lr is a per-seed entry of the optimizer state: kl-adaptive adapts each seed's to its own KL
-    inside the call, cosine follows each seed's own progress; the host state follows the device's."""
+    inside the call, cosine sets each seed's from its own progress before each iteration."""
     cfg = toy_config(cycles=3, extra=[f"lr.schedule={schedule}"])
     tr = train.Trainer(cfg, str(tmp_path), env_factory=toy_factory(), progress=False, seeds=GROUP)
-    tr.run_calls([2, 1])  # seed 2 one iteration behind
-    rows = tr.run_calls([1, 2])
+    tr.run_calls([2, 1])
+    rows = tr.run_calls([1, 1])  # seed 0 after 3 iterations, seed 2 after 2
+    assert [h.iteration for h in tr.hosts] == [3, 2]
     device = np.asarray(actor_critic.learning_rate_of(tr.train_state.opt_state))
-    np.testing.assert_array_equal(device, np.float32([h.lr_state.lr for h in tr.hosts]))
-    assert [r[-1]["lr"] for r in rows] == pytest.approx(device.tolist(), rel=1e-6)
-    if schedule == "kl-adaptive":
-        assert device[0] != device[1]  # each adapted to its own KL
-    else:
-        rule = tr.rule
-        for host, lr in zip(tr.hosts, device):
-            expected = lr_schedule.progress_lr(np, rule, np.float32(host.iteration / train.make_schedule(cfg).num_iterations))
-            assert lr == pytest.approx(float(expected), rel=1e-5)
+    assert device[0] != device[1]
+    if schedule == "kl-adaptive":  # the host follows each seed's device lr
+        np.testing.assert_array_equal(device, np.float32([h.lr_state.lr for h in tr.hosts]))
+        assert [r[-1]["lr"] for r in rows] == pytest.approx(device.tolist(), rel=1e-6)
+        return
+    n = train.make_schedule(cfg).num_iterations
+    lr_at = lambda iteration: float(lr_schedule.progress_lr(np, tr.rule, np.float32(iteration / n)))  # noqa: E731
+    for host, lr in zip(tr.hosts, device):
+        assert lr == pytest.approx(lr_at(host.iteration - 1), rel=1e-5)  # what its last iteration ran with
+        assert host.lr_state.lr == pytest.approx(lr_at(host.iteration), rel=1e-5)  # what its next one starts from
