@@ -316,8 +316,8 @@ class Trainer:
         slots = CPU_EVAL_SLOTS if jax.default_backend() == "cpu" else None
         evaluate = policy_eval.make_evaluator(self.networks, self.eval_env, cfg.env.task.max_steps,
                                               self.mesh if split else None, slots)
-        rates = lambda params, normaliser, keys: evaluate(params, normaliser, keys)._replace(episodes={})  # noqa: E731
-        self._evaluate = jax.jit(jax.vmap(rates, in_axes=(0, 0, None)) if self.group else rates)
+        # a group evaluates seed by seed with this single-seed program (see ``evaluate``)
+        self._evaluate = jax.jit(lambda params, normaliser, keys: evaluate(params, normaliser, keys)._replace(episodes={}))
         episode = jax.eval_shape(self.train_env.reset, jax.random.PRNGKey(0)).info["episode"]
         self.window_keys = tuple(episode)
         self._compiled_cycle: Any = None
@@ -481,7 +481,7 @@ class Trainer:
             lowered = self._cycle.lower(*self._cycle_args([1] * len(self.seeds)))
             with concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="compile-training-call") as pool:
                 cycle = pool.submit(lambda: (lowered.compile(), time.perf_counter() - t))
-                ts = self.runner.train_state
+                ts = self._seed_train_state(0)
                 compiled_eval = self._evaluate.lower(ts.params, ts.normaliser, self.eval_keys).compile()
                 eval_s = time.perf_counter() - t
                 self._compiled_cycle, cycle_s = cycle.result()  # re-raises the worker's error here
@@ -581,11 +581,21 @@ class Trainer:
         out["window_episodes"] = count
         return out
 
-    def evaluate(self) -> policy_eval.EvalResult:
-        """The fixed-seed deterministic evaluation at p = 1 (the SA metric's source); per seed in a group."""
+    def evaluate(self, i: int = 0) -> policy_eval.EvalResult:
+        """Seed ``i``'s fixed-seed deterministic evaluation at p = 1 (the SA metric's source).
+
+        A group evaluates seed by seed with the single run's program: a vmapped evaluation (its
+        episode slots reloading under a batched ``while_loop``) measured 9x one seed's time for 5
+        seeds, and seed by seed the evaluation of a policy is the single run's, bit for bit."""
         self.compile()
-        ts = self.runner.train_state
+        ts = self._seed_train_state(i)
         return sharding.to_host(self._compiled_eval(ts.params, ts.normaliser, self.eval_keys))
+
+    def _seed_train_state(self, i: int) -> actor_critic.TrainingState:
+        """Seed ``i``'s train state on the devices (a group's slice; a single run's own)."""
+        if not self.group:
+            return self.runner.train_state
+        return _seed_slice(self.runner.train_state, np.int32(i))
 
     def anneal(self, metric: float, entropy: float) -> lr_schedule.Decision:
         """A single run's end of cycle by its lr schedule (see ``anneal_seeds``)."""
@@ -620,13 +630,15 @@ class Trainer:
         return self.end_cycles([True])[0]
 
     def end_cycles(self, ending: list[bool]) -> list[dict[str, Any] | None]:
-        """Evaluate (all seeds in one call), anneal and start the next cycle of the seeds in ``ending``;
-        returns each one's row fields."""
-        t = time.perf_counter()
-        ev = self.evaluate()
-        eval_s = time.perf_counter() - t
-        per_seed = [jax.tree_util.tree_map(lambda x: x[i], ev) if self.group else ev for i in range(len(self.seeds))]
-        metric = [float(e.mean_return if self.cfg.sa.metric == "return" else e.success_rate) for e in per_seed]
+        """Evaluate, anneal and start the next cycle of the seeds in ``ending``; returns each one's row fields."""
+        per_seed: list[policy_eval.EvalResult | None] = []
+        eval_s: list[float] = []
+        for i, end in enumerate(ending):
+            t = time.perf_counter()
+            per_seed.append(self.evaluate(i) if end else None)
+            eval_s.append(time.perf_counter() - t)
+        metric = [None if e is None else float(e.mean_return if self.cfg.sa.metric == "return" else e.success_rate)
+                  for e in per_seed]
         entropy = [h.entropy_sum / max(h.entropy_n, 1) for h in self.hosts]
         decisions = self.anneal_seeds([(m, h) if e else None for m, h, e in zip(metric, entropy, ending)])
         out: list[dict[str, Any] | None] = []
@@ -635,7 +647,7 @@ class Trainer:
                 out.append(None)
                 continue
             host.start_cycle()
-            out.append(_cycle_row(host.lr_state, decision, per_seed[i], eval_s, metric[i], entropy[i]))
+            out.append(_cycle_row(host.lr_state, decision, per_seed[i], eval_s[i], metric[i], entropy[i]))
         return out
 
     # ------------------------------------------------------------------ run
@@ -782,6 +794,12 @@ def _cycle_row(state: lr_schedule.ScheduleState, decision: lr_schedule.Decision,
                    temperature=decision.temperature, sa_accepts=sa.n_accept, sa_accept_worse=sa.n_accept_worse,
                    sa_rejects=sa.n_reject, sa_decays=sa.decays)
     return row
+
+
+@jax.jit
+def _seed_slice(tree: Any, i: jax.Array) -> Any:
+    """Seed ``i``'s slice of a group's stacked device tree."""
+    return jax.tree_util.tree_map(lambda x: x[i], tree)
 
 
 @jax.jit
