@@ -27,7 +27,7 @@ import jax
 
 from jax.sharding import PartitionSpec
 
-from sagrasp_jax import config, ppo, train
+from sagrasp_jax import config, sharding, train
 from sagrasp_jax.env import GraspEnv
 from sagrasp_jax.fileio import atomic_write_json
 from sagrasp_jax.wrappers import AutoReset
@@ -53,19 +53,19 @@ def bench_jax(mode: str, batch: int, steps: int, auto_reset: bool, overrides: li
     if devices == 1:
         run = jax.jit(rollout)
     else:  # each device steps its share of the batch (its own random actions), as in training
-        mesh = ppo.make_mesh(jax.devices()[:devices])
-        shard, rep = PartitionSpec(ppo.BATCH_AXIS), PartitionSpec()
+        mesh = sharding.make_mesh(jax.devices()[:devices])
+        shard, rep = PartitionSpec(sharding.BATCH_AXIS), PartitionSpec()
 
         def per_device(state, key):
-            return rollout(state, jax.random.fold_in(key, jax.lax.axis_index(ppo.BATCH_AXIS)))
+            return rollout(state, jax.random.fold_in(key, jax.lax.axis_index(sharding.BATCH_AXIS)))
 
-        sharded = jax.jit(ppo._sharded(per_device, mesh, (shard, rep), (shard, shard)))
-        run = lambda state, key: sharded(state, ppo.replicate(key, mesh))  # noqa: E731
+        sharded = jax.jit(sharding.sharded(per_device, mesh, (shard, rep), (shard, shard)))
+        run = lambda state, key: sharded(state, sharding.replicate(key, mesh))  # noqa: E731
     t0 = time.perf_counter()
     state = reset(jax.random.split(jax.random.PRNGKey(0), batch))
     jax.block_until_ready(state.obs)
     if devices > 1:
-        state = ppo.shard_batch(state, mesh)
+        state = sharding.shard_batch(state, mesh)
     out = run(state, jax.random.PRNGKey(1))
     jax.block_until_ready(out)
     compile_s = time.perf_counter() - t0

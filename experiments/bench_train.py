@@ -20,6 +20,9 @@ Sections (``--sections``, default all; each prints as it goes, then one table an
   at which the fixed-seed evaluation success first reaches 90 / 95 / 98 / 99 %.  A run stops once
   99 % is reached or after ``--budget-s``.  More ``--seeds`` run after the first, warm.
   Then the same command again with the now warm cache, stopped after one cycle: warm compile.
+* ``group``: ``--seeds`` (the seeds in one compiled program) against the same seeds trained one
+  after another, ``--total-steps`` each, both from an empty compilation cache: wall times, their
+  ratio (target <= 0.6), peak RSS and the largest group within 4 GB, the load beside them.
 * ``sb3``: when Stable-Baselines3 imports (this interpreter or ``--sb3-python``), SB3 PPO on
   the PyBullet reference env for ``--sb3-seconds`` (``bench_vs_paper_stack.py``'s worker,
   the paper's Table 2 settings from ``sb3_baseline.py``) and the ratio of training rates; the
@@ -44,7 +47,7 @@ import time
 from typing import Any, Callable
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-SECTIONS = ("env", "profile", "run", "sb3")
+SECTIONS = ("env", "profile", "run", "sb3", "group")
 LEVELS = (0.90, 0.95, 0.98, 0.99)
 
 
@@ -78,7 +81,7 @@ def bench_env(cfg: Any, steps: int, reset_steps: int) -> dict[str, Any]:
     import jax
     from jax.sharding import PartitionSpec
 
-    from sagrasp_jax import ppo
+    from sagrasp_jax import sharding
     from sagrasp_jax.env import GraspEnv
     from sagrasp_jax.wrappers import AutoReset
 
@@ -105,10 +108,10 @@ def bench_env(cfg: Any, steps: int, reset_steps: int) -> dict[str, Any]:
         state, dones = jax.jit(scan_of(step, n))(state, jax.random.PRNGKey(1))
         row: dict[str, Any] = {"episodes_per_env_step": float(dones.sum()) / (n * steps)}
         for d in sorted({1, len(devices)}):
-            mesh = ppo.make_mesh(devices[:d])
-            fn = ppo._sharded(scan_of(step, n // d), mesh, (PartitionSpec(ppo.BATCH_AXIS), PartitionSpec()),
-                              (PartitionSpec(ppo.BATCH_AXIS), PartitionSpec(None, ppo.BATCH_AXIS)))
-            timing = time_jitted(fn, ppo.shard_batch(state, mesh), ppo.replicate(jax.random.PRNGKey(2), mesh), reps=5)
+            mesh = sharding.make_mesh(devices[:d])
+            fn = sharding.sharded(scan_of(step, n // d), mesh, (PartitionSpec(sharding.BATCH_AXIS), PartitionSpec()),
+                              (PartitionSpec(sharding.BATCH_AXIS), PartitionSpec(None, sharding.BATCH_AXIS)))
+            timing = time_jitted(fn, sharding.shard_batch(state, mesh), sharding.replicate(jax.random.PRNGKey(2), mesh), reps=5)
             row[f"{d}_device"] = {"env_steps_per_s": n * steps / timing["wall_s"],
                                   "cpu_us_per_env_step": 1e6 * timing["cpu_s"] / (n * steps),
                                   "compile_s": timing["compile_s"], "load": load()}
@@ -126,7 +129,7 @@ def bench_profile(cfg: Any) -> dict[str, Any]:
     import jax.numpy as jnp
     import numpy as np
 
-    from sagrasp_jax import collision, control, observation, ppo, robot, train
+    from sagrasp_jax import actor_critic, collision, control, losses, metrics_window, observation, ppo, robot, rollout, sharding, train
     from sagrasp_jax.config import training_env_config
     from sagrasp_jax.env import GraspEnv
     from sagrasp_jax.wrappers import AutoReset
@@ -179,31 +182,30 @@ def bench_profile(cfg: Any) -> dict[str, Any]:
     timed("env step + auto-reset (30-step episodes)", env_steps(short.batch_step), short_states, actions)
 
     extra = observation.critic_extra_size(cfg)  # the privileged critic's inputs, as in training
-    nets = ppo.make_networks(cfg.ppo.network, env.observation_size, env.action_size, cfg.ppo.obs_clip, extra)
-    opt = ppo.make_optimizer(cfg.ppo, 3e-4)
-    ts = ppo.init_training_state(key, nets, opt, env.observation_size)
+    nets = actor_critic.make_networks(cfg.ppo.network, env.observation_size, env.action_size, cfg.ppo.obs_clip, extra)
+    opt = actor_critic.make_optimizer(cfg.ppo, 3e-4)
+    ts = actor_critic.init_training_state(key, nets, opt, env.observation_size)
     obs = jax.random.normal(key, (t_len, n, env.observation_size))
     timed("policy forward + sampling", over_steps(
-        lambda x, tr: ppo.sample_action(nets, tr.params, tr.normaliser, x[0], x[1])[:2]),
+        lambda x, tr: actor_critic.sample_action(nets, tr.params, tr.normaliser, x[0], x[1])[:2]),
         (obs, jax.random.split(key, t_len)), ts)
-    data = ppo.Transition(obs=obs, critic_extra=jax.random.normal(key, (t_len, n, extra)), raw_action=actions, log_prob=actions[..., 0], reward=actions[..., 1],
+    data = rollout.Transition(obs=obs, critic_extra=jax.random.normal(key, (t_len, n, extra)), raw_action=actions, log_prob=actions[..., 0], reward=actions[..., 1],
                           done=(actions[..., 2] > 0.9).astype(jnp.float32))
 
     def gae(tr: Any, d: Any) -> Any:
         norm = ppo.update_normaliser(tr.normaliser, d.obs, cfg.ppo, hand_scaled)
-        entropy = ppo.mean_policy_entropy(nets, tr.params, tr.normaliser, d.obs)
-        return ppo.make_batch(nets, tr.params, norm, d, d.obs[-1], cfg.ppo, d.critic_extra[-1]), entropy
+        entropy = actor_critic.mean_policy_entropy(nets, tr.params, tr.normaliser, d.obs)
+        return losses.make_batch(nets, tr.params, norm, d, d.obs[-1], cfg.ppo, d.critic_extra[-1]), entropy
 
     timed("normaliser + entropy + value net + GAE", gae, ts, data)
     batch = jax.jit(gae)(ts, data)[0]
     timed("minibatch SGD (epochs x minibatches)",
           lambda tr, b, k: ppo.sgd_epochs(tr.params, tr.opt_state, tr.normaliser, b, k, nets, opt, cfg.ppo)[:2],
           ts, batch, key)
-    if hasattr(ppo, "update_window"):
-        win = ppo.init_window(tuple(states.info["episode"]), cfg.train.metrics_window)
-        episodes = dict(jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (t_len,) + x.shape), states.info["episode"]),
-                        done=data.done)
-        timed("training-episode window (device side)", ppo.update_window, win, episodes)
+    win = metrics_window.init_window(tuple(states.info["episode"]), cfg.train.metrics_window)
+    episodes = dict(jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (t_len,) + x.shape), states.info["episode"]),
+                    done=data.done)
+    timed("training-episode window (device side)", metrics_window.update_window, win, episodes)
 
     # the real thing: the trainer's jitted call on the preset and the SA evaluation, on 1 device and
     # on all devices, the two trainers' calls interleaved so that both see the same load
@@ -227,10 +229,10 @@ def bench_profile(cfg: Any) -> dict[str, Any]:
                 timing[d]["eval"].append(time.perf_counter() - t)
     for d, tr in trainers.items():
         k = tr.schedule.iterations_per_cycle
-        out = jax.block_until_ready(tr._compiled_cycle(*tr._cycle_args(k)))
+        out = jax.block_until_ready(tr._compiled_cycle(*tr._cycle_args([k])))
         for _ in range(5):
             t = time.perf_counter()
-            ppo.to_host(out[3])
+            sharding.to_host(out[3])
             timing[d]["sync"].append((time.perf_counter() - t) / k)
         cycle_iters = tr.schedule.num_iterations / tr.schedule.num_cycles
         pieces[f"training call per iteration, {d} device(s) (the real fused program)"] = {
@@ -353,6 +355,73 @@ def bench_run(preset: str, seeds: list[int], overrides: list[str], budget_s: flo
                                                          "startup_s", "peak_rss_mb", "load_during")}}
 
 
+def timed_train(args: list[str], cache_dir: str, root: str = ROOT) -> dict[str, Any]:
+    """Wall time (launch to exit, compile included), peak RSS and load of one ``python -m sagrasp_jax.train``."""
+    cmd = [sys.executable, "-m", "sagrasp_jax.train", "--no-progress", *args]
+    env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=cache_dir)
+    loads, peak_kb = [load()], 0
+    t = time.perf_counter()
+    proc = subprocess.Popen(cmd, cwd=root, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    while proc.poll() is None:
+        peak_kb = max(peak_kb, _vm_hwm_kb(proc.pid) or 0)
+        time.sleep(0.5)
+    wall = time.perf_counter() - t
+    log = proc.stdout.read() if proc.stdout else ""
+    if proc.returncode:
+        raise RuntimeError(f"{' '.join(cmd)} exited {proc.returncode}:\n{log[-3000:]}")
+    loads.append(load())
+    return {"command": "python -m sagrasp_jax.train " + " ".join(args), "wall_s": wall, "peak_rss_mb": peak_kb / 1024,
+            "load_start_end": loads}
+
+
+def last_eval_success(folder: str) -> float | None:
+    from sagrasp_jax.train import METRICS_FILE, read_metrics
+
+    return next((r["eval_success"] for r in reversed(read_metrics(os.path.join(folder, METRICS_FILE)))
+                 if "eval_success" in r), None)
+
+
+def bench_group(preset: str, seeds: list[int], total_steps: int, overrides: list[str], work: str,
+                root: str = ROOT, rss_limit_mb: float = 4096.0) -> dict[str, Any]:
+    """``--seeds`` (one program) against the same seeds one after another, the same steps per seed.
+
+    Each arm starts with an empty persistent compilation cache: the sequential runs compile once
+    and then hit the cache, the group compiles its own program once.  The largest group within
+    ``rss_limit_mb`` is extrapolated from the peak RSS of one run and of the N-seed group
+    (memory grows linearly with the seeds: their stacked state and batch)."""
+    sets = [a for o in overrides for a in ("--set", o)]
+    base = ["--preset", preset, "--algo", "sa-ppo", "--total-steps", str(total_steps), *sets]
+    uptime_start = os.getloadavg()
+    sequential = {}
+    for seed in seeds:
+        print(f"  seed {seed} alone ...", flush=True)
+        sequential[f"seed{seed}"] = timed_train(base + ["--seed", str(seed), "--out", os.path.join(work, "alone", f"seed{seed}")],
+                                                os.path.join(work, "cache_alone"), root)
+        print(f"    {sequential[f'seed{seed}']['wall_s']:.0f} s, load {sequential[f'seed{seed}']['load_start_end']}",
+              flush=True)
+    print(f"  seeds {seeds} as one group ...", flush=True)
+    group = timed_train(base + ["--seeds", ",".join(map(str, seeds)), "--out", os.path.join(work, "group")],
+                        os.path.join(work, "cache_group"), root)
+    print(f"    {group['wall_s']:.0f} s, load {group['load_start_end']}", flush=True)
+    seq_wall = sum(r["wall_s"] for r in sequential.values())
+    single_rss = max(r["peak_rss_mb"] for r in sequential.values())
+    per_seed = max((group["peak_rss_mb"] - single_rss) / max(len(seeds) - 1, 1), 1e-9)
+    success = {f"seed{s}": {"alone": last_eval_success(os.path.join(work, "alone", f"seed{s}")),
+                            "group": last_eval_success(os.path.join(work, "group", f"seed{s}"))} for s in seeds}
+    return {
+        "seeds": seeds, "total_steps_per_seed": total_steps,
+        "sequential": sequential, "sequential_wall_s": seq_wall,
+        "group": group, "group_wall_s": group["wall_s"], "ratio_group_to_sequential": group["wall_s"] / seq_wall,
+        "target_ratio": 0.6,
+        "rss_mb": {"single_run": single_rss, "group": group["peak_rss_mb"], "per_extra_seed": per_seed,
+                   "limit": rss_limit_mb,
+                   "largest_group_within_limit": int((rss_limit_mb - (single_rss - per_seed)) // per_seed)},
+        "last_cycle_eval_success": success,
+        "uptime_load_1_5_15": {"start": list(uptime_start), "end": list(os.getloadavg())},
+        "cores": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
+    }
+
+
 def _fmt_reach(value: Any) -> str:
     return f"{value['wall_s']:.0f} s" if isinstance(value, dict) else str(value)
 
@@ -460,6 +529,20 @@ def table(result: dict[str, Any]) -> str:
                      f"{first['compile_s']:>10.1f} s / {first['startup_s']:.1f} s")
         lines.append(f"{'compile, warm (cached): compile_s / launch to training':58s} "
                      f"{run['warm']['compile_s']:>10.1f} s / {run['warm']['startup_s']:.1f} s")
+    group = result.get("group")
+    if group:
+        n, steps = len(group["seeds"]), group["total_steps_per_seed"]
+        label = f"{n} seeds one after another, {steps:,} steps each (wall)"
+        lines.append(f"{label:58s} {group['sequential_wall_s']:>10.0f} s")
+        label = f"{n} seeds as one group (--seeds), the same steps (wall)"
+        lines.append(f"{label:58s} {group['group_wall_s']:>10.0f} s"
+                     f"   = {group['ratio_group_to_sequential']:.2f} x (target <= {group['target_ratio']})")
+        rss = group["rss_mb"]
+        lines.append(f"{'peak RSS one run / group / per extra seed':58s} {rss['single_run']:>10.0f} / "
+                     f"{rss['group']:.0f} / {rss['per_extra_seed']:.0f} MB; largest group in "
+                     f"{rss['limit'] / 1024:.0f} GB: {rss['largest_group_within_limit']}")
+        lines.append(f"{'load (1/5/15 min) at start / end':58s} {group['uptime_load_1_5_15']['start']} / "
+                     f"{group['uptime_load_1_5_15']['end']}")
     prof = result.get("profile")
     if prof:
         it = prof["pieces"][prof["reference_piece"]]["wall_s"]
@@ -511,6 +594,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--reset-steps", type=int, default=30, help="episode cap for the training-like auto-reset rate")
     p.add_argument("--sb3-python", default=None, help="interpreter with stable-baselines3 (default: this one, if it has it)")
     p.add_argument("--sb3-seconds", type=float, default=120.0)
+    p.add_argument("--total-steps", type=int, default=None,
+                   help="group section: env steps per seed (default the preset's)")
     p.add_argument("--out", default="experiments/results/bench_train_cpu.json")
     p.add_argument("--trainer-root", default=ROOT, help="source tree whose trainer the run section starts "
                    "(e.g. an older checkout, for before/after; put it first on PYTHONPATH too)")
@@ -549,6 +634,10 @@ def main(argv: list[str] | None = None) -> int:
             print("[run] the README command", flush=True)
             result["run"] = bench_run(args.preset, args.seeds, args.overrides, args.budget_s, work,
                                       os.path.abspath(args.trainer_root))
+        if "group" in sections:
+            print(f"[group] {len(args.seeds)} seeds in one program against one after another", flush=True)
+            result["group"] = bench_group(args.preset, args.seeds, args.total_steps or cfg.train.total_steps,
+                                          args.overrides, work, os.path.abspath(args.trainer_root))
         if "sb3" in sections:
             print("[sb3] the paper's stack", flush=True)
             result["sb3"] = bench_sb3_section(args.sb3_python, args.sb3_seconds, work)

@@ -40,18 +40,18 @@ if __name__ == "__main__":  # a missing extra ends in one line naming it (exit 2
 import jax  # noqa: E402
 import numpy as np
 
-from sagrasp_jax import ppo, run_dir
+from sagrasp_jax import actor_critic, policy_eval, rollout, run_dir
 from sagrasp_jax.checkpoint import CheckpointError
 from sagrasp_jax.config import EVAL_CONDITIONS, SEED_RANGE, Config, ConfigError, blocking_sampling, check_range, file_overrides
 from sagrasp_jax.run_dir import RunDirError
 
-EvalEnvFactory = Callable[[Config], ppo.Env]
+EvalEnvFactory = Callable[[Config], rollout.Env]
 SCENE_SETS = ("mix", "blocking")
 MAX_EPISODES = 100_000  # one batch: every episode's env state is in memory at once
 MAX_STEPS = 100_000
 
 
-def default_eval_env(cfg: Config) -> ppo.Env:
+def default_eval_env(cfg: Config) -> rollout.Env:
     from sagrasp_jax.env import GraspEnv
 
     return GraspEnv(cfg.env)
@@ -153,10 +153,11 @@ def evaluate_run(run: str, episodes: int = 1000, seed: int | None = None, max_st
     trained = trained_identity(cfg, ckpt)
     env = (env_factory or default_eval_env)(scene_config(env_overrides(cfg, overrides), scenes))
     params, normaliser = run_dir.restore_policy(cfg, ckpt, env.observation_size, env.action_size)
-    networks = ppo.make_networks(cfg.ppo.network, env.observation_size, env.action_size, cfg.ppo.obs_clip)
+    networks = actor_critic.make_networks(cfg.ppo.network, env.observation_size, env.action_size, cfg.ppo.obs_clip)
     seed, steps = resolve_options(cfg, seed, max_steps)
     t = time.perf_counter()
-    result = jax.device_get(ppo.make_evaluator(networks, env, steps)(params, normaliser, ppo.eval_keys(seed, episodes)))
+    keys = policy_eval.eval_keys(seed, episodes)
+    result = jax.device_get(policy_eval.make_evaluator(networks, env, steps)(params, normaliser, keys))
     wall = time.perf_counter() - t
     eps = {k: np.asarray(v) for k, v in result.episodes.items()}
     present = eps["obstacle_present"] > 0 if "obstacle_present" in eps else np.zeros(episodes, bool)
@@ -207,7 +208,7 @@ def evaluate_physical(run: str, episodes: int, seed: int, max_steps: int, lift: 
     pose, and run the physical grasp check (``physical.physical_grasp_check``) on every kinematic
     success.
 
-    The replay goes through ``ppo.evaluate_policy`` with the env wrapped to copy the final
+    The replay goes through ``policy_eval.evaluate_policy`` with the env wrapped to copy the final
     joints into the episode record, so it is the evaluation's own code path; the kinematic
     success count is reported next to the physical one so a mismatch would show.  As the
     deployment loop does, the gripper first centres on the cube the policy saw (the true cube plus
@@ -269,9 +270,9 @@ def replay_final_poses(run: str, episodes: int, seed: int, max_steps: int,
     env_cfg = env_overrides(run_dir.load_config(run), overrides).env
     env = _FinalPoseRecorder(GraspEnv(env_cfg))
     cfg, params, normaliser, _ = run_dir.load_policy_state(run, env.observation_size, env.action_size)
-    networks = ppo.make_networks(cfg.ppo.network, env.observation_size, env.action_size, cfg.ppo.obs_clip)
-    keys = ppo.eval_keys(seed, episodes)
-    result = jax.device_get(ppo.make_evaluator(networks, env, max_steps)(params, normaliser, keys))
+    networks = actor_critic.make_networks(cfg.ppo.network, env.observation_size, env.action_size, cfg.ppo.obs_clip)
+    keys = policy_eval.eval_keys(seed, episodes)
+    result = jax.device_get(policy_eval.make_evaluator(networks, env, max_steps)(params, normaliser, keys))
     first = jax.device_get(jax.jit(jax.vmap(env.reset))(keys).info)
     target_error = np.asarray(first["randomize"]["target_error"]) if "randomize" in first else np.zeros((episodes, 3))
     eps = {k: np.asarray(v) for k, v in result.episodes.items()}
@@ -281,7 +282,7 @@ def replay_final_poses(run: str, episodes: int, seed: int, max_steps: int,
 
 class _FinalPoseRecorder:
     """Env wrapper that copies the measured arm joints (``GraspEnv.measured_joints``) into ``info["episode"]``
-    as scalar entries ``final_q1..6`` (scalars, so ``ppo.evaluate_policy`` keeps them per episode)."""
+    as scalar entries ``final_q1..6`` (scalars, so ``policy_eval.evaluate_policy`` keeps them per episode)."""
 
     ARM_DOF = 6
 

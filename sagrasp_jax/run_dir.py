@@ -13,7 +13,7 @@ A run folder (``python -m sagrasp_jax.train --out RUN``) holds:
 
 Every file is written through ``fileio`` (temp file + rename), so a kill leaves either the old
 or the new file, plus at worst a temp file that the next writer removes; ``metrics.jsonl`` is
-appended by :class:`RunLogger` (a line cut short by a kill is dropped when it is read back).
+appended by :class:`MetricsLog` (a line cut short by a kill is dropped when it is read back).
 
 **Lock.** A command that writes into a folder (``train`` into its run, ``export`` into its
 output folder) holds :class:`FolderLock` on it for as long as it writes; a second writer is
@@ -52,7 +52,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from sagrasp_jax import checkpoint, fileio, observation, ppo, runtime
+from sagrasp_jax import actor_critic, checkpoint, fileio, observation, runtime, sharding
 from sagrasp_jax.control import ACTION_SIZE
 from sagrasp_jax.config import Config, ConfigError, config_from_dict, config_to_dict
 
@@ -307,12 +307,10 @@ def _json_safe(value: Any) -> Any:
     return value
 
 
-class RunLogger:
-    """metrics.jsonl + TensorBoard; on resume drops rows past the checkpoint so the log stays exact."""
+class MetricsLog:
+    """metrics.jsonl, one row per line; on resume drops rows past the checkpoint so the log stays exact."""
 
-    def __init__(self, out_dir: str, resume_iteration: int, resume_step: int) -> None:
-        from tensorboardX import SummaryWriter
-
+    def __init__(self, out_dir: str, resume_iteration: int) -> None:
         self.path = os.path.join(out_dir, METRICS_FILE)
         if os.path.exists(self.path):
             keep = [line for line in read_metrics(self.path) if line.get("iteration", -1) < resume_iteration]
@@ -320,12 +318,6 @@ class RunLogger:
             text = "".join(json.dumps(_json_safe(r), allow_nan=False) + "\n" for r in keep)
             fileio.atomic_write_text(self.path, text)  # under the run folder's lock
         self.file = open(self.path, "ab", buffering=0)  # unbuffered: a failed row is cut off at once
-        tb = os.path.join(out_dir, TB_DIR)
-        try:
-            self.tb = SummaryWriter(tb, purge_step=resume_step + 1 if resume_step else None)
-        except OSError as exc:
-            self.file.close()
-            raise _write_error(tb, exc) from None
 
     def write(self, row: dict[str, Any]) -> None:
         clean = {k: _json_safe(v) for k, v in row.items()}
@@ -337,17 +329,35 @@ class RunLogger:
         except OSError as exc:  # a full disk: no partial row stays behind
             self.file.truncate(start)
             raise _write_error(self.path, exc) from None
+
+    def close(self) -> None:
+        self.file.close()
+
+
+class TensorBoardLog:
+    """tb/: every numeric field of a row as a scalar at its env step; on resume purges the steps past the checkpoint."""
+
+    def __init__(self, out_dir: str, resume_step: int) -> None:
+        from tensorboardX import SummaryWriter
+
+        self.folder = os.path.join(out_dir, TB_DIR)
+        try:
+            self.tb = SummaryWriter(self.folder, purge_step=resume_step + 1 if resume_step else None)
+        except OSError as exc:
+            raise _write_error(self.folder, exc) from None
+
+    def write(self, row: dict[str, Any]) -> None:
         step = int(row["env_steps"])
-        for key, value in clean.items():
+        for key, value in row.items():
+            value = _json_safe(value)
             if isinstance(value, (int, float)) and not isinstance(value, bool) and key not in ("iteration", "env_steps"):
                 self.tb.add_scalar(f"train/{key}", value, step)
         try:
             self.tb.flush()  # here, not only in tensorboardX's writer thread: a full disk shows in this one
         except OSError as exc:
-            raise _write_error(os.path.join(os.path.dirname(self.path), TB_DIR), exc) from None
+            raise _write_error(self.folder, exc) from None
 
     def close(self) -> None:
-        self.file.close()
         try:
             self.tb.close()
         except OSError:
@@ -392,18 +402,18 @@ def checkpoint_counters(ckpt: checkpoint.Checkpoint) -> dict[str, Any]:
 
 
 def restore_policy(cfg: Config, ckpt: checkpoint.Checkpoint, obs_size: int,
-                   action_size: int) -> tuple[ppo.Params, ppo.Normaliser]:
+                   action_size: int) -> tuple[actor_critic.Params, actor_critic.Normaliser]:
     """Params and normaliser from a loaded checkpoint (structure, shapes and dtypes checked)."""
-    networks = ppo.make_networks(cfg.ppo.network, obs_size, action_size, cfg.ppo.obs_clip,
+    networks = actor_critic.make_networks(cfg.ppo.network, obs_size, action_size, cfg.ppo.obs_clip,
                                  observation.critic_extra_size(cfg))
-    optimizer = ppo.make_optimizer(cfg.ppo, cfg.ppo.learning_rate)
-    template = ppo.init_training_state(jax.random.PRNGKey(0), networks, optimizer, obs_size)
+    optimizer = actor_critic.make_optimizer(cfg.ppo, cfg.ppo.learning_rate)
+    template = actor_critic.init_training_state(jax.random.PRNGKey(0), networks, optimizer, obs_size)
     ts = checkpoint.restore_tree(template, ckpt.trees.get("train_state", {}), "train_state", ckpt.path)
     return ts.params, ts.normaliser
 
 
 def load_policy_state(run: str, obs_size: int | None = None, action_size: int = ACTION_SIZE
-                      ) -> tuple[Config, ppo.Params, ppo.Normaliser, dict[str, Any]]:
+                      ) -> tuple[Config, actor_critic.Params, actor_critic.Normaliser, dict[str, Any]]:
     """Config, params and normaliser of the run's latest checkpoint (and its counters); the
     observation size defaults to that of the run's observation layout."""
     cfg = load_config(run)
@@ -439,8 +449,8 @@ def check_init_from(cfg: Config) -> tuple[Config, checkpoint.Checkpoint]:
     return src, ckpt
 
 
-def init_policy_state(ts: ppo.TrainingState, cfg: Config, obs_size: int, action_size: int = ACTION_SIZE
-                      ) -> ppo.TrainingState:
+def init_policy_state(ts: actor_critic.TrainingState, cfg: Config, obs_size: int, action_size: int = ACTION_SIZE
+                      ) -> actor_critic.TrainingState:
     """``ts`` with the policy, value network and normaliser of ``cfg.train.init_from``'s checkpoint: a
     fine-tuning start, e.g. a kinematic run continued in dynamic mode.  The optimizer state stays
     ``ts``'s (fresh), and so does everything else of the run (SA schedule, envs, counters)."""
@@ -449,9 +459,9 @@ def init_policy_state(ts: ppo.TrainingState, cfg: Config, obs_size: int, action_
     return ts._replace(params=params, normaliser=normaliser)
 
 
-def export_policy(file: str, cfg: Config, params: ppo.Params, normaliser: ppo.Normaliser, obs_size: int) -> str:
+def export_policy(file: str, cfg: Config, params: actor_critic.Params, normaliser: actor_critic.Normaliser, obs_size: int) -> str:
     """Write the deterministic policy (weights + normaliser) as ``runtime``'s ``policy.npz``."""
-    layers = ppo.to_host(params.policy["params"])
+    layers = sharding.to_host(params.policy["params"])
     weights = [(np.asarray(layers[f"hidden_{i}"]["kernel"]), np.asarray(layers[f"hidden_{i}"]["bias"]))
                for i in range(len(layers))]
     names = observation.layout_of(cfg.env)

@@ -47,6 +47,38 @@ def toy_config(cycles: int = 6, algo: str = "sa-ppo", extra: list[str] | None = 
     return train.build_config("cpu-quick", algo, 0, total, sets + list(extra or []))
 
 
+FIRST_GRADIENT_SETS = ["ppo.num_minibatches=1", "ppo.num_epochs=1", "ppo.entropy_coef=0.0"]
+
+
+def first_gradients(env: Any, cfg: Config, mesh: Any) -> list[Any]:
+    """The first iteration's loss and gradients by the training call itself (``ppo.make_cycle``, one
+    iteration): with plain SGD at lr 1 the update is minus the gradient.  ``cfg`` has one minibatch,
+    one epoch and no entropy bonus (``FIRST_GRADIENT_SETS``): each device shuffles its own rows, and
+    the entropy estimate's noise follows the shuffle, so only then is the update the whole batch's
+    gradient whatever the device count."""
+    import jax
+    import numpy as np
+    import optax
+
+    from sagrasp_jax import actor_critic, metrics_window, ppo, rollout, sharding
+
+    assert (cfg.ppo.num_minibatches, cfg.ppo.num_epochs, cfg.ppo.entropy_coef) == (1, 1, 0.0)
+    nets = actor_critic.make_networks(cfg.ppo.network, env.observation_size, env.action_size, cfg.ppo.obs_clip)
+    sgd = optax.chain(optax.clip_by_global_norm(1e30), optax.inject_hyperparams(optax.sgd)(learning_rate=1.0))
+    ts = sharding.replicate(actor_critic.init_training_state(jax.random.PRNGKey(0), nets, sgd, env.observation_size),
+                            mesh)
+    es = rollout.make_reset(env, mesh)(sharding.shard_batch(jax.random.split(jax.random.PRNGKey(1), cfg.ppo.num_envs),
+                                                            mesh))
+    window = metrics_window.init_window(("return", "success", "steps"), 8)
+    args = (window, jax.random.PRNGKey(2), np.int32(0), np.int32(1), np.zeros(1, np.float32), np.zeros(1, np.float32))
+    cycle = ppo.make_cycle(env, nets, sgd, cfg.ppo, mesh, 1)
+    new, _, _, metrics = cycle(ts, es, *sharding.replicate(args, mesh))
+    before, after = sharding.to_host((ts.params, new.params))
+    grads = jax.tree_util.tree_map(lambda a, b: np.asarray(a, np.float64) - b, before, after)
+    assert bool(sharding.to_host(metrics["executed"])[0])
+    return [np.asarray(sharding.to_host(metrics["loss"])[0])] + jax.tree_util.tree_leaves(grads)
+
+
 def toy_factory(nan_progress: tuple[float, float] | None = None) -> Any:
     """The toy envs; the training env reports privileged critic inputs when the config has a privileged
     critic (as many as ``observation.critic_extra_size`` asks for)."""

@@ -114,14 +114,14 @@ def main() -> None:
 
     train.Trainer.compile = compile
     if args.slow:
-        step = train.Trainer.run_iterations
+        step = train.Trainer.run_calls
 
-        def run_iterations(self, count):  # type: ignore[no-untyped-def]
-            rows = step(self, count)
-            time.sleep(args.slow * len(rows))  # as slow as before, one sleep per iteration
+        def run_calls(self, counts):  # type: ignore[no-untyped-def]
+            rows = step(self, counts)
+            time.sleep(args.slow * sum(len(r) for r in rows))  # as slow as before, one sleep per iteration
             return rows
 
-        train.Trainer.run_iterations = run_iterations
+        train.Trainer.run_calls = run_calls
     if args.cli:
         train.default_envs = toy_factory()
         code = train.main(["--out", args.out, "--resume", "--no-progress"])

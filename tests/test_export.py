@@ -76,19 +76,19 @@ def test_onnx_graph_is_plain_opset17_with_metadata(exported: str) -> None:
 
 
 def test_npz_onnx_and_jax_actions_agree(exported: str, run_dir: str) -> None:
-    """1,000 observations: the NumPy runtime, onnxruntime and ppo.deterministic_action (same params and
+    """1,000 observations: the NumPy runtime, onnxruntime and actor_critic.deterministic_action (same params and
     normaliser, from the run's checkpoint) agree within 1e-5."""
     import jax.numpy as jnp
 
-    from sagrasp_jax import ppo
+    from sagrasp_jax import actor_critic
 
     policy = load_policy(os.path.join(exported, "policy.npz"))
     obs = export.check_observations(policy, 1000, seed=7)
     a_npz = policy(obs)
     a_onnx = export.onnx_actions(os.path.join(exported, "policy.onnx"), obs)
     cfg, params, normaliser, _ = export.load_run(run_dir)
-    networks = ppo.make_networks(cfg.ppo.network, 17, 6, cfg.ppo.obs_clip)
-    a_jax = np.asarray(ppo.deterministic_action(networks, params, normaliser, jnp.asarray(obs, jnp.float32)))
+    networks = actor_critic.make_networks(cfg.ppo.network, 17, 6, cfg.ppo.obs_clip)
+    a_jax = np.asarray(actor_critic.deterministic_action(networks, params, normaliser, jnp.asarray(obs, jnp.float32)))
     assert a_npz.shape == a_onnx.shape == a_jax.shape == (1000, 6)
     assert np.abs(a_npz).max() > 0.05  # a trivial all-zero policy would agree trivially
     diffs = {

@@ -200,7 +200,7 @@ def test_privileged_critic_trains_and_exports_a_policy_without_it(tmp_path):
     import jax
     import jax.numpy as jnp
 
-    from sagrasp_jax import ppo, runtime, train
+    from sagrasp_jax import actor_critic, ppo, runtime, train
     from sagrasp_jax.env import GraspEnv
 
     cfg = train.build_config("cpu-quick", overrides=["env.task.obs_layout=relative", "ppo.privileged_critic=true",
@@ -209,12 +209,12 @@ def test_privileged_critic_trains_and_exports_a_policy_without_it(tmp_path):
     env = GraspEnv(cfg.env, privileged=True)
     state = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(0), 8))
     assert state.info["privileged"].shape == (8, 25) and state.obs.shape == (8, 29)
-    nets = ppo.make_networks(cfg.ppo.network, 29, 6, cfg.ppo.obs_clip, critic_extra=25)
-    ts = ppo.init_training_state(jax.random.PRNGKey(1), nets, ppo.make_optimizer(cfg.ppo, 3e-4), 29)
+    nets = actor_critic.make_networks(cfg.ppo.network, 29, 6, cfg.ppo.obs_clip, critic_extra=25)
+    ts = actor_critic.init_training_state(jax.random.PRNGKey(1), nets, actor_critic.make_optimizer(cfg.ppo, 3e-4), 29)
     assert ts.params.value["params"]["hidden_0"]["kernel"].shape[0] == 54
     assert ts.params.policy["params"]["hidden_0"]["kernel"].shape[0] == 29
     step = jax.jit(lambda t, s, k: ppo.iteration(t, s, k, jnp.float32(0.5), env=_Batched(env), networks=nets,
-                                                 optimizer=ppo.make_optimizer(cfg.ppo, 3e-4), cfg=cfg.ppo,
+                                                 optimizer=actor_critic.make_optimizer(cfg.ppo, 3e-4), cfg=cfg.ppo,
                                                  critic_extra=25))
     new_ts, _, metrics = step(ts, state, jax.random.PRNGKey(2))
     assert bool(metrics["finite"]) and float(metrics["value_loss"]) > 0
@@ -226,7 +226,7 @@ def test_privileged_critic_trains_and_exports_a_policy_without_it(tmp_path):
 
 
 class _Batched:
-    """vmap a single-env GraspEnv for ppo.rollout (no auto-reset needed for one short rollout)."""
+    """vmap a single-env GraspEnv for the rollout (no auto-reset needed for one short rollout)."""
 
     def __init__(self, env):
         self.env, self.observation_size, self.action_size = env, env.observation_size, env.action_size

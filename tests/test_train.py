@@ -14,7 +14,7 @@ import pytest
 
 from conftest import toy_config, toy_factory
 
-from sagrasp_jax import lr_schedule, ppo, run_dir, runtime, train
+from sagrasp_jax import actor_critic, lr_schedule, policy_eval, run_dir, runtime, train
 from sagrasp_jax.checkpoint import CheckpointError
 
 
@@ -86,7 +86,7 @@ def test_sa_reject_restores_the_snapshot_bit_for_bit(tmp_path):
     tr.anneal(metric=-1e9, entropy=0.5)
     third = tr.anneal(metric=-1e9, entropy=0.5)
     assert third.decayed and tr.lr == pytest.approx(cfg.ppo.learning_rate * cfg.sa.decay)
-    assert ppo.get_learning_rate(tr.train_state.opt_state) == pytest.approx(tr.lr)
+    assert actor_critic.get_learning_rate(tr.train_state.opt_state) == pytest.approx(tr.lr)
     assert _leaves_equal(tr.train_state.params, accepted.params)
 
 
@@ -202,11 +202,11 @@ def test_short_cpu_quick_run_learns_to_grasp(trained_run):
     with open(os.path.join(trained_run, run_dir.evaluation_file(256, cfg.eval.seed + 1))) as f:
         trained = json.load(f)["overall"]
     env = GraspEnv(cfg.env)
-    nets = ppo.make_networks(cfg.ppo.network, env.observation_size, env.action_size, cfg.ppo.obs_clip)
-    ts = ppo.init_training_state(jax.random.PRNGKey(0), nets, ppo.make_optimizer(cfg.ppo, 3e-4),
+    nets = actor_critic.make_networks(cfg.ppo.network, env.observation_size, env.action_size, cfg.ppo.obs_clip)
+    ts = actor_critic.init_training_state(jax.random.PRNGKey(0), nets, actor_critic.make_optimizer(cfg.ppo, 3e-4),
                                  env.observation_size)
-    untrained = ppo.make_evaluator(nets, env, cfg.env.task.max_steps)(ts.params, ts.normaliser,
-                                                                       ppo.eval_keys(cfg.eval.seed + 1, 256))
+    untrained = policy_eval.make_evaluator(nets, env, cfg.env.task.max_steps)(ts.params, ts.normaliser,
+                                                                       policy_eval.eval_keys(cfg.eval.seed + 1, 256))
     rows = run_dir.read_metrics(os.path.join(trained_run, run_dir.METRICS_FILE))
     print(f"untrained success {float(untrained.success_rate):.3f}, trained {trained['success_rate']:.3f} "
           f"(CI {trained['success_ci95']}), steps/success {trained['mean_steps_per_success']}, "
@@ -238,7 +238,7 @@ def test_every_schedule_resumes_exactly(tmp_path, schedule, extra):
     assert (resumed.sa_state is None) == (schedule != "sa")
     rows = _rows(half_dir)
     lrs = [r["lr"] for r in rows]
-    device_lr = ppo.get_learning_rate(full.train_state.opt_state)
+    device_lr = actor_critic.get_learning_rate(full.train_state.opt_state)
     if schedule == "constant":
         assert set(lrs) == {cfg.ppo.learning_rate}
     elif schedule == "kl-adaptive":
@@ -264,7 +264,7 @@ def test_kl_adaptive_adapts_after_every_minibatch(tmp_path):
         tr = train.Trainer(cfg, str(tmp_path / str(desired)), env_factory=toy_factory(), progress=False)
         row = tr.run_iteration()
         assert row["step_kl"] > 0.0 and row["approx_kl"] > row["step_kl"]  # approx_kl also sees the normaliser move
-        assert ppo.get_learning_rate(tr.train_state.opt_state) == pytest.approx(expected, rel=1e-5)
+        assert actor_critic.get_learning_rate(tr.train_state.opt_state) == pytest.approx(expected, rel=1e-5)
         assert tr.lr == pytest.approx(expected, rel=1e-5) and row["lr"] == pytest.approx(expected, rel=1e-5)
 
 

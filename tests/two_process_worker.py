@@ -1,4 +1,5 @@
-"""Worker of tests/test_distributed.py: the first iteration's gradients, either in one process with
+"""Worker of tests/test_distributed.py: the first iteration's gradients (by the training call,
+``conftest.first_gradients``), either in one process with
 two CPU devices (``single``) or as one of two ``jax.distributed`` processes with one CPU device
 each (``proc``; gloo collectives), which then also train a tiny toy run together.
 
@@ -29,27 +30,20 @@ def main() -> int:
     import jax
     import numpy as np
 
-    from conftest import toy_config, toy_factory
-    from sagrasp_jax import ppo, train
+    from conftest import FIRST_GRADIENT_SETS, first_gradients, toy_config, toy_factory
+    from sagrasp_jax import sharding, train
 
     assert len(jax.devices()) == 2, jax.devices()
     cfg = toy_config(cycles=2)
     env, _ = toy_factory()(cfg)
-    nets = ppo.make_networks(cfg.ppo.network, env.observation_size, env.action_size, cfg.ppo.obs_clip)
-    opt = ppo.make_optimizer(cfg.ppo, 3e-4)
+    grad_cfg = toy_config(cycles=2, extra=FIRST_GRADIENT_SETS)
 
-    def first_gradients(mesh):
-        ts = ppo.replicate(ppo.init_training_state(jax.random.PRNGKey(0), nets, opt, env.observation_size), mesh)
-        keys = ppo.shard_batch(jax.random.split(jax.random.PRNGKey(1), cfg.ppo.num_envs), mesh)
-        es = ppo.make_reset(env, mesh)(keys)
-        key = ppo.replicate(jax.random.PRNGKey(2), mesh)
-        loss, grads = ppo.make_first_gradients(env, nets, cfg.ppo, mesh)(ts, es, key)
-        leaves = ppo.to_host(jax.tree_util.tree_leaves((loss, grads)))
-        return {f"leaf{i}": np.asarray(x) for i, x in enumerate(leaves)}
+    def leaves(mesh):
+        return {f"leaf{i}": np.asarray(x) for i, x in enumerate(first_gradients(env, grad_cfg, mesh))}
 
-    result = {f"two_{k}": v for k, v in first_gradients(ppo.make_mesh()).items()}
+    result = {f"two_{k}": v for k, v in leaves(sharding.make_mesh()).items()}
     if args.mode == "single":
-        result.update({f"one_{k}": v for k, v in first_gradients(ppo.make_mesh(jax.devices()[:1])).items()})
+        result.update({f"one_{k}": v for k, v in leaves(sharding.make_mesh(jax.devices()[:1])).items()})
     if args.mode == "proc":  # the trainer's multi-process plumbing: gathered checkpoint, process 0 writes
         train.run(cfg, os.path.join(args.out, "run_proc"), env_factory=toy_factory(), progress=False)
     if jax.process_index() == 0:
