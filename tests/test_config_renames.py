@@ -85,11 +85,11 @@ def test_max_obstacles_declares_the_one_value_the_scene_has():
 
 
 def test_choices_are_declared_once_and_used_by_the_modules_that_act_on_them():
-    from sagrasp_jax import lr_schedule, observation, ppo, reward
+    from sagrasp_jax import actor_critic, lr_schedule, observation, reward
 
     assert observation.LAYOUT_NAMES is config.OBS_LAYOUTS and lr_schedule.SCHEDULES is config.LR_SCHEDULES
     assert reward.RC_MODES is config.RC_MODES and reward.NEAR_MISS_MODES is config.NEAR_MISS_MODES
-    assert tuple(ppo._ACTIVATIONS) == config.ACTIVATIONS
+    assert tuple(actor_critic._ACTIVATIONS) == config.ACTIVATIONS
     assert config.key_specs()["env.control.mode"].choices == config.CONTROL_MODES
 
 
