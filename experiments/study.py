@@ -67,6 +67,7 @@ class Study:
     overrides: tuple[str, ...] = ()
     resume: bool = False
     progress: bool = True
+    group: bool = True  # a variant's new seeds train as one seed group (train.run(seeds=...)); False: one by one
 
     def folder(self, variant: str, seed: int) -> str:
         return os.path.join(self.runs_dir, variant, SEED_FOLDER.format(seed=seed))
@@ -117,6 +118,8 @@ def add_arguments(p: argparse.ArgumentParser, seeds: int, runs_dir: str | None, 
     p.add_argument("--resume", action="store_true",
                    help="continue run folders that stopped before they finished (without it they are refused)")
     p.add_argument("--no-progress", action="store_true", help="no live training progress bar")
+    p.add_argument("--one-by-one", action="store_true",
+                   help="train a variant's seeds one after another instead of as one seed group (one program)")
 
 
 def study_from_args(args: argparse.Namespace) -> Study:
@@ -125,7 +128,7 @@ def study_from_args(args: argparse.Namespace) -> Study:
     if total < 1:
         raise StudyError("--total-steps must be >= 1")
     return Study(args.preset, total, parse_seeds(args.seeds), args.runs_dir, tuple(args.overrides), args.resume,
-                 not args.no_progress)
+                 not args.no_progress, not getattr(args, "one_by_one", False))
 
 
 # ---------------------------------------------------------------------- one run folder
@@ -203,10 +206,30 @@ def ensure_trained(out: str, cfg: Config, tag: str, progress: bool, resume: bool
 
 
 def train_variant(study: Study, variant: str, configs: Mapping[int, Config]) -> dict[int, float | None]:
-    """Train one variant's seeds (``configs``: seed -> config) into ``study.folder(variant, seed)``;
-    returns each seed's training wall time of this call.  Seeds run one after another here; they
-    differ only in ``train.seed``, so ``python -m sagrasp_jax.train --seeds`` can take them as one
-    program."""
+    """Train one variant's seeds (``configs``: seed -> config, differing only in ``train.seed``) into
+    ``study.folder(variant, seed)``; returns each seed's training wall time of this call (a group's wall
+    time is given to each of its seeds).  When every folder is new and there are several seeds (and
+    ``study.group``), they train as one seed group, one compiled program (``train.run(seeds=…)``, what
+    ``python -m sagrasp_jax.train --seeds`` runs; equal to separate runs within the tolerance
+    docs/design.md "Seed groups" states, not bit for bit); otherwise one after another under the folder
+    rule (``ensure_trained``)."""
+    seeds = list(configs)
+    variant_dir = os.path.dirname(study.folder(variant, seeds[0])) if seeds else ""
+    fresh = all(run_state(study.folder(variant, s)) == "new" for s in seeds)
+    others = os.path.isdir(variant_dir) and set(os.listdir(variant_dir)) - {SEED_FOLDER.format(seed=s) for s in seeds}
+    if study.group and len(seeds) > 1 and fresh and not others:
+        for s in seeds:  # an empty seed folder left by an earlier check would make the group refuse its folder
+            folder = study.folder(variant, s)
+            if os.path.isdir(folder) and not os.listdir(folder):
+                os.rmdir(folder)
+        group_cfg = configs[seeds[0]]
+        print(f"{variant}: training seeds {', '.join(map(str, seeds))} as one group, "
+              f"{group_cfg.train.total_steps:,} env steps each -> {variant_dir}", flush=True)
+        t = time.perf_counter()
+        train.run(group_cfg, variant_dir, progress=study.progress, seeds=seeds)
+        wall = time.perf_counter() - t
+        print(f"{variant}: group trained in {wall:.0f} s", flush=True)
+        return {s: wall for s in seeds}
     return {seed: ensure_trained(study.folder(variant, seed), cfg, f"{variant} seed {seed}", study.progress,
                                  study.resume) for seed, cfg in configs.items()}
 

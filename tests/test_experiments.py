@@ -7,6 +7,7 @@ built by one serves the other.
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import json
 import os
@@ -208,13 +209,18 @@ def test_run_study_trains_evaluates_skips_and_refuses_before_training(tmp_path: 
     from sagrasp_jax.config import config_to_dict
 
     trained: list[str] = []
+    programs: list[list[int] | None] = []  # the seeds of each training call (None: a single run)
 
-    def fake_run(cfg: object, out: str, resume: bool, progress: bool) -> None:
-        os.makedirs(out, exist_ok=True)
-        with open(os.path.join(out, run_dir.CONFIG_FILE), "w", encoding="utf-8") as f:
-            json.dump(config_to_dict(cfg), f)
-        open(os.path.join(out, run_dir.POLICY_FILE), "w").close()
-        trained.append(out)
+    def fake_run(cfg: object, out: str, resume: bool = False, progress: bool = True,
+                 seeds: list[int] | None = None) -> None:
+        programs.append(seeds)
+        for folder, c in ([(out, cfg)] if seeds is None else
+                          [(train.seed_dir(out, s), train.seed_config(cfg, s)) for s in seeds]):
+            os.makedirs(folder, exist_ok=True)
+            with open(os.path.join(folder, run_dir.CONFIG_FILE), "w", encoding="utf-8") as f:
+                json.dump(config_to_dict(c), f)
+            open(os.path.join(folder, run_dir.POLICY_FILE), "w").close()
+            trained.append(folder)
 
     monkeypatch.setattr(study.train, "run", fake_run)
     spec = study.Study("cpu-quick", 8192, (0, 2), str(tmp_path / "runs"), progress=False)
@@ -225,8 +231,12 @@ def test_run_study_trains_evaluates_skips_and_refuses_before_training(tmp_path: 
     assert records["a"][0]["overrides"] == ["ppo.num_envs=64"] and records["a"][0]["episodes"] == 4
     assert sorted(os.path.relpath(t, spec.runs_dir) for t in trained) == [
         os.path.join(v, f"seed{s}") for v in "ab" for s in (0, 2)]
+    assert programs == [[0, 2], [0, 2]]  # each variant's new seeds: one seed group, one program
     again = study.run_study(spec, table, measure, {"episodes": 4}, "rec.json")
     assert again == records and len(trained) == 4
+    one_by_one = dataclasses.replace(spec, runs_dir=str(tmp_path / "single"), group=False)
+    study.run_study(one_by_one, {"a": table["a"]}, measure, {"episodes": 4}, "rec.json")
+    assert programs[2:] == [None, None] and len(trained) == 6
     with pytest.raises(study.StudyError, match="another config"):  # the same folders under another variant's config
         study.run_study(spec, {"a": table["b"]}, measure, {"episodes": 4}, "rec.json")
     unfinished = spec.folder("c", 2)
@@ -236,7 +246,7 @@ def test_run_study_trains_evaluates_skips_and_refuses_before_training(tmp_path: 
     open(os.path.join(unfinished, run_dir.CHECKPOINT_FILE), "w").close()
     with pytest.raises(study.StudyError, match="--resume"):
         study.run_study(spec, {"new": (), "c": ()}, measure, {"episodes": 4}, "rec.json")
-    assert len(trained) == 4 and not os.path.exists(spec.folder("new", 0))  # nothing trained
+    assert len(trained) == 6 and not os.path.exists(spec.folder("new", 0))  # nothing trained
 
 
 def test_reproduce_paper_smoke(tmp_path: pytest.TempPathFactory) -> None:
