@@ -318,10 +318,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "figures": [os.path.relpath(p) for p in written], "runs": records, "wall_s_this_call": time.perf_counter() - t0,
         "command": study.command("compare_schedules", argv), "git": study.git_state(), "machine": study.machine(),
     }
-    study.write_json(args.out, result)
-    print(markdown(summary, versus, len(spec.seeds)))
-    print(f"written to {args.out}" + "".join(f", {p}" for p in written))
-    return 0
+    return study.report(args.out, result, markdown(summary, versus, len(spec.seeds)), written)
 
 
 if __name__ == "__main__":

@@ -60,13 +60,18 @@ def record(episodes: int, steps: int, seed: int) -> dict[str, np.ndarray]:
     return {"e_over_h": (ctrl - q) / h, "v": v, "v_next": v_next}
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def parse_recording_args(argv: list[str] | None, description: str, out: str) -> argparse.Namespace:
+    """The options of a fit over scripted episodes: how many, how long, their seed, where the JSON goes."""
+    parser = argparse.ArgumentParser(description=description)
     parser.add_argument("--episodes", type=int, default=64)
     parser.add_argument("--steps", type=int, default=60)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", default="experiments/results/fit_position_control.json")
-    args = parser.parse_args(argv)
+    parser.add_argument("--out", default=out)
+    return parser.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_recording_args(argv, __doc__.splitlines()[0], "experiments/results/fit_position_control.json")
     data = record(args.episodes, args.steps, args.seed)
     kp, kd, rms, scale = [], [], [], []
     for j in range(6):

@@ -13,7 +13,6 @@ gripper centres drift apart: the cheap model is what the policy trains in, the d
 
 from __future__ import annotations
 
-import argparse
 import sys
 from typing import Any
 
@@ -22,6 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from experiments.fit_position_control import parse_recording_args
 from sagrasp_jax import config, robot, scripted
 from sagrasp_jax.env import GraspEnv
 from sagrasp_jax.fileio import atomic_write_json
@@ -93,12 +93,7 @@ def drift(episodes: int, steps: int, seed: int, latency: float, gains: dict[str,
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--episodes", type=int, default=64)
-    parser.add_argument("--steps", type=int, default=60)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", default="experiments/results/fit_servo_lag.json")
-    args = parser.parse_args(argv)
+    args = parse_recording_args(argv, __doc__.splitlines()[0], "experiments/results/fit_servo_lag.json")
     data = record(_env("dynamic", []), args.episodes, args.steps, args.seed, scripted_actions=True)
     result = fit(data)
     gains = {"lag_gain": tuple(result["lag_gain"]), "lag_momentum": tuple(result["lag_momentum"])}

@@ -119,10 +119,7 @@ def main(argv: Sequence[str] | None = None) -> int:
               "rows": {v: [{"seed": r["seed"], **row(r)} for r in recs] for v, recs in records.items()},
               "runs": records, "command": study.command("hover_trap", argv), "git": study.git_state(),
               "machine": study.machine()}
-    study.write_json(args.out, result)
-    print(markdown(records))
-    print(f"written to {args.out}")
-    return 0
+    return study.report(args.out, result, markdown(records))
 
 
 if __name__ == "__main__":

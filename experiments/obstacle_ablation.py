@@ -180,10 +180,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "reference": REFERENCE, "paired_vs_reference": versus, "runs": records,
         "command": study.command("obstacle_ablation", argv), "git": study.git_state(), "machine": study.machine(),
     }
-    study.write_json(args.out, result)
-    print(markdown(summary))
-    print(f"written to {args.out}")
-    return 0
+    return study.report(args.out, result, markdown(summary))
 
 
 if __name__ == "__main__":

@@ -333,6 +333,14 @@ def write_json(path: str, data: Any) -> str:
     return fileio.atomic_write_json(path, data, sort_keys=True)
 
 
+def report(path: str, result: Any, table: str, extra: Sequence[str] = ()) -> int:
+    """The end of every study: the JSON written, its table printed, where it went said; exit status 0."""
+    write_json(path, result)
+    print(table)
+    print(f"written to {path}" + "".join(f", {p}" for p in extra))
+    return 0
+
+
 def git_state() -> str:
     """``<commit>`` of the checkout, ``+dirty`` when tracked files are modified (or 'unknown')."""
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

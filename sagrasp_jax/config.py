@@ -472,42 +472,30 @@ def _robot_grade(base: Config) -> Config:
     ))
 
 
-def _cpu_quick() -> Config:
-    base = _robot_grade(_obstacle_aware(_upright_approach(Config())))
+def _sized(base: Config, *, num_envs: int, num_minibatches: int, network: NetworkConfig, eval_episodes: int,
+           total_steps: int) -> Config:
+    """The PPO shape ``cpu-quick`` and ``gpu`` share (16-step unrolls, 4 epochs, entropy 1e-3) at a machine's size."""
     return dataclasses.replace(
         base,
-        ppo=dataclasses.replace(
-            base.ppo,
-            num_envs=256,
-            unroll_length=16,
-            num_minibatches=4,
-            num_epochs=4,
-            entropy_coef=1e-3,
-            network=NetworkConfig(policy_hidden=(32, 32, 32, 32), value_hidden=(64, 64, 64)),
-        ),
-        eval=dataclasses.replace(base.eval, episodes=128),
-        train=dataclasses.replace(base.train, total_steps=10_000_000),
+        ppo=dataclasses.replace(base.ppo, num_envs=num_envs, unroll_length=16, num_minibatches=num_minibatches,
+                                num_epochs=4, entropy_coef=1e-3, network=network),
+        eval=dataclasses.replace(base.eval, episodes=eval_episodes),
+        train=dataclasses.replace(base.train, total_steps=total_steps),
     )
+
+
+def _cpu_quick() -> Config:
+    return _sized(_robot_grade(_obstacle_aware(_upright_approach(Config()))), num_envs=256, num_minibatches=4,
+                  network=NetworkConfig(policy_hidden=(32, 32, 32, 32), value_hidden=(64, 64, 64)),
+                  eval_episodes=128, total_steps=10_000_000)
 
 
 def _gpu() -> Config:
     # The preset trains in the lagged mode (no physics; env.control.impl stays "jax"); a dynamic-mode GPU run
     # adds env.control.mode=dynamic and env.control.impl=warp (pip install "sagrasp_jax[warp]").
-    base = _robot_grade(_obstacle_aware(_upright_approach(Config())))
-    return dataclasses.replace(
-        base,
-        ppo=dataclasses.replace(
-            base.ppo,
-            num_envs=4096,
-            unroll_length=16,
-            num_minibatches=16,
-            num_epochs=4,
-            entropy_coef=1e-3,
-            network=NetworkConfig(policy_hidden=(128, 128, 128), value_hidden=(256, 256, 256)),
-        ),
-        eval=dataclasses.replace(base.eval, episodes=1024),
-        train=dataclasses.replace(base.train, total_steps=20_000_000),
-    )
+    return _sized(_robot_grade(_obstacle_aware(_upright_approach(Config()))), num_envs=4096, num_minibatches=16,
+                  network=NetworkConfig(policy_hidden=(128, 128, 128), value_hidden=(256, 256, 256)),
+                  eval_episodes=1024, total_steps=20_000_000)
 
 
 PRESETS: dict[str, typing.Callable[[], Config]] = {
