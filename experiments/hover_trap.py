@@ -30,8 +30,7 @@ import numpy as np
 from experiments import study
 from sagrasp_jax import config, evaluate, robot, run_dir
 
-_ABSENT = tuple(f"env.reward.{k.rsplit('.', 1)[1]}={v}" for k, v in config.ADDED_KEYS.items()
-                if k.startswith("env.reward.tilt"))
+_ABSENT = tuple(f"{k}={v}" for k, v in config.ADDED_KEYS.items() if k.startswith("env.reward.tilt"))
 VARIANTS: dict[str, tuple[str, ...]] = {
     "distance-only": _ABSENT,
     "tilt-everywhere-5deg": ("env.reward.tilt_free_deg=5", "env.reward.tilt_near=0"),

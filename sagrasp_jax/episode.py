@@ -59,7 +59,8 @@ class Step(NamedTuple):
 
 def start(xp: Any, cfg: EnvConfig, d0: Any, tilt0: Any, col: collision.CollisionResult, blocking: Any) -> Tracker:
     """The tracker at the start pose (distance ``d0`` to the target, tilt ``tilt0``, collision result ``col``)."""
-    d0 = reward.approach_potential(xp, cfg.reward, xp.asarray(d0), xp.asarray(tilt0, dtype=xp.asarray(d0).dtype))
+    d0 = xp.asarray(d0)
+    d0 = reward.approach_potential(xp, cfg.reward, d0, xp.asarray(tilt0, dtype=d0.dtype))
     zero = xp.zeros_like(d0)
     return Tracker(
         steps=xp.zeros((), dtype=xp.int32),
