@@ -25,6 +25,20 @@ from sagrasp_jax.config import KNOBS_OFF, Config  # noqa: E402
 TOY_ITER_STEPS = 32 * 16  # num_envs × unroll_length
 
 
+@pytest.fixture(autouse=True)
+def _precision_is_left_alone(request: pytest.FixtureRequest):
+    """Fail the test that leaves jax_enable_x64 changed (an import that switches it, a missing restore):
+    every later float32 test in the session would otherwise fail with dtype errors far from the cause."""
+    import jax
+
+    before = jax.config.jax_enable_x64
+    yield
+    after = jax.config.jax_enable_x64
+    if after != before:
+        jax.config.update("jax_enable_x64", before)
+        pytest.fail(f"{request.node.nodeid} left jax_enable_x64 {before} -> {after}", pytrace=False)
+
+
 @pytest.fixture
 def x64():
     """jax with float64 enabled for one test (parity-style exact comparisons), restored after."""
