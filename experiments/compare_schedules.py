@@ -15,7 +15,7 @@ env steps of ``--preset`` (in process, ``train.run``; seeds 0 … K−1) into
 evaluation mix (success overall, without obstacle, with obstacle, blocking; steps per success)
 and ``--blocking-episodes`` of blocking-only scenes.  From ``metrics.jsonl``: env steps and
 training wall clock until the per-cycle evaluation (``eval.episodes`` fixed episodes) first
-reaches 90 % and 98 % success, the final lr and the SA counts.  Reported per variant: means
+reaches 90 / 95 / 98 / 99 % success (read again from metrics.jsonl at every summary), the final lr and the SA counts.  Reported per variant: means
 with 95 % t-intervals across seeds, pooled success with Wilson intervals, and for every variant
 a paired comparison with ``sa`` (the same seeds): mean difference, its 95 % t-interval, the
 paired t-test's two-sided p and the seeds won.  Prints Markdown tables, writes JSON to
@@ -50,12 +50,13 @@ ABLATION_VARIANTS: dict[str, tuple[str, ...]] = {
 }
 VARIANTS = SCHEDULE_VARIANTS | ABLATION_VARIANTS
 REFERENCE = "sa"  # every other variant is compared with this one, seed by seed
-LEVELS = (0.9, 0.98)  # per-cycle evaluation success levels whose first crossing is reported
+LEVELS = (0.9, 0.95, 0.98, 0.99)  # per-cycle evaluation success levels whose first crossing is reported
 RESULT_FILE = "schedule_eval.json"
 # metrics compared with the reference, seed by seed: (key, label, larger is better)
 PAIRED = (("success_overall", "overall success %", True), ("success_obstacle", "obstacle success %", True),
           ("success_blocking_scenes", "blocking-scenes success %", True),
-          ("steps_per_success", "steps / success", False), ("env_steps_to_90", "env steps to 90 %", False))
+          ("steps_per_success", "steps / success", False), ("env_steps_to_90", "env steps to 90 %", False),
+          ("env_steps_to_98", "env steps to 98 %", False), ("env_steps_to_99", "env steps to 99 %", False))
 PAPER_PAIR = {"ppo": "constant", "sa-ppo": "sa"}  # the paper's two algorithms as schedules here
 
 
@@ -129,8 +130,8 @@ def per_seed_metrics(r: dict[str, Any]) -> dict[str, Any]:
         "success_blocking_scenes": None if blocking is None else study.rate(blocking["blocking"]),
         "steps_per_success": mix["overall"].get("mean_steps_per_success"),
         "collision_overall": study.rate(mix["overall"], "collision_rate"),
-        "env_steps_to_90": _reach(r, 0.9, "env_steps"), "env_steps_to_98": _reach(r, 0.98, "env_steps"),
-        "wall_s_to_90": _reach(r, 0.9, "time_s"), "wall_s_to_98": _reach(r, 0.98, "time_s"),
+        **{f"env_steps_to_{round(100 * lv)}": _reach(r, lv, "env_steps") for lv in LEVELS},
+        **{f"wall_s_to_{round(100 * lv)}": _reach(r, lv, "time_s") for lv in LEVELS},
         "final_lr": r.get("final_lr"), "final_eval_success": None if r.get("final_eval_success") is None
         else 100.0 * r["final_eval_success"], "train_time_s": r.get("train_time_s"),
         "sa_rejects": r.get("sa_rejects"), "sa_accept_worse": r.get("sa_accept_worse"), "sa_decays": r.get("sa_decays"),
@@ -163,12 +164,13 @@ def _lr(stat: dict[str, Any]) -> str:
     return "-" if stat["mean"] is None else f"{stat['mean']:.2g}"
 
 
-def markdown(summary: dict[str, dict[str, Any]], versus: dict[str, Any], n_seeds: int) -> str:
+def markdown(summary: dict[str, dict[str, Any]], versus: dict[str, Any], n_seeds: int, reference: str = REFERENCE) -> str:
     cell = stats.cell
     cols = [("success_overall", "overall %", cell), ("success_no_obstacle", "no obstacle %", cell),
             ("success_obstacle", "obstacle %", cell), ("success_blocking_in_mix", "blocking (in mix) %", cell),
             ("success_blocking_scenes", "blocking scenes %", cell), ("steps_per_success", "steps / success", cell),
             ("env_steps_to_90", "env steps to 90 %", _steps), ("env_steps_to_98", "env steps to 98 %", _steps),
+            ("env_steps_to_99", "env steps to 99 %", _steps),
             ("final_lr", "final lr", _lr)]
     lines = [f"Mean [95 % t-interval across seeds]; time to a level over the seeds that reached it (n shown), "
              f"{n_seeds} seed(s) per variant.", "",
@@ -182,7 +184,7 @@ def markdown(summary: dict[str, dict[str, Any]], versus: dict[str, Any], n_seeds
             cells.append(text)
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     if versus:
-        lines += ["", f"Paired with `{REFERENCE}` seed by seed: variant − {REFERENCE}, mean [95 % t-interval], "
+        lines += ["", f"Paired with `{reference}` seed by seed: variant − {reference}, mean [95 % t-interval], "
                       "paired t-test p, seeds where the variant is better / worse.", "",
                   "| variant | " + " | ".join(label for _, label, _ in PAIRED) + " |", "|---" * (len(PAIRED) + 1) + "|"]
         for name, cmp in versus.items():
@@ -274,51 +276,69 @@ def paper_figures_for(spec: study.Study, records: dict[str, list[dict[str, Any]]
 
 # ---------------------------------------------------------------------- main
 
-def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog="python -m experiments.compare_schedules", description=__doc__.split("\n\n")[0])
-    study.add_arguments(p, seeds=5, runs_dir=None)
-    p.add_argument("--ablation", action="store_true", help="also SA with each of its four parts switched off")
-    p.add_argument("--eval-episodes", type=int, default=1000, help="held-out episodes of the evaluation mix per run")
-    p.add_argument("--blocking-episodes", type=int, default=1000, help="blocking-only episodes per run (0: none)")
-    p.add_argument("--out", default=None, help="default experiments/results/compare_schedules_<preset>.json")
+def parse_args(argv: Sequence[str] | None, module: str = "compare_schedules", description: str | None = None,
+               seeds: int = 5, eval_episodes: int = 1000, blocking_episodes: int = 1000,
+               ablation: bool = True) -> argparse.Namespace:
+    """This study's options; ``module`` names the variant table using them (its prog, runs folder and JSON)."""
+    p = argparse.ArgumentParser(prog=f"python -m experiments.{module}",
+                                description=description or __doc__.split("\n\n")[0])
+    study.add_arguments(p, seeds=seeds, runs_dir=None)
+    if ablation:
+        p.add_argument("--ablation", action="store_true", help="also SA with each of its four parts switched off")
+    p.add_argument("--eval-episodes", type=int, default=eval_episodes,
+                   help=f"held-out episodes of the evaluation mix per run (default {eval_episodes})")
+    p.add_argument("--blocking-episodes", type=int, default=blocking_episodes,
+                   help=f"blocking-only episodes per run, 0: none (default {blocking_episodes})")
+    p.add_argument("--out", default=None, help=f"default experiments/results/{module}_<preset>.json")
     p.add_argument("--no-figures", action="store_true")
     args = p.parse_args(argv)
     if args.eval_episodes < 1 or args.blocking_episodes < 0:
         p.error("--eval-episodes must be >= 1, --blocking-episodes >= 0")
-    args.runs_dir = args.runs_dir or os.path.join("runs", f"compare_schedules_{args.preset}")
-    args.out = args.out or os.path.join("experiments", "results", f"compare_schedules_{args.preset}.json")
+    args.runs_dir = args.runs_dir or os.path.join("runs", f"{module}_{args.preset}")
+    args.out = args.out or os.path.join("experiments", "results", f"{module}_{args.preset}.json")
     return args
+
+
+def run_table(args: argparse.Namespace, table: study.Variants, default: Sequence[str], reference: str,
+              argv: Sequence[str] | None, module: str = "compare_schedules") -> int:
+    """Train, evaluate and summarise the chosen variants of ``table``, each paired with ``reference`` seed by
+    seed; the time-to-level facts are read again from every run's metrics.jsonl (a record saved by an
+    older version of this script may lack a level)."""
+    t0 = time.perf_counter()
+    try:
+        spec = study.study_from_args(args)
+        chosen = study.pick_variants(table, args.variants, default)
+        identity = {"eval_episodes": args.eval_episodes, "blocking_episodes": args.blocking_episodes}
+        records = study.run_study(spec, chosen, measure(args.eval_episodes, args.blocking_episodes), identity,
+                                  RESULT_FILE, args.conditions, args.eval_episodes)
+    except study.ERRORS as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    for variant, recs in records.items():
+        for r in recs:
+            r.update(curve_facts(run_dir.read_metrics(os.path.join(spec.folder(variant, r["seed"]), run_dir.METRICS_FILE))))
+    summary = {v: summarise(recs) for v, recs in records.items()}
+    versus = stats.compare_with_reference({v: s["per_seed"] for v, s in summary.items()}, reference,
+                                          [(key, better) for key, _, better in PAIRED])
+    stem = os.path.splitext(args.out)[0]
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    written = [] if args.no_figures else (figures(spec, list(chosen), stem)
+                                          + paper_figures_for(spec, records, args.eval_episodes, stem))
+    result = {
+        "preset": spec.preset, "total_steps": spec.total_steps, "seeds": list(spec.seeds),
+        "eval_episodes": args.eval_episodes, "blocking_episodes": args.blocking_episodes,
+        "extra_overrides": args.overrides, "variants": {v: list(sets) for v, sets in chosen.items()},
+        "reference": reference, "levels": list(LEVELS), "summary": summary, "paired_vs_reference": versus,
+        "figures": [os.path.relpath(p) for p in written], "runs": records, "wall_s_this_call": time.perf_counter() - t0,
+        "command": study.command(module, argv), "git": study.git_state(), "machine": study.machine(),
+    }
+    return study.report(args.out, result, markdown(summary, versus, len(spec.seeds), reference), written)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = parse_args(argv)
     default = list(SCHEDULE_VARIANTS) + (list(ABLATION_VARIANTS) if args.ablation else [])
-    t0 = time.perf_counter()
-    try:
-        spec = study.study_from_args(args)
-        table = study.pick_variants(VARIANTS, args.variants, default)
-        identity = {"eval_episodes": args.eval_episodes, "blocking_episodes": args.blocking_episodes}
-        records = study.run_study(spec, table, measure(args.eval_episodes, args.blocking_episodes), identity,
-                                  RESULT_FILE, args.conditions, args.eval_episodes)
-    except study.ERRORS as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    summary = {v: summarise(recs) for v, recs in records.items()}
-    versus = stats.compare_with_reference({v: s["per_seed"] for v, s in summary.items()}, REFERENCE,
-                                          [(key, better) for key, _, better in PAIRED])
-    stem = os.path.splitext(args.out)[0]
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    written = [] if args.no_figures else (figures(spec, list(table), stem)
-                                          + paper_figures_for(spec, records, args.eval_episodes, stem))
-    result = {
-        "preset": spec.preset, "total_steps": spec.total_steps, "seeds": list(spec.seeds),
-        "eval_episodes": args.eval_episodes, "blocking_episodes": args.blocking_episodes,
-        "extra_overrides": args.overrides, "variants": {v: list(sets) for v, sets in table.items()},
-        "reference": REFERENCE, "levels": list(LEVELS), "summary": summary, "paired_vs_reference": versus,
-        "figures": [os.path.relpath(p) for p in written], "runs": records, "wall_s_this_call": time.perf_counter() - t0,
-        "command": study.command("compare_schedules", argv), "git": study.git_state(), "machine": study.machine(),
-    }
-    return study.report(args.out, result, markdown(summary, versus, len(spec.seeds)), written)
+    return run_table(args, VARIANTS, default, REFERENCE, argv)
 
 
 if __name__ == "__main__":

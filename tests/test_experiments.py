@@ -342,7 +342,7 @@ def test_compare_schedules_smoke(tmp_path: pytest.TempPathFactory) -> None:
     for name in ("constant", "sa"):
         rec = result["runs"][name][0]
         assert rec["mix"]["episodes"] == 16 and rec["blocking_scenes"]["episodes"] == 8
-        assert set(rec["reach"]) == {"0.9", "0.98"} and rec["cycles"] == 4
+        assert set(rec["reach"]) == {"0.9", "0.95", "0.98", "0.99"} and rec["cycles"] == 4
         s = result["summary"][name]
         assert 0.0 <= s["success_overall"]["mean"] <= 100.0 and s["success_overall"]["n"] == 1
     assert result["runs"]["constant"][0]["final_lr"] == 3e-4
@@ -356,6 +356,29 @@ def test_compare_schedules_smoke(tmp_path: pytest.TempPathFactory) -> None:
     again = _run(args)
     assert again.returncode == 0, again.stderr[-3000:]
     assert again.stdout.count("done already, skipped") == 2
+
+
+def test_sooner_levers_each_change_what_they_name_and_nothing_else(capsys: pytest.CaptureFixture) -> None:
+    """Every lever of the time-to-quality table is a valid config that differs from the baseline in exactly
+    the keys it names (a lever that a preset change made a no-op would be measured as noise); bad options exit 2."""
+    from experiments import sooner, study
+    from sagrasp_jax.config import config_to_dict
+
+    spec = study.Study("cpu-quick", 3_000_000, (0,), "unused")
+    def flat(cfg: object, prefix: str = "") -> dict:
+        out: dict = {}
+        for k, v in (config_to_dict(cfg) if prefix == "" else cfg).items():
+            out.update(flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {prefix + k: v})
+        return out
+
+    base = flat(spec.config(sooner.LEVERS[sooner.REFERENCE], 0))
+    assert sooner.REFERENCE in sooner.DEFAULT and set(sooner.DEFAULT) <= set(sooner.LEVERS)
+    for name, sets in sooner.LEVERS.items():
+        changed = {k for k, v in flat(spec.config(sets, 0)).items() if base[k] != v}
+        assert changed == {s.split("=")[0] for s in sets}, name
+    assert sooner.main(["--seeds", "0-", "--runs-dir", "unused"]) == 2
+    assert sooner.main(["--variants", "baseline,bogus", "--runs-dir", "unused"]) == 2
+    assert "unknown variant(s) bogus" in capsys.readouterr().err
 
 
 # ---------------------------------------------------------------------- obstacle ablation
