@@ -42,12 +42,15 @@ def reward_weights(p: Any, cfg: RewardConfig) -> tuple[Any, Any, Any]:
 
 
 def grasp_centre(xp: Any, task: Any, target: Any) -> Any:
-    """Where the gripper centre closes on the cube: over its centre, in the middle of the success band's
-    heights.  The deployment loop and the physical check centre there on the *detected* cube before
+    """Where the gripper centre closes on the cube (``target``: (..., 3)): over its centre, in the middle of
+    the success band's heights; also the end of the straight approach that ``sampling`` tests obstacles on.  The deployment loop and the physical check centre there on the *detected* cube before
     closing, so a detection error up to half the band's height and its horizontal tolerance still grasps
     (experiments/detection_ceiling.py)."""
     middle = 0.5 * (task.success_dz_min + task.success_dz_max)
-    return xp.asarray(target) + xp.asarray([0.0, 0.0, middle])
+    target = xp.asarray(target)
+    if not xp.issubdtype(target.dtype, xp.floating):  # whole-number coordinates: not truncated to the offset's dtype
+        target = target.astype(float)
+    return target + xp.asarray([0.0, 0.0, middle], dtype=target.dtype)  # keeps float32 under jax
 
 
 def success_flag(xp: Any, cfg: TaskConfig, gripper_centre: Any, target_pos: Any, tilt: Any) -> Any:

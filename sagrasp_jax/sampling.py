@@ -25,7 +25,7 @@ from typing import Any, NamedTuple
 from sagrasp_jax.config import SamplingConfig, TaskConfig
 import numpy as np
 
-from sagrasp_jax import collision, shapes
+from sagrasp_jax import collision, reward, shapes
 from sagrasp_jax.robot import Kinematics, RobotModel, forward_kinematics
 from sagrasp_jax.shapes import ObstacleShape
 
@@ -59,12 +59,6 @@ BLOCKING_T = (0.1, 0.9)  # where along the approach segment a blocking obstacle 
 BLOCKING_OFFSET = 0.03  # m, lateral (horizontal) and, for spheres, vertical jitter about the segment
 
 
-def grasp_point(xp: Any, task: TaskConfig, target_pos: Any) -> Any:
-    """Where the gripper centre is at a grasp: above the target centre, mid success band."""
-    dz = 0.5 * (task.success_dz_min + task.success_dz_max)
-    return target_pos + xp.asarray([0.0, 0.0, dz], dtype=target_pos.dtype)
-
-
 def path_clearance(xp: Any, robot: RobotModel, task: TaskConfig, reset: "ResetSpec", samples: int = 32,
                    levels: int = 3, kinds: tuple[int, ...] | None = None) -> Any:
     """Distance (slots,) from the straight segment (gripper centre at the start pose → grasp point)
@@ -75,7 +69,7 @@ def path_clearance(xp: Any, robot: RobotModel, task: TaskConfig, reset: "ResetSp
     dtype = xp.asarray(reset.target_pos).dtype
     q0 = xp.asarray(reset.q0, dtype=dtype)
     start = forward_kinematics(xp, robot, q0).gripper_centre
-    end = grasp_point(xp, task, xp.asarray(reset.target_pos, dtype=dtype))
+    end = reward.grasp_centre(xp, task, xp.asarray(reset.target_pos, dtype=dtype))
     kind, pos = xp.asarray(reset.obstacle_kind), xp.asarray(reset.obstacle_pos, dtype=dtype)
     yaw, size = xp.asarray(reset.obstacle_yaw, dtype=dtype), xp.asarray(reset.obstacle_size, dtype=dtype)
 
@@ -253,7 +247,7 @@ def _blocking_placement(xp: Any, cfg: SamplingConfig, task: TaskConfig, groups: 
     start = kin.gripper_centre  # (3,)
     dtype = start.dtype
     t_grasp = xp.concatenate([target_xy, xp.full((attempts, 1), cfg.target_size[2] / 2, dtype=dtype)], axis=-1)
-    end = grasp_point(xp, task, t_grasp)  # (attempts, 3)
+    end = reward.grasp_centre(xp, task, t_grasp)  # (attempts, 3)
     t = _lerp(BLOCKING_T, u_obs[:, 0, :, 4])  # (attempts, n_o)
     along = start + t[..., None] * (end - start)[:, None, :]  # (attempts, n_o, 3)
     heading = (end - start)[:, :2]

@@ -83,7 +83,7 @@ def _upright_grasp_episode(env: GraspEnv, model: robot.RobotModel, q_hover: np.n
                            yaw: float, steps: int = 40) -> tuple[float, bool, float, float]:
     """Start at the hover pose and steer the joints to the upright grasp pose over the cube (IK): the summed
     R_distance, whether the episode ended in a success, and the final distance to the cube centre and tilt."""
-    goal = robot.approach_pose(model, q_hover, sampling.grasp_point(np, env.cfg.task, target), max_joint_move=1.0)
+    goal = robot.approach_pose(model, q_hover, reward.grasp_centre(np, env.cfg.task, target), max_joint_move=1.0)
     n = env.cfg.sampling.max_obstacles
     spec = sampling.ResetSpec(
         q0=jnp.asarray(q_hover), target_pos=jnp.asarray(target), target_yaw=jnp.asarray(yaw),

@@ -19,7 +19,7 @@ import sagrasp_jax  # noqa: F401
 import jax
 import jax.numpy as jnp
 
-from sagrasp_jax import assets, collision, config, robot, sampling, shapes
+from sagrasp_jax import assets, collision, config, reward, robot, sampling, shapes
 import exact_geometry as geometry
 
 ROBOT = robot.load_robot()
@@ -227,7 +227,7 @@ def test_blocking_placement_puts_capsules_on_the_approach_path():
     kin = robot.forward_kinematics(np, ROBOT, np.array(cfg.task.home_q))
     pos, ok = sampling._blocking_placement(np, s, cfg.task, groups, kin, u_obs, cand, target_xy, np.True_)
     start = kin.gripper_centre
-    end = sampling.grasp_point(np, cfg.task, np.concatenate([target_xy, np.full((attempts, 1), 0.025)], -1))
+    end = reward.grasp_centre(np, cfg.task, np.concatenate([target_xy, np.full((attempts, 1), 0.025)], -1))
     heading = (end - start)[:, :2] / np.linalg.norm((end - start)[:, :2], axis=-1, keepdims=True)
     rel = pos[:, 0, :, :2] - start[:2]
     lateral = np.abs(rel[..., 0] * heading[:, None, 1] - rel[..., 1] * heading[:, None, 0])
