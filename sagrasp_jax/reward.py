@@ -43,8 +43,9 @@ def reward_weights(p: Any, cfg: RewardConfig) -> tuple[Any, Any, Any]:
 
 def grasp_centre(xp: Any, task: Any, target: Any) -> Any:
     """Where the gripper centre closes on the cube (``target``: (..., 3)): over its centre, in the middle of
-    the success band's heights; also the end of the straight approach that ``sampling`` tests obstacles on.  The deployment loop and the physical check centre there on the *detected* cube before
-    closing, so a detection error up to half the band's height and its horizontal tolerance still grasps
+    the success band's heights; also the end of the straight approach that ``sampling`` tests obstacles
+    on.  The deployment loop and the physical check centre there on the *detected* cube before closing,
+    so a detection error up to half the band's height and its horizontal tolerance still grasps
     (experiments/detection_ceiling.py)."""
     middle = 0.5 * (task.success_dz_min + task.success_dz_max)
     target = xp.asarray(target)
