@@ -375,7 +375,7 @@ def timed_train(args: list[str], cache_dir: str, root: str = ROOT) -> dict[str, 
 
 
 def last_eval_success(folder: str) -> float | None:
-    from sagrasp_jax.train import METRICS_FILE, read_metrics
+    from sagrasp_jax.run_dir import METRICS_FILE, read_metrics
 
     return next((r["eval_success"] for r in reversed(read_metrics(os.path.join(folder, METRICS_FILE)))
                  if "eval_success" in r), None)

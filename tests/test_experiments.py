@@ -304,6 +304,19 @@ def test_bench_train_run_section_smoke(tmp_path: pytest.TempPathFactory) -> None
     assert 0 < run["warm"]["compile_s"] and run["warm"]["startup_s"] > 0
 
 
+def test_bench_train_group_reads_the_last_evaluation_of_a_run_folder(tmp_path: pytest.TempPathFactory) -> None:
+    """The group section compares groups and single runs by their last per-cycle evaluation, read through
+    run_dir (its import once pointed at names train no longer re-exports)."""
+    from experiments import bench_train
+
+    rows = [{"iteration": 1, "eval_success": 0.25}, {"iteration": 2}, {"iteration": 3, "eval_success": 0.75},
+            {"iteration": 4, "loss": 0.1}]
+    (tmp_path / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    assert bench_train.last_eval_success(str(tmp_path)) == 0.75
+    (tmp_path / "metrics.jsonl").write_text(json.dumps({"iteration": 1}) + "\n")
+    assert bench_train.last_eval_success(str(tmp_path)) is None
+
+
 def test_bench_vs_paper_stack_smoke_without_sb3(tmp_path: pytest.TempPathFactory) -> None:
     out = str(tmp_path / "bench.json")
     args = ["experiments.bench_vs_paper_stack", "--seconds", "2", "--window", "16", "--success", "0.5",
