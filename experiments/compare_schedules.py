@@ -121,15 +121,9 @@ def _reach(record: dict[str, Any], level: float, key: str) -> float | None:
 
 
 def per_seed_metrics(r: dict[str, Any]) -> dict[str, Any]:
-    mix, blocking = r["mix"], r.get("blocking_scenes")
     return {
-        "success_overall": study.rate(mix["overall"]),
-        "success_no_obstacle": study.rate(mix["obstacle_absent"]),
-        "success_obstacle": study.rate(mix["obstacle_present"]),
-        "success_blocking_in_mix": study.rate(mix["blocking"]),
-        "success_blocking_scenes": None if blocking is None else study.rate(blocking["blocking"]),
-        "steps_per_success": mix["overall"].get("mean_steps_per_success"),
-        "collision_overall": study.rate(mix["overall"], "collision_rate"),
+        **study.kind_rates(r),
+        "collision_overall": study.rate(r["mix"]["overall"], "collision_rate"),
         **{f"env_steps_to_{round(100 * lv)}": _reach(r, lv, "env_steps") for lv in LEVELS},
         **{f"wall_s_to_{round(100 * lv)}": _reach(r, lv, "time_s") for lv in LEVELS},
         "final_lr": r.get("final_lr"), "final_eval_success": None if r.get("final_eval_success") is None

@@ -30,7 +30,6 @@ repository root:
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 from typing import Any, Sequence
@@ -77,8 +76,7 @@ def measure(eval_episodes: int, blind_episodes: int) -> study.Measure:
         mix = study.Evaluation(eval_episodes)(folder)
         blocking = study.Evaluation(eval_episodes, scenes="blocking")(folder)
         blind = blind_study(runtime.load_policy(os.path.join(folder, run_dir.POLICY_FILE)), blind_episodes, seed=5)
-        with open(os.path.join(folder, run_dir.METRICS_FILE), encoding="utf-8") as f:
-            last = [json.loads(line) for line in f if line.strip()][-1]
+        last = run_dir.read_metrics(os.path.join(folder, run_dir.METRICS_FILE))[-1]
         ov, ob, bl = mix["overall"], mix["obstacle_present"], blocking["blocking"]
         print(f"{variant} seed {seed}: success {100 * ov['success_rate']:.1f} % (obstacle {100 * ob['success_rate']:.1f} %, "
               f"blocking scenes {100 * bl['success_rate']:.1f} %)", flush=True)
@@ -90,12 +88,7 @@ def measure(eval_episodes: int, blind_episodes: int) -> study.Measure:
 def per_seed_metrics(r: dict[str, Any]) -> dict[str, Any]:
     """What the obstacle issue is judged by, for one run."""
     return {
-        "success_overall": study.rate(r["mix"]["overall"]),
-        "success_obstacle": study.rate(r["mix"]["obstacle_present"]),
-        "success_blocking_in_mix": study.rate(r["mix"]["blocking"]),
-        "success_blocking_scenes": study.rate(r["blocking_scenes"]["blocking"]),
-        "success_no_obstacle": study.rate(r["mix"]["obstacle_absent"]),
-        "steps_per_success": r["mix"]["overall"]["mean_steps_per_success"],
+        **study.kind_rates(r),
         "collision_obstacle_episodes": study.rate(r["mix"]["obstacle_present"], "collision_rate"),
         "seeing_minus_blind_obstacle": 100.0 * r["blind"]["obstacle"]["seeing_minus_blind"],
         "seeing_minus_blind_blocking": 100.0 * r["blind"]["blocking"]["seeing_minus_blind"],

@@ -313,6 +313,20 @@ def condition_rates(record: dict[str, Any]) -> dict[str, float | None]:
     return {f"success_condition_{name}": rate(res["overall"]) for name, res in record.get("conditions", {}).items()}
 
 
+def kind_rates(record: dict[str, Any]) -> dict[str, float | None]:
+    """What a study judges a run by, from its record's evaluation mix (``mix``) and blocking-only scenes
+    (``blocking_scenes``, None when not played): success % per episode kind and steps per success."""
+    mix, blocking = record["mix"], record.get("blocking_scenes")
+    return {
+        "success_overall": rate(mix["overall"]),
+        "success_no_obstacle": rate(mix["obstacle_absent"]),
+        "success_obstacle": rate(mix["obstacle_present"]),
+        "success_blocking_in_mix": rate(mix["blocking"]),
+        "success_blocking_scenes": None if blocking is None else rate(blocking["blocking"]),
+        "steps_per_success": mix["overall"].get("mean_steps_per_success"),
+    }
+
+
 def rate(group: dict[str, Any], key: str = "success_rate") -> float | None:
     """A group's rate in %, None when the group had no episodes."""
     return None if not group.get("episodes") else 100.0 * group[key]
