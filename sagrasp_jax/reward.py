@@ -13,6 +13,7 @@ from typing import Any, NamedTuple
 
 from sagrasp_jax.config import NEAR_MISS_MODES, RC_MODES, RewardConfig, TaskConfig
 
+
 class RewardTerms(NamedTuple):
     """The three reward terms and their weights, logged per episode."""
 

@@ -62,7 +62,7 @@ def test_each_seed_gets_a_run_folder_like_a_single_run(runs):
     assert sorted(os.listdir(out)) == [f"seed{s}" for s in GROUP]
     folder = train.seed_dir(out, ALONE)
     assert sorted(os.listdir(folder)) == sorted(os.listdir(alone))
-    with open(os.path.join(folder, train.CONFIG_FILE)) as f, open(os.path.join(alone, train.CONFIG_FILE)) as g:
+    with open(os.path.join(folder, run_dir.CONFIG_FILE)) as f, open(os.path.join(alone, run_dir.CONFIG_FILE)) as g:
         assert json.load(f) == json.load(g)  # its own seed, otherwise the group's config
     rows, alone_rows = _rows(folder), _rows(alone)
     assert [sorted(r) for r in rows] == [sorted(r) for r in alone_rows]  # the same row keys, row by row
@@ -70,8 +70,8 @@ def test_each_seed_gets_a_run_folder_like_a_single_run(runs):
     for r, a in zip(rows, alone_rows):
         if "eval_success" in r:
             assert abs(r["eval_success"] - a["eval_success"]) <= 0.005  # within half a point
-    runtime.load_policy(os.path.join(folder, train.POLICY_FILE))  # a valid policy file
-    with np.load(os.path.join(folder, train.POLICY_FILE)) as a, np.load(os.path.join(alone, train.POLICY_FILE)) as b:
+    runtime.load_policy(os.path.join(folder, run_dir.POLICY_FILE))  # a valid policy file
+    with np.load(os.path.join(folder, run_dir.POLICY_FILE)) as a, np.load(os.path.join(alone, run_dir.POLICY_FILE)) as b:
         assert sorted(a.files) == sorted(b.files)
         for key in (k for k in a.files if k.startswith("layer_")):
             np.testing.assert_allclose(a[key], b[key], atol=0.05, err_msg=key)  # 6 iterations of float32 rounding apart
@@ -109,7 +109,7 @@ def test_killed_group_resumes_bit_for_bit(runs, tmp_path):
     half = str(tmp_path / "half")
     stopped = train.run(_cfg(), half, env_factory=toy_factory(), progress=False, seeds=GROUP, stop_after_cycles=1)
     assert [h.lr_state.cycle for h in stopped.hosts] == [1, 1]
-    assert not os.path.exists(os.path.join(train.seed_dir(half, 0), train.POLICY_FILE))
+    assert not os.path.exists(os.path.join(train.seed_dir(half, 0), run_dir.POLICY_FILE))
     with open(os.path.join(train.seed_dir(half, 0), run_dir.METRICS_FILE), "a") as f:  # a kill after the checkpoint
         f.write(json.dumps({"iteration": 10**6, "env_steps": 0}) + "\n" + '{"iteration": 1')
     assert train.group_seeds_in(half) == GROUP  # --resume on the group folder finds its seeds
