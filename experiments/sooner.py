@@ -32,6 +32,10 @@ LEVERS: dict[str, tuple[str, ...]] = {
     "envs-128": ("ppo.num_envs=128",),  # half the rollout per iteration: twice the updates per env step
     "entropy-0": ("ppo.entropy_coef=0",),  # no entropy bonus
     "unroll-32": ("ppo.unroll_length=32",),  # longer rollouts: better advantage estimates, half the updates
+    "epochs-16": ("ppo.num_epochs=16",),  # four times the SGD passes: where do more passes stop paying?
+    "policy-64x4": ("ppo.network.policy_hidden=64,64,64,64",),  # network shape: a policy twice as wide
+    "entropy-3e-3": ("ppo.entropy_coef=3e-3",),  # exploration: three times the entropy bonus
+    "obstacles-all": ("train.obstacle_prob=1.0",),  # scene mix: every training scene has obstacles (preset: 80 %)
 }
 REFERENCE = "baseline"
 DEFAULT = ("baseline", "epochs-8", "envs-128", "lr-6e-4")
