@@ -36,6 +36,9 @@ LEVERS: dict[str, tuple[str, ...]] = {
     "policy-64x4": ("ppo.network.policy_hidden=64,64,64,64",),  # network shape: a policy twice as wide
     "entropy-3e-3": ("ppo.entropy_coef=3e-3",),  # exploration: three times the entropy bonus
     "obstacles-all": ("train.obstacle_prob=1.0",),  # scene mix: every training scene has obstacles (preset: 80 %)
+    "curriculum-0.25": ("train.curriculum_replay=0.25",),  # learnability curriculum: replay failed scenes, gently
+    "curriculum-0.5": ("train.curriculum_replay=0.5",),  # ... a scene failed once is replayed at 37.5 % of its refills
+    "curriculum-1": ("train.curriculum_replay=1.0",),  # ... at 75 %
 }
 REFERENCE = "baseline"
 DEFAULT = ("baseline", "epochs-8", "envs-128", "lr-6e-4")

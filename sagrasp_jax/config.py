@@ -414,6 +414,10 @@ class TrainConfig:
     blocking_prob: float | None = key(
         None, "fraction of training obstacle scenes with the blocking placement; none (unset) = the evaluation "
         "mix's, env.sampling.blocking_prob", within(0, 1))
+    curriculum_replay: float = key(
+        0.0, "Learnability curriculum (wrappers.AutoReset): each training env remembers a scene it failed and starts "
+        "it again instead of a fresh one with probability this × 4p(1 − p), p its success rate so far (most often "
+        "the scenes solved sometimes but not always); 0 = off, every training start fresh", within(0, 1))
     log_every: int = key(1, "iterations between JSONL rows", within(1, 10**9))
     checkpoint_every_cycles: int = key(10, "cycles between checkpoints", within(1, 10**9))
     metrics_window: int = key(256, "finished episodes in the training-episode window", within(1, 10**7))

@@ -189,10 +189,14 @@ class GraspEnv:
     @functools.partial(jax.jit, static_argnums=0)
     def reset(self, rng: jax.Array) -> State:
         """Sample a fresh episode start (target, obstacles, start noise) and build its state."""
+        return self.reset_to(*self.sample_spec(rng))
+
+    def sample_spec(self, rng: jax.Array) -> tuple[sampling.ResetSpec, jax.Array]:
+        """A fresh scene drawn from ``rng`` and the key ``reset_to`` builds its state with: ``reset`` in two
+        halves, so that a training curriculum (``wrappers.AutoReset``) can put a remembered scene in its place."""
         rng, key_sample = jax.random.split(rng)
         u = jax.random.uniform(key_sample, (self.n_uniforms,))
-        spec = sampling.sample_reset(jnp, self.robot, self.cfg.sampling, self.cfg.task, u)
-        return self.reset_to(spec, rng)
+        return sampling.sample_reset(jnp, self.robot, self.cfg.sampling, self.cfg.task, u), rng
 
     @functools.partial(jax.jit, static_argnums=0)
     def reset_to(self, spec: sampling.ResetSpec, rng: jax.Array) -> State:

@@ -42,7 +42,7 @@ class Transition(NamedTuple):
     done: jax.Array
 
 
-RESET_STATS = ("reset_overflow", "reset_replays")  # per-step auto-reset counters, when the env reports them
+RESET_STATS = ("reset_overflow", "reset_replays", "curriculum_starts")  # per-step auto-reset counters, when the env reports them
 
 
 def set_progress(env_state: State, progress: jax.Array) -> State:

@@ -414,3 +414,88 @@ def test_hovering_inside_the_grab_zone_does_not_pay_by_default(rc_mode, hovering
     hover_return, hover_ep = episode(lambda s: jnp.zeros(6))
     assert float(grasp_ep["success"]) == 1.0 and float(hover_ep["timeout"]) == 1.0
     assert (hover_return > grasp_return) == hovering_wins, (grasp_return, hover_return)
+
+
+# ---------------------------------------------------------------------- learnability curriculum
+
+def test_learnability_scores_sometimes_solved_scenes_highest():
+    """p̂(1 − p̂) with p̂ = (s + ½)/(n + 1): one success in two is the most learnable, a scene failed once scores
+    FAILED_ONCE, and scenes always solved or never solved fall towards 0 the more they are tried."""
+    from sagrasp_jax.wrappers import FAILED_ONCE, learnability
+
+    assert learnability(np, 1.0, 0.0) == pytest.approx(FAILED_ONCE) == pytest.approx(0.1875)
+    assert learnability(np, 2.0, 1.0) == pytest.approx(0.25)
+    always = [learnability(np, n, n) for n in (1.0, 3.0, 10.0)]
+    never = [learnability(np, n, 0.0) for n in (1.0, 3.0, 10.0)]
+    assert always == sorted(always, reverse=True) and never == sorted(never, reverse=True)
+    assert always[-1] == pytest.approx(never[-1]) == pytest.approx(0.5 / 11 * 10.5 / 11)
+
+
+def test_curriculum_memory_counts_replays_and_keeps_the_more_learnable_scene():
+    """One step of the curriculum's bookkeeping on five envs, each a case of docs (wrappers.py)."""
+    env = AutoReset(GraspEnv(env_config()), replay=1.0)
+    scene = lambda *v: {"x": jnp.asarray(v, jnp.float32)}  # noqa: E731  (any pytree stands for a ResetSpec)
+    info = {
+        "reset": scene(10.0, 11.0, 12.0, 13.0, 14.0),  # the scenes that just ended
+        "replay_spec": scene(0.0, 1.0, 2.0, 3.0, 4.0),  # each env's remembered scene
+        "replay_tries": jnp.asarray([1.0, 2.0, 5.0, 1.0, 1.0]),
+        "replay_successes": jnp.asarray([0.0, 1.0, 5.0, 0.0, 0.0]),
+        "replay_gen": jnp.asarray([3, 0, 0, 0, 2], jnp.int32),
+        "scene_gen": jnp.asarray([3, -1, -1, -1, 1], jnp.int32),  # env 0 replays gen 3, env 4 an older gen
+    }
+    done = jnp.asarray([True, True, True, True, True])
+    success = jnp.asarray([True, False, False, True, False])
+    out = env._remember(info, done, success)
+    np.testing.assert_allclose(out["replay_tries"], [2.0, 2.0, 1.0, 1.0, 1.0])  # 0: a try; 2: replaced
+    np.testing.assert_allclose(out["replay_successes"], [1.0, 1.0, 0.0, 0.0, 0.0])
+    # 1 keeps its 1-in-2 scene (0.25 > a new failure's 0.1875); 2 drops a scene solved 5 of 5 for the new failure;
+    # 3 succeeded on a fresh scene (nothing to learn); 4's replay was of a scene it no longer remembers
+    np.testing.assert_allclose(out["replay_spec"]["x"], [0.0, 1.0, 12.0, 3.0, 4.0])
+    np.testing.assert_array_equal(out["replay_gen"], [3, 0, 1, 0, 2])
+    idle = env._remember(info, jnp.zeros(5, bool), success)  # nothing finished: nothing changes
+    np.testing.assert_array_equal(idle["replay_gen"], info["replay_gen"])
+    np.testing.assert_allclose(idle["replay_tries"], info["replay_tries"])
+
+
+def test_curriculum_replays_failed_scenes_and_never_a_used_state():
+    """Episodes that all time out (5 steps, zero actions) fill every env's memory; some later starts are then
+    replays: their scene is one the same env played and failed before, they are counted in curriculum_starts
+    and marked replays when they finish, and no used state is ever swapped in again."""
+    cfg = env_config(obstacle_prob=0.5)
+    cfg = dataclasses.replace(cfg, task=dataclasses.replace(cfg.task, max_steps=5))
+    env = AutoReset(GraspEnv(cfg), replay=1.0)
+    n = 16
+    state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(21), n))
+    step = jax.jit(env.batch_step)
+    played = [[row] for row in _starts(state)]
+    started = replayed_starts = finished_replays = 0
+    for _ in range(60):
+        previous_scene_gen = np.asarray(state.info["scene_gen"])
+        state = step(state, jnp.zeros((n, 6)))
+        done = np.asarray(state.done) > 0.5
+        starts = np.asarray(state.metrics["curriculum_starts"]) > 0.5
+        assert not np.any(starts & ~done) and float(state.metrics["reset_replays"].sum()) == 0.0
+        np.testing.assert_array_equal(np.asarray(state.info["episode"]["replay"])[done], previous_scene_gen[done] >= 0)
+        finished_replays += int(np.sum(np.asarray(state.info["episode"]["replay"])[done]))
+        rows = _starts(state)
+        for i in np.flatnonzero(done):
+            if starts[i]:
+                assert any(np.allclose(rows[i], old, atol=1e-6) for old in played[i]), f"env {i} replayed a scene it never played"
+                replayed_starts += 1
+            else:
+                assert not any(np.allclose(rows[i], old, atol=1e-6) for old in played[i])
+            played[i].append(rows[i])
+            started += 1
+    assert np.all(np.asarray(state.info["replay_gen"]) >= 0)  # every env remembers a failure
+    # a scene failed once is replayed with probability 0.75, one failed twice 0.56: neither all nor none
+    assert 0.25 * started < replayed_starts < 0.85 * started, (replayed_starts, started)
+    assert finished_replays > 0
+
+
+def test_curriculum_needs_a_scene_env_and_a_probability():
+    from toy_env import PointReach
+
+    with pytest.raises(ValueError, match="sample_spec and reset_to"):
+        AutoReset(PointReach(), replay=0.5)
+    with pytest.raises(ValueError, match=r"in \[0, 1\]"):
+        AutoReset(GraspEnv(env_config()), replay=1.5)
