@@ -499,3 +499,13 @@ def test_curriculum_needs_a_scene_env_and_a_probability():
         AutoReset(PointReach(), replay=0.5)
     with pytest.raises(ValueError, match=r"in \[0, 1\]"):
         AutoReset(GraspEnv(env_config()), replay=1.5)
+
+
+def test_the_trainer_env_carries_the_configured_curriculum():
+    """train.curriculum_replay reaches the training env's AutoReset; the evaluation env never replays."""
+    from sagrasp_jax.train import default_envs
+
+    cfg = config.apply_overrides(config.get_config("cpu-quick"), ["train.curriculum_replay=0.5"])
+    train_env, eval_env = default_envs(cfg)
+    assert train_env.replay == 0.5 and not isinstance(eval_env, AutoReset)
+    assert default_envs(config.get_config("cpu-quick"))[0].replay == 0.0  # off in the presets
