@@ -38,7 +38,7 @@ LEVERS: dict[str, tuple[str, ...]] = {
     "obstacles-all": ("train.obstacle_prob=1.0",),  # scene mix: every training scene has obstacles (preset: 80 %)
     "curriculum-0.25": ("train.curriculum_replay=0.25",),  # learnability curriculum: replay failed scenes, gently
     "curriculum-0.5": ("train.curriculum_replay=0.5",),  # ... a scene failed once is replayed at 37.5 % of its refills
-    "curriculum-1": ("train.curriculum_replay=1.0",),  # ... at 75 %
+    "curriculum-1": ("train.curriculum_replay=1.0",),  # ... at 75 % (each scene at most train.curriculum_max_replays times)
 }
 REFERENCE = "baseline"
 DEFAULT = ("baseline", "epochs-8", "envs-128", "lr-6e-4")

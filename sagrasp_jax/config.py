@@ -418,6 +418,9 @@ class TrainConfig:
         0.0, "Learnability curriculum (wrappers.AutoReset): each training env remembers a scene it failed and starts "
         "it again instead of a fresh one with probability this × 4p(1 − p), p its success rate so far (most often "
         "the scenes solved sometimes but not always); 0 = off, every training start fresh", within(0, 1))
+    curriculum_max_replays: int = key(
+        8, "learnability curriculum: a remembered scene is retired after this many replays (one solved half the time "
+        "keeps its score and would otherwise be replayed for ever)", within(1, 10**6))
     log_every: int = key(1, "iterations between JSONL rows", within(1, 10**9))
     checkpoint_every_cycles: int = key(10, "cycles between checkpoints", within(1, 10**9))
     metrics_window: int = key(256, "finished episodes in the training-episode window", within(1, 10**7))

@@ -80,7 +80,7 @@ def default_envs(cfg: Config) -> tuple[rollout.Env, rollout.Env]:
 
     # training episodes follow the training mix (train.obstacle_prob / blocking_prob), evaluation the task's (docs/task.md §2.8)
     return (AutoReset(GraspEnv(training_env_config(cfg), privileged=cfg.ppo.privileged_critic),
-                      replay=cfg.train.curriculum_replay), GraspEnv(cfg.env))
+                      replay=cfg.train.curriculum_replay, max_replays=cfg.train.curriculum_max_replays), GraspEnv(cfg.env))
 
 
 def build_config(preset: str = "cpu-quick", algo: str | None = None, seed: int | None = None,

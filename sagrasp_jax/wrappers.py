@@ -31,7 +31,8 @@ next start from it instead of a fresh sample with probability ``replay × 4 p̂(
 p̂ = (successes + ½) / (tries + 1) (``learnability``): most often the scenes the policy solves
 sometimes but not always, seldom those it always solves or never does.  A fresh scene it fails
 replaces the remembered one unless that one is at least as learnable (a scene failed once scores
-p̂ = ¼).  Across the batch that is a buffer of ``num_envs`` scenes next to the fresh ones.  A replay
+p̂ = ¼); a scene is retired after ``max_replays`` replays (``train.curriculum_max_replays``), so that
+one solved about half the time, whose score never falls, cannot take an env over.  Across the batch that is a buffer of ``num_envs`` scenes next to the fresh ones.  A replay
 is a new start built from the remembered ``ResetSpec`` (its own randomisation draws), never a used
 state, so ``reset_replays`` stays 0; ``metrics["curriculum_starts"]`` counts the replays started and
 ``info["episode"]["replay"]`` marks a finished episode that was one (the training-episode window's
@@ -87,9 +88,11 @@ class AutoReset:
 
     batched = True  # the trainer may call batch_step instead of vmapping step
 
-    def __init__(self, env: Any, refill_fraction: float = 1 / 16, replay: float = 0.0):
+    def __init__(self, env: Any, refill_fraction: float = 1 / 16, replay: float = 0.0, max_replays: int = 8):
         if not 0.0 <= replay <= 1.0:
             raise ValueError(f"replay={replay!r}: the curriculum's replay scale is a probability in [0, 1]")
+        if max_replays < 1:
+            raise ValueError(f"max_replays={max_replays!r}: a remembered scene needs at least one replay")
         if replay and not (hasattr(env, "sample_spec") and hasattr(env, "reset_to")):
             raise ValueError(f"the learnability curriculum (replay={replay}) needs an env with sample_spec and reset_to "
                              f"(GraspEnv); {type(env).__name__} has not")
@@ -98,6 +101,7 @@ class AutoReset:
         self.action_size = env.action_size
         self.refill_fraction = refill_fraction
         self.replay = replay
+        self.max_replays = max_replays
 
     def reset(self, rng: jax.Array) -> State:
         k_state, k_pending, k_next = jax.random.split(rng, 3)
@@ -179,15 +183,20 @@ class AutoReset:
         pending, keys, gens, _ = jax.lax.while_loop(lambda c: jnp.any(c[3]), one_pass, (pending, keys, gens, todo))
         return pending, keys, gens
 
+    def _held(self, gen: jax.Array, tries: jax.Array) -> jax.Array:
+        """Whether an env remembers a scene it may still replay (its first try was the failure itself)."""
+        return (gen != FRESH) & (tries <= self.max_replays)
+
     def _remember(self, info: dict[str, Any], done: jax.Array, success: jax.Array) -> dict[str, Any]:
         """The curriculum's memory after this step's finished episodes: a replay of the remembered scene counts
-        as a try (and a success); a fresh scene that failed replaces it unless it is at least as learnable."""
+        as a try (and a success); a fresh scene that failed replaces it unless it is at least as learnable and
+        not yet retired (replayed ``max_replays`` times)."""
         gen, scene_gen = info["replay_gen"], info["scene_gen"]
         replayed = scene_gen != FRESH
         counted = done & replayed & (scene_gen == gen)  # a replay of an older remembered scene no longer counts
         tries = info["replay_tries"] + counted
         successes = info["replay_successes"] + (counted & success)
-        score = jnp.where(gen != FRESH, learnability(jnp, tries, successes), -1.0)
+        score = jnp.where(self._held(gen, tries), learnability(jnp, tries, successes), -1.0)
         replace = done & ~replayed & ~success & (score <= FAILED_ONCE)
         return {"replay_spec": _select(replace, info["reset"], info["replay_spec"]),
                 "replay_tries": jnp.where(replace, 1.0, tries).astype(tries.dtype),
@@ -206,7 +215,7 @@ class AutoReset:
         gens = state.info.get("pending_gen", jnp.full((n,), FRESH, jnp.int32))
         if self.replay:
             memory = self._remember(state.info, done, nxt.info["episode"]["success"] > 0.5)
-            held = memory["replay_gen"] != FRESH
+            held = self._held(memory["replay_gen"], memory["replay_tries"])
             p_replay = jnp.where(held, 4.0 * self.replay * learnability(jnp, memory["replay_tries"],
                                                                          memory["replay_successes"]), 0.0)
             curriculum = (memory["replay_spec"], p_replay, memory["replay_gen"])

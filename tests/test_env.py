@@ -432,27 +432,29 @@ def test_learnability_scores_sometimes_solved_scenes_highest():
 
 
 def test_curriculum_memory_counts_replays_and_keeps_the_more_learnable_scene():
-    """One step of the curriculum's bookkeeping on five envs, each a case of docs (wrappers.py)."""
-    env = AutoReset(GraspEnv(env_config()), replay=1.0)
+    """One step of the curriculum's bookkeeping on six envs, each a case of its rules (wrappers.py)."""
+    env = AutoReset(GraspEnv(env_config()), replay=1.0, max_replays=8)
     scene = lambda *v: {"x": jnp.asarray(v, jnp.float32)}  # noqa: E731  (any pytree stands for a ResetSpec)
     info = {
-        "reset": scene(10.0, 11.0, 12.0, 13.0, 14.0),  # the scenes that just ended
-        "replay_spec": scene(0.0, 1.0, 2.0, 3.0, 4.0),  # each env's remembered scene
-        "replay_tries": jnp.asarray([1.0, 2.0, 5.0, 1.0, 1.0]),
-        "replay_successes": jnp.asarray([0.0, 1.0, 5.0, 0.0, 0.0]),
-        "replay_gen": jnp.asarray([3, 0, 0, 0, 2], jnp.int32),
-        "scene_gen": jnp.asarray([3, -1, -1, -1, 1], jnp.int32),  # env 0 replays gen 3, env 4 an older gen
+        "reset": scene(10.0, 11.0, 12.0, 13.0, 14.0, 15.0),  # the scenes that just ended
+        "replay_spec": scene(0.0, 1.0, 2.0, 3.0, 4.0, 5.0),  # each env's remembered scene
+        "replay_tries": jnp.asarray([1.0, 2.0, 5.0, 1.0, 1.0, 9.0]),
+        "replay_successes": jnp.asarray([0.0, 1.0, 5.0, 0.0, 0.0, 4.0]),
+        "replay_gen": jnp.asarray([3, 0, 0, 0, 2, 0], jnp.int32),
+        "scene_gen": jnp.asarray([3, -1, -1, -1, 1, -1], jnp.int32),  # env 0 replays gen 3, env 4 an older gen
     }
-    done = jnp.asarray([True, True, True, True, True])
-    success = jnp.asarray([True, False, False, True, False])
+    done = jnp.ones(6, bool)
+    success = jnp.asarray([True, False, False, True, False, False])
     out = env._remember(info, done, success)
-    np.testing.assert_allclose(out["replay_tries"], [2.0, 2.0, 1.0, 1.0, 1.0])  # 0: a try; 2: replaced
-    np.testing.assert_allclose(out["replay_successes"], [1.0, 1.0, 0.0, 0.0, 0.0])
+    np.testing.assert_allclose(out["replay_tries"], [2.0, 2.0, 1.0, 1.0, 1.0, 1.0])  # 0: a try; 2, 5: replaced
+    np.testing.assert_allclose(out["replay_successes"], [1.0, 1.0, 0.0, 0.0, 0.0, 0.0])
     # 1 keeps its 1-in-2 scene (0.25 > a new failure's 0.1875); 2 drops a scene solved 5 of 5 for the new failure;
-    # 3 succeeded on a fresh scene (nothing to learn); 4's replay was of a scene it no longer remembers
-    np.testing.assert_allclose(out["replay_spec"]["x"], [0.0, 1.0, 12.0, 3.0, 4.0])
-    np.testing.assert_array_equal(out["replay_gen"], [3, 0, 1, 0, 2])
-    idle = env._remember(info, jnp.zeros(5, bool), success)  # nothing finished: nothing changes
+    # 3 succeeded on a fresh scene (nothing to learn); 4's replay was of a scene it no longer remembers;
+    # 5's scene, 4 of 9 (0.2475), was retired after its 8 replays
+    np.testing.assert_allclose(out["replay_spec"]["x"], [0.0, 1.0, 12.0, 3.0, 4.0, 15.0])
+    np.testing.assert_array_equal(out["replay_gen"], [3, 0, 1, 0, 2, 1])
+    np.testing.assert_array_equal(env._held(info["replay_gen"], info["replay_tries"]), [True] * 5 + [False])
+    idle = env._remember(info, jnp.zeros(6, bool), success)  # nothing finished: nothing changes
     np.testing.assert_array_equal(idle["replay_gen"], info["replay_gen"])
     np.testing.assert_allclose(idle["replay_tries"], info["replay_tries"])
 
@@ -499,6 +501,8 @@ def test_curriculum_needs_a_scene_env_and_a_probability():
         AutoReset(PointReach(), replay=0.5)
     with pytest.raises(ValueError, match=r"in \[0, 1\]"):
         AutoReset(GraspEnv(env_config()), replay=1.5)
+    with pytest.raises(ValueError, match="at least one replay"):
+        AutoReset(GraspEnv(env_config()), replay=0.5, max_replays=0)
 
 
 def test_the_trainer_env_carries_the_configured_curriculum():
