@@ -39,6 +39,9 @@ LEVERS: dict[str, tuple[str, ...]] = {
     "curriculum-0.25": ("train.curriculum_replay=0.25",),  # learnability curriculum: replay failed scenes, gently
     "curriculum-0.5": ("train.curriculum_replay=0.5",),  # ... a scene failed once is replayed at 37.5 % of its refills
     "curriculum-1": ("train.curriculum_replay=1.0",),  # ... at 75 % (each scene at most train.curriculum_max_replays times)
+    # the curriculum as first written, without retiring a scene (never reached within a run: 1e6 replays)
+    "curriculum-0.5-uncapped": ("train.curriculum_replay=0.5", "train.curriculum_max_replays=1000000"),
+    "curriculum-1-uncapped": ("train.curriculum_replay=1.0", "train.curriculum_max_replays=1000000"),
 }
 REFERENCE = "baseline"
 DEFAULT = ("baseline", "epochs-8", "envs-128", "lr-6e-4")
