@@ -851,7 +851,9 @@ RENAMED_KEYS: dict[str, str] = {
 RESPELLED_VALUES: dict[str, tuple[Any, Any]] = {"train.obstacle_prob": (-1.0, None), "train.blocking_prob": (-1.0, None)}
 # Keys added after run folders were written, with the value that does what a config without them did: a run's
 # identity and config hash leave them out at that value, so adding a key changes no earlier run's hash.
-ADDED_KEYS: dict[str, Any] = {"env.reward.tilt_weight": 0.0, "env.reward.tilt_free_deg": 5.0, "env.reward.tilt_near": 0.0}
+# (The curriculum was off in every earlier run, which makes its retirement count moot there: the default stands in.)
+ADDED_KEYS: dict[str, Any] = {"env.reward.tilt_weight": 0.0, "env.reward.tilt_free_deg": 5.0, "env.reward.tilt_near": 0.0,
+                              "train.curriculum_replay": 0.0, "train.curriculum_max_replays": 8}
 
 
 def _upgraded(flat: dict[str, Any]) -> dict[str, Any]:
