@@ -18,6 +18,7 @@ from jax.sharding import Mesh
 
 from sagrasp_jax.actor_critic import Normaliser, Params, PPONetworks, critic_extra_of, sample_action
 from sagrasp_jax.sharding import batch_sharding
+from sagrasp_jax.wrappers import RESET_METRICS
 
 
 class Env(Protocol):
@@ -42,7 +43,7 @@ class Transition(NamedTuple):
     done: jax.Array
 
 
-RESET_STATS = ("reset_overflow", "reset_replays", "curriculum_starts")  # per-step auto-reset counters, when the env reports them
+RESET_STATS = RESET_METRICS  # per-step auto-reset counters (wrappers.AutoReset's), when the env reports them
 
 
 def set_progress(env_state: State, progress: jax.Array) -> State:

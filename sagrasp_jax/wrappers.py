@@ -32,8 +32,8 @@ p̂ = (successes + ½) / (tries + 1) (``learnability``): most often the scenes t
 sometimes but not always, seldom those it always solves or never does.  A fresh scene it fails
 replaces the remembered one unless that one is at least as learnable (a scene failed once scores
 p̂ = ¼); a scene is retired after ``max_replays`` replays (``train.curriculum_max_replays``), so that
-one solved about half the time, whose score never falls, cannot take an env over.  Across the batch that is a buffer of ``num_envs`` scenes next to the fresh ones.  A replay
-is a new start built from the remembered ``ResetSpec`` (its own randomisation draws), never a used
+one solved about half the time, whose score never falls, cannot take an env over.  Across the batch
+that is a buffer of ``num_envs`` scenes next to the fresh ones.  A replay is a new start built from the remembered ``ResetSpec`` (its own randomisation draws), never a used
 state, so ``reset_replays`` stays 0; ``metrics["curriculum_starts"]`` counts the replays started and
 ``info["episode"]["replay"]`` marks a finished episode that was one (the training-episode window's
 share of replays).
@@ -57,14 +57,14 @@ RESET_METRICS = ("reset_overflow", "reset_replays", "curriculum_starts")
 FRESH = -1  # the generation of a freshly sampled start
 
 
-def learnability(xp: Any, tries: Any, successes: Any) -> Any:
+def learnability(tries: Any, successes: Any) -> Any:
     """p̂(1 − p̂) of a scene solved ``successes`` times in ``tries`` (p̂ = (s + ½) / (n + 1)): 0.1875 after one
     failure, 0.25 at one success in two, → 0 for a scene always or never solved."""
     p = (successes + 0.5) / (tries + 1.0)
     return p * (1.0 - p)
 
 
-FAILED_ONCE = 0.1875  # learnability(0 successes in 1 try): what a freshly failed scene scores
+FAILED_ONCE = learnability(1.0, 0.0)  # 0.1875: what a freshly failed scene scores
 
 
 def _select(mask: jax.Array, a: Any, b: Any) -> Any:
@@ -114,7 +114,7 @@ class AutoReset:
         if self.replay:
             fresh = jnp.asarray(FRESH, jnp.int32)
             info.update(replay_spec=state.info["reset"], replay_tries=zero, replay_successes=zero,
-                        replay_gen=jnp.asarray(FRESH, jnp.int32), scene_gen=fresh, pending_gen=fresh,
+                        replay_gen=fresh, scene_gen=fresh, pending_gen=fresh,
                         episode=dict(state.info["episode"], replay=zero))
         metrics = dict(state.metrics, **{k: zero for k in RESET_METRICS})
         return state.replace(info=info, metrics=metrics)
@@ -157,28 +157,28 @@ class AutoReset:
         spec = jax.tree_util.tree_map(lambda r, f: jnp.where(replay, r, f), slot_spec, spec)
         return self.env.reset_to(spec, rng), jnp.where(replay, slot_gen, FRESH)
 
-    def _refill(self, pending: Any, keys: jax.Array, gens: jax.Array, todo: jax.Array, chunk: int,
-                curriculum: tuple[Any, jax.Array, jax.Array] | None) -> tuple[Any, jax.Array, jax.Array]:
+    def _refill(self, pending: Any, keys: jax.Array, gens: jax.Array | None, todo: jax.Array, chunk: int,
+                curriculum: tuple[Any, jax.Array, jax.Array] | None) -> tuple[Any, jax.Array, jax.Array | None]:
         """Re-sample the pending start of every env in ``todo`` from its own key chain, ``chunk`` envs
         per pass of a ``lax.while_loop`` (no pass when ``todo`` is empty).  ``curriculum`` (each env's
         remembered scene, replay probability and generation) may put a remembered scene in a fresh one's
-        place; ``gens`` are the pending starts' generations."""
+        place; ``gens`` are the pending starts' generations (None without a curriculum)."""
         n = todo.shape[0]
 
-        def one_pass(carry: tuple[Any, jax.Array, jax.Array, jax.Array]) -> tuple[Any, jax.Array, jax.Array, jax.Array]:
+        def one_pass(carry: tuple[Any, jax.Array, Any, jax.Array]) -> tuple[Any, jax.Array, Any, jax.Array]:
             pend, ks, gs, left = carry
             idx = jnp.nonzero(left, size=chunk, fill_value=n)[0]
             safe = jnp.minimum(idx, n - 1)
             split = jax.vmap(jax.random.split)(ks[safe])  # (chunk, 2, key)
             if curriculum is None:
-                new_states, new_gens = jax.vmap(self.env.reset)(split[:, 0]), jnp.full(idx.shape, FRESH, gs.dtype)
+                new_states = jax.vmap(self.env.reset)(split[:, 0])
             else:
                 slot_spec, p_replay, slot_gen = curriculum
                 new_states, new_gens = jax.vmap(self._start)(
                     split[:, 0], jax.tree_util.tree_map(lambda x: x[safe], slot_spec), p_replay[safe], slot_gen[safe])
+                gs = gs.at[idx].set(new_gens, mode="drop")
             pend = jax.tree_util.tree_map(lambda p, s: p.at[idx].set(s, mode="drop"), pend, new_states)
-            return (pend, ks.at[idx].set(split[:, 1], mode="drop"), gs.at[idx].set(new_gens, mode="drop"),
-                    left.at[idx].set(False, mode="drop"))
+            return pend, ks.at[idx].set(split[:, 1], mode="drop"), gs, left.at[idx].set(False, mode="drop")
 
         pending, keys, gens, _ = jax.lax.while_loop(lambda c: jnp.any(c[3]), one_pass, (pending, keys, gens, todo))
         return pending, keys, gens
@@ -196,7 +196,7 @@ class AutoReset:
         counted = done & replayed & (scene_gen == gen)  # a replay of an older remembered scene no longer counts
         tries = info["replay_tries"] + counted
         successes = info["replay_successes"] + (counted & success)
-        score = jnp.where(self._held(gen, tries), learnability(jnp, tries, successes), -1.0)
+        score = jnp.where(self._held(gen, tries), learnability(tries, successes), -1.0)
         replace = done & ~replayed & ~success & (score <= FAILED_ONCE)
         return {"replay_spec": _select(replace, info["reset"], info["replay_spec"]),
                 "replay_tries": jnp.where(replace, 1.0, tries).astype(tries.dtype),
@@ -211,14 +211,13 @@ class AutoReset:
         pending, fresh, keys = state.info["pending"], state.info["pending_fresh"], state.info["reset_key"]
         nxt = jax.vmap(self.env.step)(_core(state), action)
         done = nxt.done > 0.5
-        memory, curriculum = {}, None
-        gens = state.info.get("pending_gen", jnp.full((n,), FRESH, jnp.int32))
+        memory, curriculum, gens = {}, None, None
         if self.replay:
             memory = self._remember(state.info, done, nxt.info["episode"]["success"] > 0.5)
             held = self._held(memory["replay_gen"], memory["replay_tries"])
-            p_replay = jnp.where(held, 4.0 * self.replay * learnability(jnp, memory["replay_tries"],
+            p_replay = jnp.where(held, 4.0 * self.replay * learnability(memory["replay_tries"],
                                                                          memory["replay_successes"]), 0.0)
-            curriculum = (memory["replay_spec"], p_replay, memory["replay_gen"])
+            curriculum, gens = (memory["replay_spec"], p_replay, memory["replay_gen"]), state.info["pending_gen"]
         overflow = done & ~fresh  # finished again before its pending was refilled: must be served now
         # up to ``refill`` of the other consumed pendings, scanning from a rotating start so none starves
         stale = ~fresh & ~done

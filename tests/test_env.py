@@ -423,10 +423,10 @@ def test_learnability_scores_sometimes_solved_scenes_highest():
     FAILED_ONCE, and scenes always solved or never solved fall towards 0 the more they are tried."""
     from sagrasp_jax.wrappers import FAILED_ONCE, learnability
 
-    assert learnability(np, 1.0, 0.0) == pytest.approx(FAILED_ONCE) == pytest.approx(0.1875)
-    assert learnability(np, 2.0, 1.0) == pytest.approx(0.25)
-    always = [learnability(np, n, n) for n in (1.0, 3.0, 10.0)]
-    never = [learnability(np, n, 0.0) for n in (1.0, 3.0, 10.0)]
+    assert learnability(1.0, 0.0) == pytest.approx(FAILED_ONCE) == pytest.approx(0.1875)
+    assert learnability(2.0, 1.0) == pytest.approx(0.25)
+    always = [learnability(n, n) for n in (1.0, 3.0, 10.0)]
+    never = [learnability(n, 0.0) for n in (1.0, 3.0, 10.0)]
     assert always == sorted(always, reverse=True) and never == sorted(never, reverse=True)
     assert always[-1] == pytest.approx(never[-1]) == pytest.approx(0.5 / 11 * 10.5 / 11)
 
