@@ -42,6 +42,10 @@ LEVERS: dict[str, tuple[str, ...]] = {
     # the curriculum as first written, without retiring a scene (never reached within a run: 1e6 replays)
     "curriculum-0.5-uncapped": ("train.curriculum_replay=0.5", "train.curriculum_max_replays=1000000"),
     "curriculum-1-uncapped": ("train.curriculum_replay=1.0", "train.curriculum_max_replays=1000000"),
+    # combinations of the levers that each climbed faster at 3M
+    "epochs-8+entropy-3e-3": ("ppo.num_epochs=8", "ppo.entropy_coef=3e-3"),
+    "epochs-8+entropy-3e-3+policy-64x4": ("ppo.num_epochs=8", "ppo.entropy_coef=3e-3",
+                                          "ppo.network.policy_hidden=64,64,64,64"),
 }
 REFERENCE = "baseline"
 DEFAULT = ("baseline", "epochs-8", "envs-128", "lr-6e-4")
