@@ -22,7 +22,8 @@ paired t-test's two-sided p and the seeds won.  Prints Markdown tables, writes J
 ``--out`` and, with matplotlib, learning curves (per-cycle evaluation success, mean and band
 across seeds) and lr traces next to it, and — when ``constant`` and ``sa`` both ran — the paper's
 Figures 11-15 and the SA trace for the two (``paper_figures.plot_all``) in ``<out>_figures/``.
-Re-running skips evaluated runs and evaluates finished ones; with ``--resume`` it continues runs
+With ``--reference-from FILE`` the reference's rows come from an earlier result file measured the same way
+(checked before anything trains) instead of being trained again.  Re-running skips evaluated runs and evaluates finished ones; with ``--resume`` it continues runs
 that stopped before they finished; a run folder trained with another config is refused.  Run from
 the repository root:
 
@@ -34,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+import json
 import os
 import sys
 import time
@@ -284,6 +286,9 @@ def parse_args(argv: Sequence[str] | None, module: str = "compare_schedules", de
     p.add_argument("--blocking-episodes", type=int, default=blocking_episodes,
                    help=f"blocking-only episodes per run, 0: none (default {blocking_episodes})")
     p.add_argument("--out", default=None, help=f"default experiments/results/{module}_<preset>.json")
+    p.add_argument("--reference-from", default=None, metavar="JSON",
+                   help="take the reference variant's per-seed results from this earlier result file of the same "
+                        "preset, budget, seeds, evaluation and conditions instead of training it again")
     p.add_argument("--no-figures", action="store_true")
     args = p.parse_args(argv)
     if args.eval_episodes < 1 or args.blocking_episodes < 0:
@@ -291,6 +296,37 @@ def parse_args(argv: Sequence[str] | None, module: str = "compare_schedules", de
     args.runs_dir = args.runs_dir or os.path.join("runs", f"{module}_{args.preset}")
     args.out = args.out or os.path.join("experiments", "results", f"{module}_{args.preset}.json")
     return args
+
+
+def recorded_reference(args: argparse.Namespace, spec: study.Study, reference: str,
+                       chosen: study.Variants) -> dict[str, Any]:
+    """The ``reference`` variant's summary from ``args.reference_from``, an earlier result file of this study
+    (runs are deterministic on one machine, so retraining would reproduce it).  Refused unless it was measured
+    the same way: preset, budget, extra overrides, evaluation episodes, blocking episodes, conditions, seeds."""
+    path = args.reference_from
+    if reference in chosen:
+        raise study.StudyError(f"--reference-from: {reference!r} is both trained here and read from {path}")
+    try:
+        with open(path, encoding="utf-8") as f:
+            old = json.load(f)
+        recorded = old["summary"][reference]
+    except (OSError, ValueError) as exc:
+        raise study.StudyError(f"--reference-from {path}: cannot read it ({exc})") from exc
+    except (KeyError, TypeError) as exc:
+        raise study.StudyError(f"--reference-from {path}: no summary of {reference!r} in it") from exc
+    want = {"preset": spec.preset, "total_steps": spec.total_steps, "eval_episodes": args.eval_episodes,
+            "blocking_episodes": args.blocking_episodes}
+    differ = [f"{k} {old.get(k)!r} (here {v!r})" for k, v in want.items() if old.get(k) != v]
+    if list(old.get("extra_overrides") or ()) != list(args.overrides or ()):
+        differ.append(f"extra overrides {old.get('extra_overrides')} (here {args.overrides})")
+    conditions = {r for recs in old.get("runs", {}).get(reference, []) for r in recs.get("conditions", {})}
+    if conditions != set(args.conditions or ()):
+        differ.append(f"conditions {sorted(conditions)} (here {sorted(args.conditions or ())})")
+    if list(recorded.get("seeds", ())) != list(spec.seeds):
+        differ.append(f"seeds {recorded.get('seeds')} (here {list(spec.seeds)})")
+    if differ:
+        raise study.StudyError(f"--reference-from {path}: measured differently: " + "; ".join(differ))
+    return {**recorded, "from": path}
 
 
 def run_table(args: argparse.Namespace, table: study.Variants, default: Sequence[str], reference: str,
@@ -302,6 +338,7 @@ def run_table(args: argparse.Namespace, table: study.Variants, default: Sequence
     try:
         spec = study.study_from_args(args)
         chosen = study.pick_variants(table, args.variants, default)
+        recorded = recorded_reference(args, spec, reference, chosen) if args.reference_from else None
         identity = {"eval_episodes": args.eval_episodes, "blocking_episodes": args.blocking_episodes}
         records = study.run_study(spec, chosen, measure(args.eval_episodes, args.blocking_episodes), identity,
                                   RESULT_FILE, args.conditions, args.eval_episodes)
@@ -312,6 +349,8 @@ def run_table(args: argparse.Namespace, table: study.Variants, default: Sequence
         for r in recs:
             r.update(curve_facts(run_dir.read_metrics(os.path.join(spec.folder(variant, r["seed"]), run_dir.METRICS_FILE))))
     summary = {v: summarise(recs) for v, recs in records.items()}
+    if recorded is not None:
+        summary = {reference: recorded, **summary}
     versus = stats.compare_with_reference({v: s["per_seed"] for v, s in summary.items()}, reference,
                                           [(key, better) for key, _, better in PAIRED])
     stem = os.path.splitext(args.out)[0]

@@ -394,6 +394,37 @@ def test_sooner_levers_each_change_what_they_name_and_nothing_else(capsys: pytes
     assert "unknown variant(s) bogus" in capsys.readouterr().err
 
 
+def test_reference_from_an_earlier_result_is_checked_before_anything_trains(
+        tmp_path: pytest.TempPathFactory, capsys: pytest.CaptureFixture) -> None:
+    """``--reference-from`` reuses an earlier study's reference rows only if they were measured the same way
+    (preset, budget, overrides, episodes, conditions, seeds); anything else exits 2 naming the difference,
+    before a run is trained (the runs folder stays absent)."""
+    from experiments import sooner
+
+    recorded = {"preset": "cpu-quick", "total_steps": 3_000_000, "eval_episodes": 1000, "blocking_episodes": 0,
+                "extra_overrides": [], "runs": {"baseline": [{"seed": s, "conditions": {}} for s in (0, 1)]},
+                "summary": {"baseline": {"seeds": [0, 1], "per_seed": [{"seed": 0}, {"seed": 1}]}}}
+    good = tmp_path / "old.json"
+    good.write_text(json.dumps(recorded))
+    args = compare.parse_args(["--preset", "cpu-quick", "--seeds", "2", "--total-steps", "3000000",
+                               "--blocking-episodes", "0", "--reference-from", str(good)], "sooner")
+    spec = study.study_from_args(args)
+    assert compare.recorded_reference(args, spec, "baseline", {"epochs-8": ()})["from"] == str(good)
+    with pytest.raises(study.StudyError, match="both trained here"):
+        compare.recorded_reference(args, spec, "baseline", {"baseline": ()})
+    runs = tmp_path / "runs"
+    common = ["--variants", "epochs-8", "--total-steps", "3000000", "--runs-dir", str(runs), "--no-progress"]
+    cases = [(["--seeds", "2", "--reference-from", str(tmp_path / "absent.json")], "cannot read it"),
+             (["--seeds", "3", "--reference-from", str(good)], "seeds [0, 1] (here [0, 1, 2])"),
+             (["--seeds", "2", "--blocking-episodes", "1000", "--reference-from", str(good)], "blocking_episodes 0"),
+             (["--seeds", "2", "--condition", "robot", "--reference-from", str(good)], "conditions [] (here ['robot'])"),
+             (["--seeds", "2", "--set", "ppo.num_epochs=2", "--reference-from", str(good)], "extra overrides")]
+    for extra, message in cases:
+        assert sooner.main(common + extra) == 2, extra
+        assert message in capsys.readouterr().err, extra
+    assert not runs.exists()
+
+
 # ---------------------------------------------------------------------- obstacle ablation
 
 def _ablation_record(seed: int, overall: float, obstacle: float, blocking: float) -> dict:
