@@ -42,7 +42,7 @@ import time
 from typing import Any, Sequence
 
 from experiments import paper_figures, stats, study
-from sagrasp_jax import run_dir, train
+from sagrasp_jax import evaluate, run_dir, train
 from sagrasp_jax.config import LR_SCHEDULES
 
 SCHEDULE_VARIANTS: dict[str, tuple[str, ...]] = {name: (f"lr.schedule={name}",) for name in LR_SCHEDULES}
@@ -298,32 +298,36 @@ def parse_args(argv: Sequence[str] | None, module: str = "compare_schedules", de
     return args
 
 
-def recorded_reference(args: argparse.Namespace, spec: study.Study, reference: str,
+def recorded_reference(args: argparse.Namespace, spec: study.Study, table: study.Variants, reference: str,
                        chosen: study.Variants) -> dict[str, Any]:
     """The ``reference`` variant's summary from ``args.reference_from``, an earlier result file of this study
     (runs are deterministic on one machine, so retraining would reproduce it).  Refused unless it was measured
-    the same way: preset, budget, extra overrides, evaluation episodes, blocking episodes, conditions, seeds."""
+    the same way: the same seeds, each trained with the config the reference has here (``config_identity``:
+    preset, budget, overrides and every default at that time), the same evaluation episodes and conditions."""
     path = args.reference_from
     if reference in chosen:
         raise study.StudyError(f"--reference-from: {reference!r} is both trained here and read from {path}")
     try:
         with open(path, encoding="utf-8") as f:
             old = json.load(f)
-        recorded = old["summary"][reference]
+        recorded, runs = old["summary"][reference], old["runs"][reference]
     except (OSError, ValueError) as exc:
         raise study.StudyError(f"--reference-from {path}: cannot read it ({exc})") from exc
     except (KeyError, TypeError) as exc:
         raise study.StudyError(f"--reference-from {path}: no summary of {reference!r} in it") from exc
-    want = {"preset": spec.preset, "total_steps": spec.total_steps, "eval_episodes": args.eval_episodes,
-            "blocking_episodes": args.blocking_episodes}
+    want = {"eval_episodes": args.eval_episodes, "blocking_episodes": args.blocking_episodes}
     differ = [f"{k} {old.get(k)!r} (here {v!r})" for k, v in want.items() if old.get(k) != v]
-    if list(old.get("extra_overrides") or ()) != list(args.overrides or ()):
-        differ.append(f"extra overrides {old.get('extra_overrides')} (here {args.overrides})")
-    conditions = {r for recs in old.get("runs", {}).get(reference, []) for r in recs.get("conditions", {})}
+    conditions = {c for r in runs for c in r.get("conditions", {})}
     if conditions != set(args.conditions or ()):
         differ.append(f"conditions {sorted(conditions)} (here {sorted(args.conditions or ())})")
-    if list(recorded.get("seeds", ())) != list(spec.seeds):
-        differ.append(f"seeds {recorded.get('seeds')} (here {list(spec.seeds)})")
+    if [r.get("seed") for r in runs] != list(spec.seeds):
+        differ.append(f"seeds {[r.get('seed') for r in runs]} (here {list(spec.seeds)})")
+    else:
+        trained = [r.get("mix", {}).get("config_sha256") for r in runs]
+        here = [evaluate.config_identity(spec.config(table[reference], s)) for s in spec.seeds]
+        if trained != here:
+            differ.append(f"its runs were trained with another config (config_sha256 {trained}, here {here}: "
+                          "preset, budget, overrides or a default changed)")
     if differ:
         raise study.StudyError(f"--reference-from {path}: measured differently: " + "; ".join(differ))
     return {**recorded, "from": path}
@@ -338,7 +342,7 @@ def run_table(args: argparse.Namespace, table: study.Variants, default: Sequence
     try:
         spec = study.study_from_args(args)
         chosen = study.pick_variants(table, args.variants, default)
-        recorded = recorded_reference(args, spec, reference, chosen) if args.reference_from else None
+        recorded = recorded_reference(args, spec, table, reference, chosen) if args.reference_from else None
         identity = {"eval_episodes": args.eval_episodes, "blocking_episodes": args.blocking_episodes}
         records = study.run_study(spec, chosen, measure(args.eval_episodes, args.blocking_episodes), identity,
                                   RESULT_FILE, args.conditions, args.eval_episodes)

@@ -184,18 +184,21 @@ def evaluate_run(run: str, episodes: int = 1000, seed: int | None = None, max_st
     }
 
 
-def trained_identity(cfg: Config, ckpt: Any) -> dict[str, Any]:
-    """What was trained, in an evaluation's identity: a hash of the run's whole config (seed included;
-    ``config.config_hash`` covers the env only) and its checkpoint's payload digest (a retrained run
-    at the same iteration is another evaluation).  The config is hashed in its first-written layout
-    (``config.identity_dict``), so a key's rename keeps the evaluation files of older runs valid."""
+def config_identity(cfg: Config) -> str:
+    """A hash of a run's whole config (seed included; ``config.config_hash`` covers the env only), in its
+    first-written layout (``config.identity_dict``), so a key's rename keeps older runs' evaluation files valid."""
     import hashlib
     import json
 
     from sagrasp_jax.config import identity_dict
 
-    blob = json.dumps(identity_dict(cfg), sort_keys=True).encode()
-    return {"config_sha256": hashlib.sha256(blob).hexdigest()[:16], "checkpoint_sha256": ckpt.header.get("payload_sha256")}
+    return hashlib.sha256(json.dumps(identity_dict(cfg), sort_keys=True).encode()).hexdigest()[:16]
+
+
+def trained_identity(cfg: Config, ckpt: Any) -> dict[str, Any]:
+    """What was trained, in an evaluation's identity: ``config_identity`` and the checkpoint's payload digest
+    (a retrained run at the same iteration is another evaluation)."""
+    return {"config_sha256": config_identity(cfg), "checkpoint_sha256": ckpt.header.get("payload_sha256")}
 
 
 def write_results(path: str, results: dict[str, Any]) -> str:

@@ -373,8 +373,11 @@ def test_compare_schedules_smoke(tmp_path: pytest.TempPathFactory) -> None:
 
 def test_sooner_levers_each_change_what_they_name_and_nothing_else(capsys: pytest.CaptureFixture) -> None:
     """Every lever of the time-to-quality table is a valid config that differs from the baseline in exactly
-    the keys it names (a lever that a preset change made a no-op would be measured as noise); bad options exit 2."""
+    the keys it names (a lever that a preset change made a no-op would be measured as noise); the baseline is
+    still the config its recorded runs were trained with, and today's preset is the combination that won;
+    bad options exit 2."""
     from experiments import sooner, study
+    from sagrasp_jax import evaluate
     from sagrasp_jax.config import config_to_dict
 
     spec = study.Study("cpu-quick", 3_000_000, (0,), "unused")
@@ -386,9 +389,13 @@ def test_sooner_levers_each_change_what_they_name_and_nothing_else(capsys: pytes
 
     base = flat(spec.config(sooner.LEVERS[sooner.REFERENCE], 0))
     assert sooner.REFERENCE in sooner.DEFAULT and set(sooner.DEFAULT) <= set(sooner.LEVERS)
-    for name, sets in sooner.LEVERS.items():
-        changed = {k for k, v in flat(spec.config(sets, 0)).items() if base[k] != v}
+    for name, sets in sooner._LEVERS.items():
+        changed = {k for k, v in flat(spec.config(sooner.LEVERS[name], 0)).items() if base[k] != v}
         assert changed == {s.split("=")[0] for s in sets}, name
+    # the recorded baseline runs (sooner_levers3_3M.json, seed 0) were trained with exactly this config
+    assert evaluate.config_identity(spec.config(sooner.LEVERS["baseline"], 0)) == "0d6b7c82eeef9d39"
+    assert flat(spec.config(sooner.LEVERS["adopted"], 0)) == flat(
+        spec.config(sooner.LEVERS["epochs-8+entropy-3e-3+policy-64x4"], 0))
     assert sooner.main(["--seeds", "0-", "--runs-dir", "unused"]) == 2
     assert sooner.main(["--variants", "baseline,bogus", "--runs-dir", "unused"]) == 2
     assert "unknown variant(s) bogus" in capsys.readouterr().err
@@ -397,30 +404,36 @@ def test_sooner_levers_each_change_what_they_name_and_nothing_else(capsys: pytes
 def test_reference_from_an_earlier_result_is_checked_before_anything_trains(
         tmp_path: pytest.TempPathFactory, capsys: pytest.CaptureFixture) -> None:
     """``--reference-from`` reuses an earlier study's reference rows only if they were measured the same way
-    (preset, budget, overrides, episodes, conditions, seeds); anything else exits 2 naming the difference,
-    before a run is trained (the runs folder stays absent)."""
+    (each seed's config identity, evaluation episodes, conditions, seeds); anything else exits 2 naming the
+    difference, before a run is trained (the runs folder stays absent)."""
     from experiments import sooner
+    from sagrasp_jax import evaluate
 
-    recorded = {"preset": "cpu-quick", "total_steps": 3_000_000, "eval_episodes": 1000, "blocking_episodes": 0,
-                "extra_overrides": [], "runs": {"baseline": [{"seed": s, "conditions": {}} for s in (0, 1)]},
+    spec = study.Study("cpu-quick", 3_000_000, (0, 1), "unused")
+    runs_rec = [{"seed": s, "conditions": {},
+                 "mix": {"config_sha256": evaluate.config_identity(spec.config(sooner.LEVERS["baseline"], s))}}
+                for s in (0, 1)]
+    recorded = {"eval_episodes": 1000, "blocking_episodes": 0, "runs": {"baseline": runs_rec},
                 "summary": {"baseline": {"seeds": [0, 1], "per_seed": [{"seed": 0}, {"seed": 1}]}}}
     good = tmp_path / "old.json"
     good.write_text(json.dumps(recorded))
     args = compare.parse_args(["--preset", "cpu-quick", "--seeds", "2", "--total-steps", "3000000",
                                "--blocking-episodes", "0", "--reference-from", str(good)], "sooner")
     spec = study.study_from_args(args)
-    assert compare.recorded_reference(args, spec, "baseline", {"epochs-8": ()})["from"] == str(good)
+    assert compare.recorded_reference(args, spec, sooner.LEVERS, "baseline", {"epochs-8": ()})["from"] == str(good)
     with pytest.raises(study.StudyError, match="both trained here"):
-        compare.recorded_reference(args, spec, "baseline", {"baseline": ()})
+        compare.recorded_reference(args, spec, sooner.LEVERS, "baseline", {"baseline": ()})
     runs = tmp_path / "runs"
-    common = ["--variants", "epochs-8", "--total-steps", "3000000", "--runs-dir", str(runs), "--no-progress"]
-    cases = [(["--seeds", "2", "--reference-from", str(tmp_path / "absent.json")], "cannot read it"),
-             (["--seeds", "3", "--reference-from", str(good)], "seeds [0, 1] (here [0, 1, 2])"),
-             (["--seeds", "2", "--blocking-episodes", "1000", "--reference-from", str(good)], "blocking_episodes 0"),
-             (["--seeds", "2", "--condition", "robot", "--reference-from", str(good)], "conditions [] (here ['robot'])"),
-             (["--seeds", "2", "--set", "ppo.num_epochs=2", "--reference-from", str(good)], "extra overrides")]
+    common = ["--variants", "epochs-8", "--runs-dir", str(runs), "--no-progress", "--reference-from"]
+    cases = [(["--seeds", "2", "--total-steps", "3000000", "--reference-from", str(tmp_path / "absent.json")],
+              "cannot read it"),
+             (["--seeds", "3", "--total-steps", "3000000"], "seeds [0, 1] (here [0, 1, 2])"),
+             (["--seeds", "2", "--total-steps", "3000000", "--blocking-episodes", "1000"], "blocking_episodes 0"),
+             (["--seeds", "2", "--total-steps", "3000000", "--condition", "robot"], "conditions [] (here ['robot'])"),
+             (["--seeds", "2", "--total-steps", "3000000", "--set", "ppo.num_epochs=2"], "another config"),
+             (["--seeds", "2", "--total-steps", "2000000"], "another config")]
     for extra, message in cases:
-        assert sooner.main(common + extra) == 2, extra
+        assert sooner.main(common + [str(good)] + extra) == 2, extra
         assert message in capsys.readouterr().err, extra
     assert not runs.exists()
 
