@@ -50,6 +50,12 @@ def x64():
     jax.config.update("jax_enable_x64", previous)
 
 
+# The PPO shape `cpu-quick` had before its time-to-quality levers (experiments.sooner.BEFORE): 4 epochs, entropy
+# 1e-3, a 32×4 policy.  The suite's short runs keep it: their checks were sized with it, and eight epochs of a
+# policy twice as wide would make every short run half again as slow without testing anything more.
+SUITE_PPO = ["ppo.num_epochs=4", "ppo.entropy_coef=1e-3", "ppo.network.policy_hidden=32,32,32,32"]
+
+
 def toy_config(cycles: int = 6, algo: str = "sa-ppo", extra: list[str] | None = None,
                iterations_per_cycle: int = 2) -> Config:
     """Small PPO batch on the toy env; ``cycles`` SA cycles of ``iterations_per_cycle`` iterations."""
@@ -58,7 +64,7 @@ def toy_config(cycles: int = 6, algo: str = "sa-ppo", extra: list[str] | None = 
             f"eval.num_cycles={cycles}", "eval.episodes=32", "env.task.max_steps=30",
             "train.checkpoint_every_cycles=2", "train.metrics_window=64",
             "ppo.privileged_critic=false"]  # toy runs: no privileged critic unless a test sets it (toy_factory)
-    return train.build_config("cpu-quick", algo, 0, total, sets + list(extra or []))
+    return train.build_config("cpu-quick", algo, 0, total, SUITE_PPO + sets + list(extra or []))
 
 
 FIRST_GRADIENT_SETS = ["ppo.num_minibatches=1", "ppo.num_epochs=1", "ppo.entropy_coef=0.0"]
@@ -115,7 +121,7 @@ def toy_run(tmp_path_factory: pytest.TempPathFactory) -> str:
 
 TRAINED_STEPS = 600_000  # cpu-quick batch; ≈ 1.5-2 min on 2 cores plus compile
 TRAINED_ARGS = ["--preset", "cpu-quick", "--algo", "sa-ppo", "--seed", "0", "--total-steps", str(TRAINED_STEPS),
-                "--set", "eval.num_cycles=30", "--no-progress",
+                "--set", "eval.num_cycles=30", "--no-progress", *(f"--set={item}" for item in SUITE_PPO),
                 *(f"--set={item}" for item in KNOBS_OFF)]  # learns fast: transfer errors off
 
 

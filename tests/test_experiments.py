@@ -25,8 +25,8 @@ from experiments import reproduce_paper as repro
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
-TINY_SETS = ["ppo.num_envs=64", "ppo.num_epochs=1", "ppo.num_minibatches=1", "env.task.max_steps=50",
-             "eval.episodes=8", "eval.num_cycles=4"]
+TINY_SETS = ["ppo.network.policy_hidden=32,32,32,32", "ppo.num_envs=64", "ppo.num_epochs=1", "ppo.num_minibatches=1",
+             "env.task.max_steps=50", "eval.episodes=8", "eval.num_cycles=4"]
 
 
 def _sets(items: list[str]) -> list[str]:
