@@ -78,7 +78,7 @@ EQUAL_ATOL = 1e-5  # |Δ joint position| (rad) between the jax and warp backends
 # --quick trains tests/tiny_run.py's run (cpu-quick, 1,024 steps, these overrides), so that jax's persistent
 # compilation cache, filled by the tests that train it, serves the smoke test too
 TINY = ("eval.num_cycles=1", "eval.episodes=8", "ppo.num_envs=64", "ppo.num_epochs=1", "ppo.num_minibatches=1",
-        "env.task.max_steps=50")
+        "ppo.network.policy_hidden=32,32,32,32", "env.task.max_steps=50")
 # (full, --quick) sizes of every section
 SIZES: dict[str, tuple[Any, Any]] = {
     "train_preset": ("gpu", "cpu-quick"), "train_sets": ((), TINY), "train_steps": (None, 1024),
