@@ -23,9 +23,9 @@ paired t-test's two-sided p and the seeds won.  Prints Markdown tables, writes J
 across seeds) and lr traces next to it, and — when ``constant`` and ``sa`` both ran — the paper's
 Figures 11-15 and the SA trace for the two (``paper_figures.plot_all``) in ``<out>_figures/``.
 With ``--reference-from FILE`` the reference's rows come from an earlier result file measured the same way
-(checked before anything trains) instead of being trained again.  Re-running skips evaluated runs and evaluates finished ones; with ``--resume`` it continues runs
-that stopped before they finished; a run folder trained with another config is refused.  Run from
-the repository root:
+(checked before anything trains) instead of being trained again.  Re-running skips evaluated runs and
+evaluates finished ones; with ``--resume`` it continues runs that stopped before they finished; a run
+folder trained with another config is refused.  Run from the repository root:
 
     python -m experiments.compare_schedules --preset cpu-quick --seeds 5 --ablation \\
         --runs-dir runs/compare_schedules_cpu --out experiments/results/compare_schedules_cpu.json

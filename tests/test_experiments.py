@@ -23,6 +23,8 @@ from experiments import obstacle_ablation as ab
 from experiments import paper_figures, stats, study
 from experiments import reproduce_paper as repro
 
+from conftest import SUITE_PPO
+
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 TINY_SETS = ["ppo.network.policy_hidden=32,32,32,32", "ppo.num_envs=64", "ppo.num_epochs=1", "ppo.num_minibatches=1",
@@ -396,6 +398,7 @@ def test_sooner_levers_each_change_what_they_name_and_nothing_else(capsys: pytes
     assert evaluate.config_identity(spec.config(sooner.LEVERS["baseline"], 0)) == "0d6b7c82eeef9d39"
     assert flat(spec.config(sooner.LEVERS["adopted"], 0)) == flat(
         spec.config(sooner.LEVERS["epochs-8+entropy-3e-3+policy-64x4"], 0))
+    assert SUITE_PPO == list(sooner.BEFORE)  # the suite's short runs keep the shape the levers are measured over
     assert sooner.main(["--seeds", "0-", "--runs-dir", "unused"]) == 2
     assert sooner.main(["--variants", "baseline,bogus", "--runs-dir", "unused"]) == 2
     assert "unknown variant(s) bogus" in capsys.readouterr().err
