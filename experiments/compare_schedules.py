@@ -289,6 +289,8 @@ def parse_args(argv: Sequence[str] | None, module: str = "compare_schedules", de
     p.add_argument("--reference-from", default=None, metavar="JSON",
                    help="take the reference variant's per-seed results from this earlier result file of the same "
                         "preset, budget, seeds, evaluation and conditions instead of training it again")
+    p.add_argument("--reference", default=None, metavar="VARIANT",
+                   help="pair every variant with this one seed by seed (default: the table's reference)")
     p.add_argument("--no-figures", action="store_true")
     args = p.parse_args(argv)
     if args.eval_episodes < 1 or args.blocking_episodes < 0:
@@ -341,6 +343,8 @@ def run_table(args: argparse.Namespace, table: study.Variants, default: Sequence
     t0 = time.perf_counter()
     try:
         spec = study.study_from_args(args)
+        if reference not in table:
+            raise study.StudyError(f"--reference {reference!r} is not a variant here; valid: {', '.join(table)}")
         chosen = study.pick_variants(table, args.variants, default)
         recorded = recorded_reference(args, spec, table, reference, chosen) if args.reference_from else None
         identity = {"eval_episodes": args.eval_episodes, "blocking_episodes": args.blocking_episodes}
@@ -375,7 +379,7 @@ def run_table(args: argparse.Namespace, table: study.Variants, default: Sequence
 def main(argv: Sequence[str] | None = None) -> int:
     args = parse_args(argv)
     default = list(SCHEDULE_VARIANTS) + (list(ABLATION_VARIANTS) if args.ablation else [])
-    return run_table(args, VARIANTS, default, REFERENCE, argv)
+    return run_table(args, VARIANTS, default, args.reference or REFERENCE, argv)
 
 
 if __name__ == "__main__":

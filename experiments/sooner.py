@@ -5,7 +5,8 @@ per-cycle fixed-seed evaluation first reaches 90 / 95 / 98 / 99 % success, and b
 success per episode kind, never by env-steps/s alone.  Each lever is a variant of ``--preset``
 (``LEVERS``: its ``--set`` overrides over ``BEFORE``, the preset's shape before the levers that won were
 adopted) trained for ``--total-steps`` env steps on ``--seeds`` and paired seed by seed with ``baseline``
-(``BEFORE`` alone; ``--variants adopted`` is the preset as it is now).  The machinery is ``compare_schedules``'
+(``BEFORE`` alone; ``--variants adopted`` is the preset as it is now; ``adopted+LEVER`` is a lever over it,
+paired with ``--reference NAME``, e.g. the adopted shape's recorded runs).  The machinery is ``compare_schedules``'
 (``run_table``: the study driver's folder rule, seed groups, evaluations, t-intervals, paired tests,
 JSON); only the table is this module's.  From the repository root:
 
@@ -53,8 +54,15 @@ _LEVERS: dict[str, tuple[str, ...]] = {
     "epochs-8+entropy-3e-3+policy-64x4": ("ppo.num_epochs=8", "ppo.entropy_coef=3e-3",
                                           "ppo.network.policy_hidden=64,64,64,64"),
 }
+# levers measured over today's preset (its levers adopted), named "adopted+LEVER": pair them with the adopted
+# shape's recorded runs (--reference epochs-8+entropy-3e-3+policy-64x4, the same config, --reference-from FILE)
+_OVER_ADOPTED: dict[str, tuple[str, ...]] = {
+    # more obstacle information: each slot also shows the obstacle's centre and bounding box (observation.py)
+    "obstacle-shape": ("env.task.obs_obstacle_shape=true",),
+}
 LEVERS: dict[str, tuple[str, ...]] = {**{name: BEFORE + sets for name, sets in _LEVERS.items()},
-                                      "adopted": ()}  # the preset unchanged: today's cpu-quick
+                                      "adopted": (),  # the preset unchanged: today's cpu-quick
+                                      **{f"adopted+{name}": sets for name, sets in _OVER_ADOPTED.items()}}
 REFERENCE = "baseline"
 DEFAULT = ("baseline", "epochs-8", "envs-128", "lr-6e-4")
 
@@ -62,7 +70,7 @@ DEFAULT = ("baseline", "epochs-8", "envs-128", "lr-6e-4")
 def main(argv: Sequence[str] | None = None) -> int:
     args = compare_schedules.parse_args(argv, "sooner", __doc__.split("\n\n")[0], seeds=3, blocking_episodes=0,
                                         ablation=False)
-    return compare_schedules.run_table(args, LEVERS, DEFAULT, REFERENCE, argv, "sooner")
+    return compare_schedules.run_table(args, LEVERS, DEFAULT, args.reference or REFERENCE, argv, "sooner")
 
 
 if __name__ == "__main__":

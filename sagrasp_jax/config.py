@@ -215,6 +215,11 @@ class TaskConfig:
         5.0, '"relative_lag" layout: the pending command q_target − q_reading of each joint, divided by '
         "control.q_max (one full step = 1) and clipped to ±this; it shows the policy what its last commands still "
         "have to do", above(0, 1e3))
+    obs_obstacle_shape: bool = key(
+        False, '"relative" layouts: each obstacle slot also carries the vector from the gripper centre to the '
+        "obstacle's centre (/ obs_vector_scale, clipped like the others) and the half-extents of its world-aligned "
+        "bounding box (/ observation.EXTENT_SCALE = 0.1 m): how far the obstacle reaches, which the nearest-surface "
+        "vectors alone do not say; 0 when the slot is empty")
     obstacle_geometry: ObstacleGeometry = key(
         "fine", 'Robot-obstacle distance (Δpo, obstacle collisions): "fine" = a sphere set within ±4 mm of the '
         'robot\'s URDF primitives (collision.py); "cover" = the first landing\'s conservative cover, which '
@@ -807,6 +812,9 @@ def validate(cfg: Config) -> None:
     for name, ok in checks:
         if not ok:
             raise ConfigError(f"invalid value for {name}: {get_key(cfg, name)!r}")
+    if cfg.env.task.obs_obstacle_shape and cfg.env.task.obs_layout == "paper":
+        raise ConfigError("env.task.obs_obstacle_shape=true needs a relative observation layout (env.task.obs_layout="
+                          "relative or relative_lag); the paper's layout has no obstacle slots")
     if cfg.env.control.impl != "jax" and cfg.env.control.mode != "dynamic":  # a physics backend: servo physics only
         raise ConfigError(f"env.control.impl={cfg.env.control.impl!r} needs env.control.mode=dynamic (no physics runs otherwise)")
     for name in ("env.randomize.servo_gain", "env.randomize.latency"):  # servos: simulated or modelled
@@ -855,7 +863,8 @@ RESPELLED_VALUES: dict[str, tuple[Any, Any]] = {"train.obstacle_prob": (-1.0, No
 # identity and config hash leave them out at that value, so adding a key changes no earlier run's hash.
 # (The curriculum was off in every earlier run, which makes its retirement count moot there: the default stands in.)
 ADDED_KEYS: dict[str, Any] = {"env.reward.tilt_weight": 0.0, "env.reward.tilt_free_deg": 5.0, "env.reward.tilt_near": 0.0,
-                              "train.curriculum_replay": 0.0, "train.curriculum_max_replays": 8}
+                              "train.curriculum_replay": 0.0, "train.curriculum_max_replays": 8,
+                              "env.task.obs_obstacle_shape": False}
 
 
 def _upgraded(flat: dict[str, Any]) -> dict[str, Any]:

@@ -9,7 +9,9 @@ Layouts (``env.task.obs_layout``; a policy file records its entry names and its 
 * ``relative`` — the same 13 robot/target numbers, then per obstacle slot, nearest first: a
   presence flag, the vector from the gripper centre to the obstacle's nearest surface point,
   the vector from the closest robot point to it (both / ``obs_vector_scale``, clipped to
-  ± ``obs_vector_clip``), and a closeness max(0, 1 − Δpo / ``obs_closeness_range``).  Every
+  ± ``obs_vector_clip``), and a closeness max(0, 1 − Δpo / ``obs_closeness_range``); with
+  ``obs_obstacle_shape`` also the vector to the obstacle's centre and its bounding box's
+  half-extents (``obstacle_shape``).  Every
   obstacle entry is 0 when the slot is empty, so "absent" is the natural value, and these
   entries are hand-scaled: the trainer's running normaliser leaves them alone
   (``hand_scaled_mask``; docs/design.md, "Observation layouts").
@@ -45,30 +47,35 @@ OBS_SIZE = len(OBS_LAYOUT)
 _SLOT_ENTRIES = ("present", "gripper_dx", "gripper_dy", "gripper_dz", "robot_dx", "robot_dy", "robot_dz", "closeness")
 
 
+_SHAPE_ENTRIES = ("centre_dx", "centre_dy", "centre_dz", "extent_x", "extent_y", "extent_z")  # obs_obstacle_shape
+EXTENT_SCALE = 0.1  # m: obs_obstacle_shape's bounding-box half-extents (0.02-0.17 m in the sampled ranges) / this
 PENDING_ENTRIES = tuple(f"pending{j}" for j in range(1, 7))  # relative_lag: (q_target − q_reading) / q_max per joint
 
 
-def _relative_layout(slots: int) -> tuple[str, ...]:
-    return _ROBOT_ENTRIES + ("theta_gz",) + tuple(f"obstacle{k}_{e}" for k in range(slots) for e in _SLOT_ENTRIES)
+def _relative_layout(slots: int, shape: bool) -> tuple[str, ...]:
+    entries = _SLOT_ENTRIES + _SHAPE_ENTRIES * shape
+    return _ROBOT_ENTRIES + ("theta_gz",) + tuple(f"obstacle{k}_{e}" for k in range(slots) for e in entries)
 
 
 LAYOUT_NAMES = OBS_LAYOUTS  # declared once in config (env.task.obs_layout's choices)
 
 
-def layout(name: str, slots: int = 2) -> tuple[str, ...]:
-    """Entry names of a layout, in order."""
+def layout(name: str, slots: int = 2, obstacle_shape: bool = False) -> tuple[str, ...]:
+    """Entry names of a layout, in order (``obstacle_shape``: ``env.task.obs_obstacle_shape``)."""
     if name == "paper":
+        if obstacle_shape:
+            raise ValueError("obstacle shape entries need a relative layout; the paper's layout has no obstacle slots")
         return PAPER_LAYOUT
     if name == "relative":
-        return _relative_layout(slots)
+        return _relative_layout(slots, obstacle_shape)
     if name == "relative_lag":
-        return _relative_layout(slots) + PENDING_ENTRIES
+        return _relative_layout(slots, obstacle_shape) + PENDING_ENTRIES
     raise ValueError(f"unknown observation layout {name!r}; valid layouts: {', '.join(LAYOUT_NAMES)}")
 
 
 
 def layout_of(cfg: EnvConfig) -> tuple[str, ...]:
-    return layout(cfg.task.obs_layout, cfg.sampling.max_obstacles)
+    return layout(cfg.task.obs_layout, cfg.sampling.max_obstacles, cfg.task.obs_obstacle_shape)
 
 
 def hand_scaled_mask(names: tuple[str, ...]) -> np.ndarray:
@@ -112,6 +119,8 @@ def assemble(xp: Any, cfg: EnvConfig, q: Any, gripper_centre: Any, reset: Any, c
     target = xp.asarray(reset.target_pos, dtype=dtype)
     theta = xp.reshape(xp.asarray(theta, dtype=dtype), (1,))
     if task.obs_layout == "paper":
+        if task.obs_obstacle_shape:
+            raise ValueError("env.task.obs_obstacle_shape needs a relative observation layout")
         return xp.concatenate(
             [q, gripper_centre, target, col.nearest_obstacle_pos, xp.reshape(col.nearest_obstacle_dist, (1,)), theta]
         )
@@ -121,15 +130,15 @@ def assemble(xp: Any, cfg: EnvConfig, q: Any, gripper_centre: Any, reset: Any, c
     present = active.astype(dtype)
     scale, clip = task.obs_vector_scale, task.obs_vector_clip
     closeness = xp.clip(1.0 - col.obstacle_dist / task.obs_closeness_range, 0.0, 1.0) * present
-    slots = xp.concatenate(
-        [
-            present[:, None],
-            xp.clip(col.gripper_to_obstacle / scale, -clip, clip),
-            xp.clip(col.robot_to_obstacle / scale, -clip, clip),
-            closeness[:, None],
-        ],
-        axis=-1,
-    )  # (slots, 8), zero rows for empty slots
+    columns = [
+        present[:, None],
+        xp.clip(col.gripper_to_obstacle / scale, -clip, clip),
+        xp.clip(col.robot_to_obstacle / scale, -clip, clip),
+        closeness[:, None],
+    ]
+    if task.obs_obstacle_shape:
+        columns += [c * present[:, None] for c in obstacle_shape(xp, cfg, reset, gripper_centre)]
+    slots = xp.concatenate(columns, axis=-1)  # (slots, 8 or 14), zero rows for empty slots
     key = xp.where(active, col.obstacle_dist, xp.inf)
     parts = [q, gripper_centre, target, theta, xp.reshape(_sorted_slots(xp, key, slots), (-1,))]
     if task.obs_layout == "relative_lag":
@@ -137,6 +146,19 @@ def assemble(xp: Any, cfg: EnvConfig, q: Any, gripper_centre: Any, reset: Any, c
             raise ValueError("the relative_lag layout needs the last commanded joint targets (q_command)")
         parts.append(pending(xp, cfg, q, q_command))
     return xp.concatenate(parts)
+
+
+def obstacle_shape(xp: Any, cfg: EnvConfig, reset: Any, gripper_centre: Any) -> tuple[Any, Any]:
+    """``obs_obstacle_shape``'s columns per slot: the gripper centre → obstacle centre vector (/ obs_vector_scale,
+    clipped to ± obs_vector_clip) (slots, 3) and the world-aligned bounding box's half-extents / EXTENT_SCALE
+    (slots, 3).  With the nearest-surface vector they say which way the obstacle extends and how far, so the
+    policy can tell a thin post from a wide box it must go around (empty slots are zeroed by the caller)."""
+    dtype = gripper_centre.dtype
+    clip = cfg.task.obs_vector_clip
+    centre = xp.asarray(reset.obstacle_pos, dtype=dtype) - gripper_centre
+    half = shapes.extent(xp, xp.asarray(reset.obstacle_kind), xp.asarray(reset.obstacle_yaw, dtype=dtype),
+                         xp.asarray(reset.obstacle_size, dtype=dtype), shapes.kind_ids(cfg.sampling.obstacle_kinds))
+    return xp.clip(centre / cfg.task.obs_vector_scale, -clip, clip), half / EXTENT_SCALE
 
 
 def pending(xp: Any, cfg: EnvConfig, q_reading: Any, q_command: Any) -> Any:

@@ -72,6 +72,9 @@ class ObstacleShape:
     bounding_radius: Callable[[Any, Any], Any]  # (xp, size) -> radius of a sphere about the centre holding it
     # (xp, d (..., 2), yaw, size) -> horizontal distance from the footprint to the point centre + d
     footprint: Callable[[Any, Any, Any, Any], Any]
+    # (xp, yaw, size) -> half-extents (..., 3) of its world-axis-aligned bounding box (the yawed shape's x/y/z reach
+    # from the centre): what the relative observation layouts show of its size (observation.py)
+    extent: Callable[[Any, Any, Any], Any]
     cli_lengths: tuple[str, ...]  # deployment CLI: the lengths after X Y Z (full lengths, not halves)
     from_lengths: Callable[[Sequence[float]], tuple[float, float, float]]  # CLI lengths -> size
 
@@ -115,6 +118,7 @@ SPHERE_SHAPE = ObstacleShape(
     id=SPHERE, name="sphere", primitive=SPHERE, tilt=_EYE, yawed=False, float_z="sphere_z", size_keys=("sphere_radius",),
     sample_size=_sphere_size, half_height=lambda size: size[..., 0], sdf=_sphere_sdf, surface=_sphere_surface,
     bounding_radius=lambda xp, size: size[..., 0], footprint=_round_footprint,
+    extent=lambda xp, yaw, size: xp.stack([size[..., 0]] * 3, axis=-1),
     cli_lengths=("R",), from_lengths=lambda ls: (ls[0], 0.0, 0.0),
 )
 
@@ -151,6 +155,7 @@ CYLINDER_SHAPE = ObstacleShape(
     size_keys=("cylinder_radius", "cylinder_height"), sample_size=_cylinder_size, half_height=lambda size: size[..., 1],
     sdf=_cylinder_sdf, surface=_cylinder_surface,
     bounding_radius=lambda xp, size: xp.sqrt(size[..., 0] ** 2 + size[..., 1] ** 2), footprint=_round_footprint,
+    extent=lambda xp, yaw, size: xp.stack([size[..., 0], size[..., 0], size[..., 1]], axis=-1),
     cli_lengths=("R", "H"), from_lengths=lambda ls: (ls[0], ls[1] / 2, 0.0),
 )
 
@@ -190,6 +195,11 @@ def _yawed(xp: Any, d: Any, yaw: Any) -> Any:
     return xp.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]], axis=-1)
 
 
+def _box_extent(xp: Any, yaw: Any, size: Any) -> Any:
+    c, s = xp.abs(xp.cos(yaw)), xp.abs(xp.sin(yaw))
+    return xp.stack([c * size[..., 0] + s * size[..., 1], s * size[..., 0] + c * size[..., 1], size[..., 2]], axis=-1)
+
+
 def _box_footprint(xp: Any, d: Any, yaw: Any, size: Any) -> Any:
     q = xp.abs(_yawed(xp, d, yaw)) - size[..., :2]
     return xp.sqrt(xp.sum(xp.maximum(q, 0.0) ** 2, axis=-1)) + xp.minimum(xp.max(q, axis=-1), 0.0)
@@ -199,7 +209,7 @@ BOX_SHAPE = ObstacleShape(
     id=BOX, name="box", primitive=BOX, tilt=_EYE, yawed=True, float_z=None, size_keys=("box_half",),
     sample_size=_box_size, half_height=lambda size: size[..., 2], sdf=_box_sdf, surface=_box_surface,
     bounding_radius=lambda xp, size: xp.sqrt(xp.sum(size**2, axis=-1)),
-    footprint=_box_footprint,
+    footprint=_box_footprint, extent=_box_extent,
     cli_lengths=("LX", "LY", "LZ"), from_lengths=lambda ls: (ls[0] / 2, ls[1] / 2, ls[2] / 2),
 )
 
@@ -235,6 +245,11 @@ def _capsule_footprint(xp: Any, d: Any, yaw: Any, size: Any) -> Any:
     return xp.sqrt(xp.maximum(xp.abs(local[..., 0]) - size[..., 1], 0.0) ** 2 + local[..., 1] ** 2) - size[..., 0]
 
 
+def _capsule_extent(xp: Any, yaw: Any, size: Any) -> Any:
+    r, h = size[..., 0], size[..., 1]  # the axis lies along the yawed frame's x
+    return xp.stack([xp.abs(xp.cos(yaw)) * h + r, xp.abs(xp.sin(yaw)) * h + r, r], axis=-1)
+
+
 def _capsule_from_lengths(ls: Sequence[float]) -> tuple[float, float, float]:
     radius, length = ls[0], ls[1]  # length tip to tip
     if not length > 2 * radius:
@@ -246,7 +261,7 @@ CAPSULE_SHAPE = ObstacleShape(
     id=CAPSULE, name="capsule", primitive=CAPSULE, tilt=_LYING, yawed=True, float_z=None,
     size_keys=("capsule_radius", "capsule_length"), sample_size=_capsule_size, half_height=lambda size: size[..., 0],
     sdf=_capsule_sdf, surface=_capsule_surface, bounding_radius=lambda xp, size: size[..., 0] + size[..., 1],
-    footprint=_capsule_footprint, cli_lengths=("R", "L"), from_lengths=_capsule_from_lengths,
+    footprint=_capsule_footprint, extent=_capsule_extent, cli_lengths=("R", "L"), from_lengths=_capsule_from_lengths,
 )
 
 
@@ -325,6 +340,12 @@ def surface_point(xp: Any, kind: Any, pos: Any, yaw: Any, size: Any, points: Any
 def bounding_radius(xp: Any, kind: Any, size: Any, kinds: Sequence[int] | None = None) -> Any:
     """Radius (...,) of a sphere about the centre that holds the obstacle."""
     return _dispatch(xp, kind, kinds, lambda s: s.bounding_radius(xp, size))
+
+
+def extent(xp: Any, kind: Any, yaw: Any, size: Any, kinds: Sequence[int] | None = None) -> Any:
+    """Half-extents (..., 3) of the obstacle's world-axis-aligned bounding box about its centre."""
+    per_axis = kind if isinstance(kind, (int, np.integer)) else xp.asarray(kind)[..., None]  # against (..., 3)
+    return _dispatch(xp, per_axis, kinds, lambda s: s.extent(xp, yaw, size))
 
 
 def footprint_gap(xp: Any, kind: Any, pos: Any, yaw: Any, size: Any, point_xy: Any,

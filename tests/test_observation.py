@@ -236,3 +236,74 @@ class _Batched:
 
     def step(self, state, action):
         return self.env.step(state, action)
+
+
+def shaped_cfg(layout: str = "relative") -> config.EnvConfig:
+    cfg = env_cfg(layout)
+    return dataclasses.replace(cfg, task=dataclasses.replace(cfg.task, obs_obstacle_shape=True))
+
+
+def test_obstacle_shape_entries_give_centre_and_bounding_box():
+    """``env.task.obs_obstacle_shape``: per slot the vector to the obstacle's centre and its world-aligned
+    bounding box's half-extents, hand-computed for a yawed box and an upright cylinder, sorted with their slots."""
+    box = (robot.BOX, (0.0, -0.30, 0.20), (0.04, 0.02, 0.03))  # yawed 30° below: reaches 0.0446 / 0.0373 in x / y
+    cyl = (robot.CYLINDER, (0.30, -0.55, 0.10), (0.03, 0.10, 0.0))
+    scene = spec([cyl, box])._replace(obstacle_yaw=np.array([0.0, np.pi / 6]))
+    cfg = shaped_cfg()
+    names = observation.layout_of(cfg)
+    assert len(names) == 29 + 12 and names[21:27] == tuple(f"obstacle0_{e}" for e in (
+        "centre_dx", "centre_dy", "centre_dz", "extent_x", "extent_y", "extent_z"))
+    assert observation.hand_scaled_mask(names)[13:].all()
+    seen = observation.observe(np, ROBOT, cfg, HOME, scene)
+    rel, gripper = dict(zip(names, seen.obs)), seen.kin.gripper_centre
+    c, s = np.cos(np.pi / 6), np.sin(np.pi / 6)
+    task = cfg.task
+    for slot, (kind, centre, size), half in (("obstacle0", box, (c * 0.04 + s * 0.02, s * 0.04 + c * 0.02, 0.03)),
+                                             ("obstacle1", cyl, (0.03, 0.03, 0.10))):
+        expect = np.clip((np.array(centre) - gripper) / task.obs_vector_scale, -task.obs_vector_clip, task.obs_vector_clip)
+        np.testing.assert_allclose([rel[f"{slot}_centre_d{a}"] for a in "xyz"], expect, atol=1e-9)
+        np.testing.assert_allclose([rel[f"{slot}_extent_{a}"] for a in "xyz"], np.array(half) / observation.EXTENT_SCALE,
+                                   atol=1e-9)
+    # the entries of the plain layout are unchanged, and an empty slot is all zeros
+    plain = dict(zip(observation.layout_of(env_cfg("relative")), observation.observe(np, ROBOT, env_cfg("relative"),
+                                                                                     HOME, scene).obs))
+    assert all(rel[k] == v for k, v in plain.items())
+    one = dict(zip(names, observation.observe(np, ROBOT, cfg, HOME, spec([box])).obs))
+    assert all(one[k] == 0.0 for k in names if k.startswith("obstacle1_"))
+    assert observation.blind(np, cfg, seen.obs)[13:].tolist() == [0.0] * 28
+
+
+@pytest.mark.parametrize("kind", ["sphere", "cylinder", "box", "capsule"])
+def test_obstacle_extent_holds_every_surface_point_and_is_reached(kind):
+    """The bounding box of shapes.extent holds the shape and touches it on every axis: sampled points of the
+    sampled sizes and yaws, inside by the SDF, never leave it, and the box is no more than 2 mm too wide."""
+    from sagrasp_jax import shapes
+
+    shape = shapes.BY_NAME[kind]
+    rng = np.random.default_rng(3)
+    u = rng.uniform(size=(3, 3))
+    sizes = shape.sample_size(np, config.SamplingConfig(), u[:, 0], u[:, 1], u[:, 2])
+    for size, yaw in zip(sizes, rng.uniform(-np.pi, np.pi, 3)):
+        half = shapes.extent(np, shape.id, np.asarray(yaw), size)
+        points = rng.uniform(-1, 1, (200_000, 3)) * (half + 0.01)
+        inside = shapes.sdf(np, shape.id, np.zeros(3), np.asarray(yaw), size, points) <= 0
+        reach = np.abs(points[inside]).max(axis=0)
+        assert np.all(reach <= half + 1e-9) and np.all(reach >= half - 0.002), (size, yaw, reach, half)
+
+
+def test_obstacle_shape_and_jax_agree_and_paper_layout_refuses_it():
+    import jax
+    import jax.numpy as jnp
+
+    scene = spec([(robot.BOX, (0.1, -0.4, 0.05), (0.03, 0.05, 0.05)), (robot.CYLINDER, (-0.1, -0.35, 0.1), (0.03, 0.1, 0))])
+    scene = scene._replace(obstacle_yaw=np.array([0.7, 0.0]))
+    cfg = shaped_cfg("relative_lag")
+    ref = observation.observe(np, ROBOT, cfg, HOME, scene).obs
+    got = jax.jit(lambda q, s: observation.observe(jnp, ROBOT, cfg, q, s).obs)(
+        jnp.asarray(HOME, jnp.float32), jax.tree_util.tree_map(jnp.asarray, scene))
+    theta = observation.layout_of(cfg).index("theta_gz")
+    np.testing.assert_allclose(np.delete(np.asarray(got), theta), np.delete(ref, theta), atol=2e-5)
+    with pytest.raises(config.ConfigError, match="obs_obstacle_shape=true needs a relative observation layout"):
+        config.apply_overrides(config.get_config("paper"), ["env.task.obs_obstacle_shape=true"])
+    with pytest.raises(ValueError, match="relative layout"):
+        observation.layout("paper", 2, obstacle_shape=True)
