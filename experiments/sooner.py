@@ -59,6 +59,8 @@ _LEVERS: dict[str, tuple[str, ...]] = {
 _OVER_ADOPTED: dict[str, tuple[str, ...]] = {
     # more obstacle information: each slot also shows the obstacle's centre and bounding box (observation.py)
     "obstacle-shape": ("env.task.obs_obstacle_shape=true",),
+    # network shape: a critic twice as wide (its privileged inputs describe every obstacle's kind, size and place)
+    "value-128x3": ("ppo.network.value_hidden=128,128,128",),
 }
 LEVERS: dict[str, tuple[str, ...]] = {**{name: BEFORE + sets for name, sets in _LEVERS.items()},
                                       "adopted": (),  # the preset unchanged: today's cpu-quick

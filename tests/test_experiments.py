@@ -399,6 +399,15 @@ def test_sooner_levers_each_change_what_they_name_and_nothing_else(capsys: pytes
     assert flat(spec.config(sooner.LEVERS["adopted"], 0)) == flat(
         spec.config(sooner.LEVERS["epochs-8+entropy-3e-3+policy-64x4"], 0))
     assert SUITE_PPO == list(sooner.BEFORE)  # the suite's short runs keep the shape the levers are measured over
+    adopted = flat(spec.config(sooner.LEVERS["adopted"], 0))
+    for name, sets in sooner._OVER_ADOPTED.items():  # levers over today's preset change only what they name
+        changed = {k for k, v in flat(spec.config(sooner.LEVERS[f"adopted+{name}"], 0)).items() if adopted[k] != v}
+        assert changed == {s.split("=")[0] for s in sets}, name
+    # the adopted shape's recorded runs pair with them: a key added since (obs_obstacle_shape) left its identity
+    assert evaluate.config_identity(spec.config(sooner.LEVERS["adopted"], 0)) == evaluate.config_identity(
+        spec.config(sooner.LEVERS["epochs-8+entropy-3e-3+policy-64x4"], 0))
+    assert sooner.main(["--variants", "adopted", "--reference", "nope", "--runs-dir", "unused"]) == 2
+    assert "--reference 'nope' is not a variant here" in capsys.readouterr().err
     assert sooner.main(["--seeds", "0-", "--runs-dir", "unused"]) == 2
     assert sooner.main(["--variants", "baseline,bogus", "--runs-dir", "unused"]) == 2
     assert "unknown variant(s) bogus" in capsys.readouterr().err
