@@ -36,10 +36,11 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import json
+import math
 import os
 import sys
 import time
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 from experiments import paper_figures, stats, study
 from sagrasp_jax import evaluate, run_dir, train
@@ -335,6 +336,80 @@ def recorded_reference(args: argparse.Namespace, spec: study.Study, table: study
     return {**recorded, "from": path}
 
 
+def screen_reach(per_seed: Sequence[dict[str, Any]], horizon: Mapping[int, int]) -> dict[str, Any]:
+    """Time to each level within a screen: per seed the env steps (None: not within the seed's ``horizon``,
+    the env steps its screen ran), how many seeds reached it, and the median over all seeds with a seed that
+    did not reach it counted as beyond every one that did (None when half or more did not)."""
+    out: dict[str, Any] = {"per_seed": [], "reached": {}, "median": {}}
+    for p in per_seed:
+        row = {"seed": p["seed"], "horizon": horizon[p["seed"]]}
+        for level in LEVELS:
+            key = f"env_steps_to_{round(100 * level)}"
+            steps = p.get(key)
+            row[key] = steps if steps is not None and steps <= horizon[p["seed"]] else None
+        out["per_seed"].append(row)
+    for level in LEVELS:
+        key = f"env_steps_to_{round(100 * level)}"
+        values = sorted(float("inf") if r[key] is None else r[key] for r in out["per_seed"])
+        n = len(values)
+        median = (values[n // 2] if n % 2 else (values[n // 2 - 1] + values[n // 2]) / 2) if n else float("inf")
+        out["reached"][key] = sum(r[key] is not None for r in out["per_seed"])
+        out["median"][key] = None if math.isinf(median) else median
+    return out
+
+
+def screen_markdown(screen: Mapping[str, dict[str, Any]], steps: int) -> str:
+    heads = [f"env steps to {round(100 * level)} %" for level in LEVELS]
+    lines = [f"Screen: the first {steps:,} env steps of each run's full-budget schedule; per seed the env steps until "
+             "the per-cycle evaluation first reached a level ('-': not within the screen), then the median over the "
+             "seeds and how many reached it.", "", "| variant | seed | " + " | ".join(heads) + " |",
+             "|---" * (len(heads) + 2) + "|"]
+    fmt = lambda v: "-" if v is None else f"{v / 1e6:.2f}M"  # noqa: E731
+    for name, s in screen.items():
+        for r in s["per_seed"]:
+            lines.append(f"| {name} | {r['seed']} | "
+                         + " | ".join(fmt(r[f'env_steps_to_{round(100 * lv)}']) for lv in LEVELS) + " |")
+        lines.append(f"| {name} | median | " + " | ".join(
+            f"{fmt(s['median'][k])} ({s['reached'][k]}/{len(s['per_seed'])})"
+            for k in (f"env_steps_to_{round(100 * lv)}" for lv in LEVELS)) + " |")
+    return "\n".join(lines)
+
+
+def run_screen(args: argparse.Namespace, spec: study.Study, table: study.Variants, chosen: study.Variants,
+               reference: str, recorded: dict[str, Any] | None, argv: Sequence[str] | None, module: str,
+               t0: float) -> int:
+    """``--screen-steps N``: train every chosen variant's seeds N env steps into their full budget's schedule
+    (``study.screen_study``) and compare the time to each level within them; the reference's rows may come
+    from a finished study (``--reference-from``), its times cut at the same horizon."""
+    folders = study.screen_study(spec, chosen)
+    screen: dict[str, dict[str, Any]] = {}
+    if recorded is not None:
+        horizon = {s: _screen_horizon(spec, table[reference], s) for s in spec.seeds}
+        screen[reference] = {**screen_reach(recorded["per_seed"], horizon), "from": recorded["from"]}
+    for variant, by_seed in folders.items():
+        per_seed = []
+        for seed, folder in by_seed.items():
+            facts = curve_facts(run_dir.read_metrics(os.path.join(folder, run_dir.METRICS_FILE)))
+            per_seed.append({"seed": seed, **{f"env_steps_to_{round(100 * lv)}": _reach(facts, lv, "env_steps")
+                                              for lv in LEVELS}})
+        screen[variant] = screen_reach(per_seed, {s: _screen_horizon(spec, chosen[variant], s) for s in spec.seeds})
+    result = {
+        "preset": spec.preset, "total_steps": spec.total_steps, "screen_steps": spec.screen_steps,
+        "seeds": list(spec.seeds), "extra_overrides": args.overrides,
+        "variants": {v: list(sets) for v, sets in chosen.items()}, "reference": reference, "levels": list(LEVELS),
+        "screen": screen, "wall_s_this_call": time.perf_counter() - t0, "command": study.command(module, argv),
+        "git": study.git_state(), "machine": study.machine(),
+    }
+    return study.report(args.out, result, screen_markdown(screen, spec.screen_steps or 0))
+
+
+def _screen_horizon(spec: study.Study, sets: Sequence[str], seed: int) -> int:
+    """The env steps a screened run of ``sets`` has trained: the end of the cycle that holds the screen."""
+    cfg = spec.config(sets, seed)
+    sched = train.make_schedule(cfg)
+    return sched.cycle_ends[(spec.stop_after_cycles(cfg) or sched.num_cycles) - 1] * sched.steps_per_iteration
+
+
 def run_table(args: argparse.Namespace, table: study.Variants, default: Sequence[str], reference: str,
               argv: Sequence[str] | None, module: str = "compare_schedules") -> int:
     """Train, evaluate and summarise the chosen variants of ``table``, each paired with ``reference`` seed by
@@ -347,6 +422,8 @@ def run_table(args: argparse.Namespace, table: study.Variants, default: Sequence
             raise study.StudyError(f"--reference {reference!r} is not a variant here; valid: {', '.join(table)}")
         chosen = study.pick_variants(table, args.variants, default)
         recorded = recorded_reference(args, spec, table, reference, chosen) if args.reference_from else None
+        if spec.screen_steps is not None:
+            return run_screen(args, spec, table, chosen, reference, recorded, argv, module, t0)
         identity = {"eval_episodes": args.eval_episodes, "blocking_episodes": args.blocking_episodes}
         records = study.run_study(spec, chosen, measure(args.eval_episodes, args.blocking_episodes), identity,
                                   RESULT_FILE, args.conditions, args.eval_episodes)

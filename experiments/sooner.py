@@ -15,6 +15,13 @@ JSON); only the table is this module's.  From the repository root:
 
 A short budget ranks levers by how fast they climb; a lever that wins there is then checked at the
 README's full budget (``compare_schedules``), since the SA schedule's decay is tied to the budget.
+A screen (``--screen-steps N``) measures the climb inside the full budget's schedule at a fraction of
+its cost, and ``--resume`` later finishes the screened runs:
+
+    python -m experiments.sooner --variants adopted+value-128x3 --reference epochs-8+entropy-3e-3+policy-64x4 \
+        --seeds 5 --total-steps 10000000 --blocking-episodes 1000 --condition robot --runs-dir runs/combo_full \
+        --reference-from experiments/results/sooner_combo_10M.json --screen-steps 3000000 \
+        --out experiments/results/sooner_screen_3M_of_10M.json
 """
 
 from __future__ import annotations
@@ -61,6 +68,10 @@ _OVER_ADOPTED: dict[str, tuple[str, ...]] = {
     "obstacle-shape": ("env.task.obs_obstacle_shape=true",),
     # network shape: a critic twice as wide (its privileged inputs describe every obstacle's kind, size and place)
     "value-128x3": ("ppo.network.value_hidden=128,128,128",),
+    # a larger first step size (SA still decays it)
+    "lr-4.5e-4": ("ppo.learning_rate=4.5e-4",),
+    # half the rollout per iteration: twice the updates per env step, each on fresh data
+    "envs-128": ("ppo.num_envs=128",),
 }
 LEVERS: dict[str, tuple[str, ...]] = {**{name: BEFORE + sets for name, sets in _LEVERS.items()},
                                       "adopted": (),  # the preset unchanged: today's cpu-quick

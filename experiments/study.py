@@ -13,6 +13,10 @@ repository root as ``python -m experiments.NAME`` (``experiments`` is a package:
   another config is refused; a finished one is skipped; one stopped before it finished (killed, out
   of time) continues only with ``--resume`` (from its checkpoint, or from the beginning when it
   stopped before its first one), and without ``--resume`` the study stops with exit 2, untouched.
+* **Screens.** ``--screen-steps N`` trains each run only to the SA cycle that holds N env steps of
+  its full ``--total-steps`` schedule (the lr decays as they would in the full run, which a shorter
+  budget would not give), checkpointed there, and evaluates nothing (``screen_study``); the same
+  study without it and with ``--resume`` continues every run to the end, a seed group as one group.
 * **Evaluations.** A study's ``measure(folder, variant, seed)`` returns the run's record; ``Evaluation``
   plays fixed-seed episodes through ``evaluate.evaluate_run`` in the run's env or in a named
   ``config.EVAL_CONDITIONS`` condition (what ``python -m sagrasp_jax.evaluate --condition NAME`` plays),
@@ -28,6 +32,7 @@ from __future__ import annotations
 import sagrasp_jax  # noqa: F401  (sets XLA_FLAGS before jax is imported)
 
 import argparse
+import bisect
 import json
 import os
 import platform
@@ -68,12 +73,21 @@ class Study:
     resume: bool = False
     progress: bool = True
     group: bool = True  # a variant's new seeds train as one seed group (train.run(seeds=...)); False: one by one
+    screen_steps: int | None = None  # train each run only this far under its full budget's schedule (screen_study)
 
     def folder(self, variant: str, seed: int) -> str:
         return os.path.join(self.runs_dir, variant, SEED_FOLDER.format(seed=seed))
 
     def config(self, sets: Sequence[str], seed: int) -> Config:
         return train.build_config(self.preset, None, seed, self.total_steps, [*sets, *self.overrides])
+
+    def stop_after_cycles(self, cfg: Config) -> int | None:
+        """The cycles of ``cfg``'s schedule that hold ``screen_steps`` env steps (None: train to the end)."""
+        if self.screen_steps is None:
+            return None
+        sched = train.make_schedule(cfg)
+        ends = [end * sched.steps_per_iteration for end in sched.cycle_ends]
+        return min(bisect.bisect_left(ends, self.screen_steps) + 1, sched.num_cycles)
 
 
 def parse_seeds(text: str) -> tuple[int, ...]:
@@ -118,6 +132,10 @@ def add_arguments(p: argparse.ArgumentParser, seeds: int, runs_dir: str | None, 
     p.add_argument("--resume", action="store_true",
                    help="continue run folders that stopped before they finished (without it they are refused)")
     p.add_argument("--no-progress", action="store_true", help="no live training progress bar")
+    p.add_argument("--screen-steps", type=int, default=None, metavar="N",
+                   help="a screen: train each run only to N env steps under its full --total-steps schedule "
+                        "(checkpointed: the same command without it, with --resume, continues to the end) and "
+                        "report the time to each success level within them; no final evaluation")
     p.add_argument("--one-by-one", action="store_true",
                    help="train a variant's seeds one after another instead of as one seed group (one program)")
 
@@ -127,8 +145,11 @@ def study_from_args(args: argparse.Namespace) -> Study:
     total = args.total_steps if args.total_steps is not None else get_config(args.preset).train.total_steps
     if total < 1:
         raise StudyError("--total-steps must be >= 1")
+    screen = getattr(args, "screen_steps", None)
+    if screen is not None and not 1 <= screen < total:
+        raise StudyError(f"--screen-steps {screen}: give 1 <= N < the budget ({total:,} env steps)")
     return Study(args.preset, total, parse_seeds(args.seeds), args.runs_dir, tuple(args.overrides), args.resume,
-                 not args.no_progress, not getattr(args, "one_by_one", False))
+                 not args.no_progress, not getattr(args, "one_by_one", False), screen)
 
 
 # ---------------------------------------------------------------------- one run folder
@@ -185,7 +206,17 @@ def check_run(out: str, cfg: Config, resume: bool) -> str:
     return state
 
 
-def ensure_trained(out: str, cfg: Config, tag: str, progress: bool, resume: bool) -> float | None:
+def trained_steps(out: str) -> int:
+    """Env steps a run folder's metrics.jsonl has reached (0: none logged)."""
+    try:
+        rows = run_dir.read_metrics(os.path.join(out, run_dir.METRICS_FILE))
+    except (OSError, ValueError):
+        return 0
+    return max((int(r["env_steps"]) for r in rows if "env_steps" in r), default=0)
+
+
+def ensure_trained(out: str, cfg: Config, tag: str, progress: bool, resume: bool,
+                   stop_after_cycles: int | None = None) -> float | None:
     """Bring the run folder ``out`` to a finished training of ``cfg`` (``train.run``, in process) under
     the folder rule (``check_run``): a finished one is skipped, one with a checkpoint resumed, one
     stopped before its first checkpoint started again.  Returns this call's training wall time
@@ -199,7 +230,7 @@ def ensure_trained(out: str, cfg: Config, tag: str, progress: bool, resume: bool
     print(f"{tag}: {'resuming' if state == 'partial' else 'training'} {cfg.train.total_steps:,} env steps -> {out}",
           flush=True)
     t = time.perf_counter()
-    train.run(cfg, out, resume=state == "partial", progress=progress)
+    train.run(cfg, out, resume=state == "partial", progress=progress, stop_after_cycles=stop_after_cycles)
     wall = time.perf_counter() - t
     print(f"{tag}: trained in {wall:.0f} s", flush=True)
     return wall
@@ -215,8 +246,21 @@ def train_variant(study: Study, variant: str, configs: Mapping[int, Config]) -> 
     rule (``ensure_trained``)."""
     seeds = list(configs)
     variant_dir = os.path.dirname(study.folder(variant, seeds[0])) if seeds else ""
-    fresh = all(run_state(study.folder(variant, s)) == "new" for s in seeds)
+    states = {run_state(study.folder(variant, s)) for s in seeds}
+    fresh = states == {"new"}
     others = os.path.isdir(variant_dir) and set(os.listdir(variant_dir)) - {SEED_FOLDER.format(seed=s) for s in seeds}
+    stop = study.stop_after_cycles(configs[seeds[0]]) if seeds else None
+    if study.group and len(seeds) > 1 and states == {"partial"} and study.resume and not others:
+        # a group stopped part way (a screen, a kill after a checkpoint) continues as the group it was
+        for s in seeds:
+            check_run(study.folder(variant, s), configs[s], True)
+        print(f"{variant}: resuming seeds {', '.join(map(str, seeds))} as one group -> {variant_dir}", flush=True)
+        t = time.perf_counter()
+        train.run(configs[seeds[0]], variant_dir, resume=True, progress=study.progress, seeds=seeds,
+                  stop_after_cycles=stop)
+        wall = time.perf_counter() - t
+        print(f"{variant}: group trained in {wall:.0f} s", flush=True)
+        return {s: wall for s in seeds}
     if study.group and len(seeds) > 1 and fresh and not others:
         for s in seeds:  # an empty seed folder left by an earlier check would make the group refuse its folder
             folder = study.folder(variant, s)
@@ -226,12 +270,33 @@ def train_variant(study: Study, variant: str, configs: Mapping[int, Config]) -> 
         print(f"{variant}: training seeds {', '.join(map(str, seeds))} as one group, "
               f"{group_cfg.train.total_steps:,} env steps each -> {variant_dir}", flush=True)
         t = time.perf_counter()
-        train.run(group_cfg, variant_dir, progress=study.progress, seeds=seeds)
+        train.run(group_cfg, variant_dir, progress=study.progress, seeds=seeds, stop_after_cycles=stop)
         wall = time.perf_counter() - t
         print(f"{variant}: group trained in {wall:.0f} s", flush=True)
         return {s: wall for s in seeds}
     return {seed: ensure_trained(study.folder(variant, seed), cfg, f"{variant} seed {seed}", study.progress,
-                                 study.resume) for seed, cfg in configs.items()}
+                                 study.resume, stop) for seed, cfg in configs.items()}
+
+
+def screen_study(study: Study, variants: Variants) -> dict[str, dict[int, str]]:
+    """A screen (``study.screen_steps``): every run trained to at least that many env steps under its full
+    budget's schedule, checkpointed there, and nothing evaluated.  The folder rule holds (another config is
+    refused; a run screened that far or finished is not trained again; one short of it continues only with
+    ``--resume``, or when it has no checkpoint yet).  Returns variant -> seed -> run folder."""
+    assert study.screen_steps is not None
+    todo: dict[str, dict[int, Config]] = {}
+    for variant, sets in variants.items():
+        for seed in study.seeds:
+            out, cfg = study.folder(variant, seed), study.config(sets, seed)
+            state = check_run(out, cfg, True)
+            if state == "partial" and trained_steps(out) < study.screen_steps and not study.resume:
+                raise StudyError(f"{out} stopped at {trained_steps(out):,} env steps, before the screen's "
+                                 f"{study.screen_steps:,}; pass --resume to continue it")
+            if state == "new" or (state != "trained" and trained_steps(out) < study.screen_steps):
+                todo.setdefault(variant, {})[seed] = cfg
+    for variant, configs in todo.items():
+        train_variant(study, variant, configs)
+    return {variant: {seed: study.folder(variant, seed) for seed in study.seeds} for variant in variants}
 
 
 # ---------------------------------------------------------------------- evaluations and records

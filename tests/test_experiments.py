@@ -413,6 +413,43 @@ def test_sooner_levers_each_change_what_they_name_and_nothing_else(capsys: pytes
     assert "unknown variant(s) bogus" in capsys.readouterr().err
 
 
+def test_a_screen_trains_into_the_full_schedule_and_resume_finishes_the_group(tmp_path: pytest.TempPathFactory) -> None:
+    """``--screen-steps`` trains a variant's seeds as a group only to the cycle that holds N env steps of the full
+    budget's schedule (checkpointed, no policy, no evaluation) and reports time to each level within them; the
+    same screen again trains nothing; the study without it and with ``--resume`` continues the group to the end
+    and evaluates it.  A screen at or beyond the budget exits 2."""
+    out, runs = str(tmp_path / "screen.json"), str(tmp_path / "runs")
+    common = ["experiments.sooner", "--preset", "cpu-quick", "--total-steps", "8192", "--seeds", "2", "--variants",
+              "adopted", "--eval-episodes", "8", "--blocking-episodes", "0", "--runs-dir", runs, "--no-progress",
+              "--no-figures", *_sets(TINY_SETS)]
+    res = _run(common + ["--screen-steps", "3000", "--out", out])  # 1,024 env steps an iteration, 2 a cycle
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    assert "training seeds 0, 1 as one group" in res.stdout
+    with open(out, encoding="utf-8") as f:
+        screen = json.load(f)
+    assert screen["screen_steps"] == 3000 and screen["total_steps"] == 8192
+    rows = screen["screen"]["adopted"]["per_seed"]
+    assert [r["seed"] for r in rows] == [0, 1] and all(r["horizon"] == 4096 for r in rows)
+    assert set(screen["screen"]["adopted"]["reached"]) == {"env_steps_to_90", "env_steps_to_95", "env_steps_to_98",
+                                                           "env_steps_to_99"}
+    for seed in (0, 1):
+        folder = os.path.join(runs, "adopted", f"seed{seed}")
+        assert study.run_state(folder) == "partial" and study.trained_steps(folder) == 4096
+        assert not os.path.exists(os.path.join(folder, compare.RESULT_FILE))
+    again = _run(common + ["--screen-steps", "3000", "--out", out])
+    assert again.returncode == 0 and "training" not in again.stdout and "resuming" not in again.stdout, again.stdout
+    refused = _run(common + ["--screen-steps", "8192", "--out", out])
+    assert refused.returncode == 2 and "--screen-steps 8192: give 1 <= N < the budget" in refused.stderr
+    unresumed = _run(common + ["--out", out])  # the screened runs stopped before the budget: --resume needed
+    assert unresumed.returncode == 2 and "pass --resume" in unresumed.stderr
+    full = _run(common + ["--resume", "--out", str(tmp_path / "full.json")])
+    assert full.returncode == 0, full.stdout[-3000:] + full.stderr[-3000:]
+    assert "resuming seeds 0, 1 as one group" in full.stdout
+    for seed in (0, 1):
+        folder = os.path.join(runs, "adopted", f"seed{seed}")
+        assert study.run_state(folder) == "trained" and study.trained_steps(folder) == 8192
+
+
 def test_reference_from_an_earlier_result_is_checked_before_anything_trains(
         tmp_path: pytest.TempPathFactory, capsys: pytest.CaptureFixture) -> None:
     """``--reference-from`` reuses an earlier study's reference rows only if they were measured the same way
