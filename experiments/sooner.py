@@ -70,6 +70,7 @@ _OVER_ADOPTED: dict[str, tuple[str, ...]] = {
     "value-128x3": ("ppo.network.value_hidden=128,128,128",),
     # a larger first step size (SA still decays it)
     "lr-4.5e-4": ("ppo.learning_rate=4.5e-4",),
+    "lr-6e-4": ("ppo.learning_rate=6e-4",),
     # half the rollout per iteration: twice the updates per env step, each on fresh data
     "envs-128": ("ppo.num_envs=128",),
 }
