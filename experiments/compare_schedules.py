@@ -358,7 +358,8 @@ def screen_reach(per_seed: Sequence[dict[str, Any]], horizon: Mapping[int, int])
     return out
 
 
-def screen_markdown(screen: Mapping[str, dict[str, Any]], steps: int) -> str:
+def screen_markdown(screen: Mapping[str, dict[str, Any]], steps: int, versus: Mapping[str, Any] | None = None,
+                    reference: str = REFERENCE) -> str:
     heads = [f"env steps to {round(100 * level)} %" for level in LEVELS]
     lines = [f"Screen: the first {steps:,} env steps of each run's full-budget schedule; per seed the env steps until "
              "the per-cycle evaluation first reached a level ('-': not within the screen), then the median over the "
@@ -372,6 +373,17 @@ def screen_markdown(screen: Mapping[str, dict[str, Any]], steps: int) -> str:
         lines.append(f"| {name} | median | " + " | ".join(
             f"{fmt(s['median'][k])} ({s['reached'][k]}/{len(s['per_seed'])})"
             for k in (f"env_steps_to_{round(100 * lv)}" for lv in LEVELS)) + " |")
+    if versus:
+        lines += ["", f"Paired with `{reference}` over the seeds where both reached the level: mean difference of "
+                      "env steps, paired t-test p, seeds where the variant was sooner / later.", "",
+                  "| variant | " + " | ".join(heads) + " |", "|---" * (len(heads) + 1) + "|"]
+        for name, cmp in versus.items():
+            cells = []
+            for lv in LEVELS:
+                c = cmp[f"env_steps_to_{round(100 * lv)}"]
+                cells.append("-" if c["mean_diff"] is None else f"{c['mean_diff'] / 1e6:+.2f}M"
+                             + ("" if c["p"] is None else f", p {c['p']:.2g}") + f" ({c['wins']}/{c['losses']}, n {c['n']})")
+            lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
@@ -393,14 +405,17 @@ def run_screen(args: argparse.Namespace, spec: study.Study, table: study.Variant
             per_seed.append({"seed": seed, **{f"env_steps_to_{round(100 * lv)}": _reach(facts, lv, "env_steps")
                                               for lv in LEVELS}})
         screen[variant] = screen_reach(per_seed, {s: _screen_horizon(spec, chosen[variant], s) for s in spec.seeds})
+    keys = [(f"env_steps_to_{round(100 * lv)}", False) for lv in LEVELS]
+    versus = stats.compare_with_reference({v: s["per_seed"] for v, s in screen.items()}, reference, keys)
     result = {
         "preset": spec.preset, "total_steps": spec.total_steps, "screen_steps": spec.screen_steps,
+        "paired_vs_reference": versus,
         "seeds": list(spec.seeds), "extra_overrides": args.overrides,
         "variants": {v: list(sets) for v, sets in chosen.items()}, "reference": reference, "levels": list(LEVELS),
         "screen": screen, "wall_s_this_call": time.perf_counter() - t0, "command": study.command(module, argv),
         "git": study.git_state(), "machine": study.machine(),
     }
-    return study.report(args.out, result, screen_markdown(screen, spec.screen_steps or 0))
+    return study.report(args.out, result, screen_markdown(screen, spec.screen_steps or 0, versus, reference))
 
 
 def _screen_horizon(spec: study.Study, sets: Sequence[str], seed: int) -> int:
