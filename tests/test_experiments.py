@@ -450,6 +450,29 @@ def test_a_screen_trains_into_the_full_schedule_and_resume_finishes_the_group(tm
         assert study.run_state(folder) == "trained" and study.trained_steps(folder) == 8192
 
 
+def test_failures_counts_each_kind_of_failed_episode_over_seeds(tmp_path: pytest.TempPathFactory,
+                                                                   capsys: pytest.CaptureFixture) -> None:
+    from experiments import failures
+
+    def group(n: int, success: float, timeout: float, **parts: float) -> dict:
+        return {"episodes": n, "success_rate": success, "timeout_rate": timeout,
+                "collision_rate": sum(parts.values()), "collision_by": parts}
+
+    run = {"conditions": {"robot": {"obstacle_present": group(200, 0.95, 0.02, obstacle=0.02, target=0.01),
+                                    "obstacle_absent": group(800, 0.99, 0.01)}},
+           "blocking_scenes": {"blocking": group(1000, 0.97, 0.005, obstacle=0.02, table=0.005)}}
+    rows = failures.table({"runs": {"v": [run, run]}}, "robot")["v"]
+    assert rows["obstacle"] == {"episodes": 400, "failed": 20, "timeout": 8, "obstacle": 8, "table": 0, "target": 4,
+                                "other": 0}
+    assert rows["no obstacle"]["failed"] == 16 and rows["no obstacle"]["timeout"] == 16
+    assert rows["blocking scenes (own env)"]["obstacle"] == 40 and rows["blocking scenes (own env)"]["table"] == 10
+    path = tmp_path / "r.json"
+    path.write_text(json.dumps({"runs": {"v": [run]}}))
+    assert failures.main([str(path), "--condition", "dynamic"]) == 2 and "no 'dynamic'" in capsys.readouterr().err
+    assert failures.main([str(path), "--condition", "robot"]) == 0
+    assert "| v, obstacle | 200 | 10 | 4 | 4 | 2 | 0 | 0 |" in capsys.readouterr().out
+
+
 def test_reference_from_an_earlier_result_is_checked_before_anything_trains(
         tmp_path: pytest.TempPathFactory, capsys: pytest.CaptureFixture) -> None:
     """``--reference-from`` reuses an earlier study's reference rows only if they were measured the same way
