@@ -413,7 +413,8 @@ def test_sooner_levers_each_change_what_they_name_and_nothing_else(capsys: pytes
     assert "unknown variant(s) bogus" in capsys.readouterr().err
 
 
-def test_a_screen_trains_into_the_full_schedule_and_resume_finishes_the_group(tmp_path: pytest.TempPathFactory) -> None:
+def test_a_screen_trains_into_the_full_schedule_and_resume_finishes_the_group(
+        tmp_path: pytest.TempPathFactory, capsys: pytest.CaptureFixture) -> None:
     """``--screen-steps`` trains a variant's seeds as a group only to the cycle that holds N env steps of the full
     budget's schedule (checkpointed, no policy, no evaluation) and reports time to each level within them; the
     same screen again trains nothing; the study without it and with ``--resume`` continues the group to the end
@@ -436,12 +437,15 @@ def test_a_screen_trains_into_the_full_schedule_and_resume_finishes_the_group(tm
         folder = os.path.join(runs, "adopted", f"seed{seed}")
         assert study.run_state(folder) == "partial" and study.trained_steps(folder) == 4096
         assert not os.path.exists(os.path.join(folder, compare.RESULT_FILE))
-    again = _run(common + ["--screen-steps", "3000", "--out", out])
-    assert again.returncode == 0 and "training" not in again.stdout and "resuming" not in again.stdout, again.stdout
-    refused = _run(common + ["--screen-steps", "8192", "--out", out])
-    assert refused.returncode == 2 and "--screen-steps 8192: give 1 <= N < the budget" in refused.stderr
-    unresumed = _run(common + ["--out", out])  # the screened runs stopped before the budget: --resume needed
-    assert unresumed.returncode == 2 and "pass --resume" in unresumed.stderr
+    from experiments import sooner  # what trains nothing runs in process
+
+    assert sooner.main(common[1:] + ["--screen-steps", "3000", "--out", out]) == 0
+    again = capsys.readouterr().out
+    assert "training" not in again and "resuming" not in again and "| adopted | median |" in again
+    assert sooner.main(common[1:] + ["--screen-steps", "8192", "--out", out]) == 2
+    assert "--screen-steps 8192: give 1 <= N < the budget" in capsys.readouterr().err
+    assert sooner.main(common[1:] + ["--out", out]) == 2  # the screened runs stopped before the budget
+    assert "pass --resume" in capsys.readouterr().err
     full = _run(common + ["--resume", "--out", str(tmp_path / "full.json")])
     assert full.returncode == 0, full.stdout[-3000:] + full.stderr[-3000:]
     assert "resuming seeds 0, 1 as one group" in full.stdout
