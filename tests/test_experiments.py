@@ -170,7 +170,11 @@ def test_ensure_trained_rule_for_every_folder_state(tmp_path: pytest.TempPathFac
     from sagrasp_jax.config import config_to_dict
 
     calls: list[tuple[str, bool]] = []
-    monkeypatch.setattr(study.train, "run", lambda cfg, out, resume, progress: calls.append((out, resume)))
+    def fake_run(cfg: object, out: str, resume: bool, progress: bool, stop_after_cycles: int | None) -> None:
+        assert stop_after_cycles is None  # outside a screen a run trains to its end
+        calls.append((out, resume))
+
+    monkeypatch.setattr(study.train, "run", fake_run)
     cfg = train.build_config("cpu-quick", None, 0, 8192, [])
     other = train.build_config("cpu-quick", None, 1, 8192, [])
 
@@ -214,7 +218,8 @@ def test_run_study_trains_evaluates_skips_and_refuses_before_training(tmp_path: 
     programs: list[list[int] | None] = []  # the seeds of each training call (None: a single run)
 
     def fake_run(cfg: object, out: str, resume: bool = False, progress: bool = True,
-                 seeds: list[int] | None = None) -> None:
+                 seeds: list[int] | None = None, stop_after_cycles: int | None = None) -> None:
+        assert stop_after_cycles is None  # outside a screen a run trains to its end
         programs.append(seeds)
         for folder, c in ([(out, cfg)] if seeds is None else
                           [(train.seed_dir(out, s), train.seed_config(cfg, s)) for s in seeds]):
