@@ -38,6 +38,7 @@ import importlib.util
 import json
 import math
 import os
+import statistics
 import sys
 import time
 from typing import Any, Mapping, Sequence
@@ -350,9 +351,8 @@ def screen_reach(per_seed: Sequence[dict[str, Any]], horizon: Mapping[int, int])
         out["per_seed"].append(row)
     for level in LEVELS:
         key = f"env_steps_to_{round(100 * level)}"
-        values = sorted(float("inf") if r[key] is None else r[key] for r in out["per_seed"])
-        n = len(values)
-        median = (values[n // 2] if n % 2 else (values[n // 2 - 1] + values[n // 2]) / 2) if n else float("inf")
+        values = [float("inf") if r[key] is None else r[key] for r in out["per_seed"]]
+        median = statistics.median(values) if values else float("inf")
         out["reached"][key] = sum(r[key] is not None for r in out["per_seed"])
         out["median"][key] = None if math.isinf(median) else median
     return out
@@ -396,7 +396,7 @@ def run_screen(args: argparse.Namespace, spec: study.Study, table: study.Variant
     folders = study.screen_study(spec, chosen)
     screen: dict[str, dict[str, Any]] = {}
     if recorded is not None:
-        horizon = {s: _screen_horizon(spec, table[reference], s) for s in spec.seeds}
+        horizon = {s: spec.screen_horizon(spec.config(table[reference], s)) for s in spec.seeds}
         screen[reference] = {**screen_reach(recorded["per_seed"], horizon), "from": recorded["from"]}
     for variant, by_seed in folders.items():
         per_seed = []
@@ -404,7 +404,8 @@ def run_screen(args: argparse.Namespace, spec: study.Study, table: study.Variant
             facts = curve_facts(run_dir.read_metrics(os.path.join(folder, run_dir.METRICS_FILE)))
             per_seed.append({"seed": seed, **{f"env_steps_to_{round(100 * lv)}": _reach(facts, lv, "env_steps")
                                               for lv in LEVELS}})
-        screen[variant] = screen_reach(per_seed, {s: _screen_horizon(spec, chosen[variant], s) for s in spec.seeds})
+        screen[variant] = screen_reach(per_seed, {s: spec.screen_horizon(spec.config(chosen[variant], s))
+                                                  for s in spec.seeds})
     keys = [(f"env_steps_to_{round(100 * lv)}", False) for lv in LEVELS]
     versus = stats.compare_with_reference({v: s["per_seed"] for v, s in screen.items()}, reference, keys)
     result = {
@@ -416,13 +417,6 @@ def run_screen(args: argparse.Namespace, spec: study.Study, table: study.Variant
         "git": study.git_state(), "machine": study.machine(),
     }
     return study.report(args.out, result, screen_markdown(screen, spec.screen_steps or 0, versus, reference))
-
-
-def _screen_horizon(spec: study.Study, sets: Sequence[str], seed: int) -> int:
-    """The env steps a screened run of ``sets`` has trained: the end of the cycle that holds the screen."""
-    cfg = spec.config(sets, seed)
-    sched = train.make_schedule(cfg)
-    return sched.cycle_ends[(spec.stop_after_cycles(cfg) or sched.num_cycles) - 1] * sched.steps_per_iteration
 
 
 def run_table(args: argparse.Namespace, table: study.Variants, default: Sequence[str], reference: str,

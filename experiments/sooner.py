@@ -40,9 +40,7 @@ BEFORE: tuple[str, ...] = ("ppo.num_epochs=4", "ppo.entropy_coef=1e-3", "ppo.net
 _LEVERS: dict[str, tuple[str, ...]] = {
     "baseline": (),
     "constant-lr": ("lr.schedule=constant",),  # no SA decay: the paper's PPO schedule
-    "lr-6e-4": ("ppo.learning_rate=6e-4",),
-    # ... with SA's plateau decay twice as steep (×0.96): 6e-4 · 0.96^34 ≈ 1.5e-4 by the end, where lr 3e-4 ends
-    "lr-6e-4+decay-0.96": ("ppo.learning_rate=6e-4", "sa.decay=0.96"),  # a larger first step size (SA still decays it)
+    "lr-6e-4": ("ppo.learning_rate=6e-4",),  # a larger first step size (SA still decays it)
     "epochs-8": ("ppo.num_epochs=8",),  # twice the SGD passes over each rollout
     "minibatches-8": ("ppo.num_minibatches=8",),  # twice the updates per epoch, half the minibatch
     "envs-128": ("ppo.num_envs=128",),  # half the rollout per iteration: twice the updates per env step

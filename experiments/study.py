@@ -89,6 +89,11 @@ class Study:
         ends = [end * sched.steps_per_iteration for end in sched.cycle_ends]
         return min(bisect.bisect_left(ends, self.screen_steps) + 1, sched.num_cycles)
 
+    def screen_horizon(self, cfg: Config) -> int:
+        """The env steps a screened run of ``cfg`` has trained: the end of the cycle that holds the screen."""
+        sched = train.make_schedule(cfg)
+        return sched.cycle_ends[(self.stop_after_cycles(cfg) or sched.num_cycles) - 1] * sched.steps_per_iteration
+
 
 def parse_seeds(text: str) -> tuple[int, ...]:
     """``K`` (seeds 0 … K−1), ``A-B`` (A … B) or a comma list ``1,3``."""
@@ -289,10 +294,11 @@ def screen_study(study: Study, variants: Variants) -> dict[str, dict[int, str]]:
         for seed in study.seeds:
             out, cfg = study.folder(variant, seed), study.config(sets, seed)
             state = check_run(out, cfg, True)
-            if state == "partial" and trained_steps(out) < study.screen_steps and not study.resume:
+            short = state in ("partial", "stale") and trained_steps(out) < study.screen_steps
+            if state == "partial" and short and not study.resume:
                 raise StudyError(f"{out} stopped at {trained_steps(out):,} env steps, before the screen's "
                                  f"{study.screen_steps:,}; pass --resume to continue it")
-            if state == "new" or (state != "trained" and trained_steps(out) < study.screen_steps):
+            if state == "new" or short:
                 todo.setdefault(variant, {})[seed] = cfg
     for variant, configs in todo.items():
         train_variant(study, variant, configs)
