@@ -5,8 +5,9 @@ per-cycle fixed-seed evaluation first reaches 90 / 95 / 98 / 99 % success, and b
 success per episode kind, never by env-steps/s alone.  Each lever is a variant of ``--preset``
 (``LEVERS``: its ``--set`` overrides over ``BEFORE``, the preset's shape before the levers that won were
 adopted) trained for ``--total-steps`` env steps on ``--seeds`` and paired seed by seed with ``baseline``
-(``BEFORE`` alone; ``--variants adopted`` is the preset as it is now; ``adopted+LEVER`` is a lever over it,
-paired with ``--reference NAME``, e.g. the adopted shape's recorded runs).  The machinery is ``compare_schedules``'
+(``BEFORE`` alone; ``--variants adopted`` is the preset as it is now; ``adopted+LEVER`` is a second-round
+lever over ``ROUND_1``, the preset after the first round, paired with ``--reference NAME``, e.g. that shape's
+recorded runs).  The machinery is ``compare_schedules``'
 (``run_table``: the study driver's folder rule, seed groups, evaluations, t-intervals, paired tests,
 JSON); only the table is this module's.  From the repository root:
 
@@ -32,9 +33,14 @@ from typing import Sequence
 from experiments import compare_schedules
 
 # Every lever is measured over the shape `cpu-quick` had when these studies ran (4 epochs, entropy 1e-3, a 32×4
-# policy; 256 envs × 16-step unrolls, 4 minibatches, lr 3e-4, SA): the preset now carries the levers that won, and
-# pinning the old shape keeps every recorded run of this table valid (same configs, same hashes).
-BEFORE: tuple[str, ...] = ("ppo.num_epochs=4", "ppo.entropy_coef=1e-3", "ppo.network.policy_hidden=32,32,32,32")
+# policy; 256 envs × 16-step unrolls, 4 minibatches, SA from lr 3e-4 decaying ×0.98): the preset now carries the
+# levers that won, and pinning the old shape keeps every recorded run of this table valid (same configs, same hashes).
+BEFORE: tuple[str, ...] = ("ppo.num_epochs=4", "ppo.entropy_coef=1e-3", "ppo.network.policy_hidden=32,32,32,32",
+                           "ppo.learning_rate=3e-4", "sa.decay=0.98")
+# The preset after the first round (its first three levers adopted; SA still from 3e-4 ×0.98): the shape the
+# second round's levers ("adopted+LEVER") were measured over, recorded as "epochs-8+entropy-3e-3+policy-64x4".
+ROUND_1: tuple[str, ...] = BEFORE + ("ppo.num_epochs=8", "ppo.entropy_coef=3e-3",
+                                     "ppo.network.policy_hidden=64,64,64,64")
 
 # lever -> its overrides of BEFORE
 _LEVERS: dict[str, tuple[str, ...]] = {
@@ -61,8 +67,9 @@ _LEVERS: dict[str, tuple[str, ...]] = {
     "epochs-8+entropy-3e-3+policy-64x4": ("ppo.num_epochs=8", "ppo.entropy_coef=3e-3",
                                           "ppo.network.policy_hidden=64,64,64,64"),
 }
-# levers measured over today's preset (its levers adopted), named "adopted+LEVER": pair them with the adopted
-# shape's recorded runs (--reference epochs-8+entropy-3e-3+policy-64x4, the same config, --reference-from FILE)
+# the second round: levers measured over ROUND_1 (the first round's levers adopted), named "adopted+LEVER": pair
+# them with that shape's recorded runs (--reference epochs-8+entropy-3e-3+policy-64x4, --reference-from FILE).
+# "lr-6e-4+decay-0.96" won and is today's preset ("adopted").
 _OVER_ADOPTED: dict[str, tuple[str, ...]] = {
     # more obstacle information: each slot also shows the obstacle's centre and bounding box (observation.py)
     "obstacle-shape": ("env.task.obs_obstacle_shape=true",),
@@ -78,7 +85,7 @@ _OVER_ADOPTED: dict[str, tuple[str, ...]] = {
 }
 LEVERS: dict[str, tuple[str, ...]] = {**{name: BEFORE + sets for name, sets in _LEVERS.items()},
                                       "adopted": (),  # the preset unchanged: today's cpu-quick
-                                      **{f"adopted+{name}": sets for name, sets in _OVER_ADOPTED.items()}}
+                                      **{f"adopted+{name}": ROUND_1 + sets for name, sets in _OVER_ADOPTED.items()}}
 REFERENCE = "baseline"
 DEFAULT = ("baseline", "epochs-8", "envs-128", "lr-6e-4")
 

@@ -38,7 +38,8 @@ from sagrasp_jax import fileio, run_dir, train  # noqa: E402
 def dynamic_config():  # type: ignore[no-untyped-def]
     """A tiny dynamic-mode run of the grasp env: 3 cycles of one iteration, checkpointed after each."""
     sets = ["env.control.mode=dynamic", "ppo.num_envs=4", "ppo.unroll_length=4", "ppo.num_minibatches=2",
-            "ppo.num_epochs=1", "ppo.network.policy_hidden=32,32,32,32", "eval.num_cycles=3", "eval.episodes=4",
+            "ppo.num_epochs=1", "ppo.network.policy_hidden=32,32,32,32", "ppo.learning_rate=3e-4", "sa.decay=0.98",
+            "eval.num_cycles=3", "eval.episodes=4",
             "env.task.max_steps=8",
             "train.checkpoint_every_cycles=1", "train.metrics_window=8", "train.log_every=1"]
     return train.build_config("cpu-quick", "sa-ppo", 0, 3 * 4 * 4, sets)

@@ -27,7 +27,7 @@ from conftest import SUITE_PPO
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
-TINY_SETS = ["ppo.network.policy_hidden=32,32,32,32", "ppo.num_envs=64", "ppo.num_epochs=1", "ppo.num_minibatches=1",
+TINY_SETS = ["ppo.network.policy_hidden=32,32,32,32", "ppo.learning_rate=3e-4", "sa.decay=0.98", "ppo.num_envs=64", "ppo.num_epochs=1", "ppo.num_minibatches=1",
              "env.task.max_steps=50", "eval.episodes=8", "eval.num_cycles=4"]
 
 
@@ -401,16 +401,17 @@ def test_sooner_levers_each_change_what_they_name_and_nothing_else(capsys: pytes
         assert changed == {s.split("=")[0] for s in sets}, name
     # the recorded baseline runs (sooner_levers3_3M.json, seed 0) were trained with exactly this config
     assert evaluate.config_identity(spec.config(sooner.LEVERS["baseline"], 0)) == "0d6b7c82eeef9d39"
-    assert flat(spec.config(sooner.LEVERS["adopted"], 0)) == flat(
-        spec.config(sooner.LEVERS["epochs-8+entropy-3e-3+policy-64x4"], 0))
     assert SUITE_PPO == list(sooner.BEFORE)  # the suite's short runs keep the shape the levers are measured over
-    adopted = flat(spec.config(sooner.LEVERS["adopted"], 0))
-    for name, sets in sooner._OVER_ADOPTED.items():  # levers over today's preset change only what they name
-        changed = {k for k, v in flat(spec.config(sooner.LEVERS[f"adopted+{name}"], 0)).items() if adopted[k] != v}
+    round_1 = flat(spec.config(sooner.ROUND_1, 0))
+    assert round_1 == flat(spec.config(sooner.LEVERS["epochs-8+entropy-3e-3+policy-64x4"], 0))
+    for name, sets in sooner._OVER_ADOPTED.items():  # second-round levers change only what they name
+        changed = {k for k, v in flat(spec.config(sooner.LEVERS[f"adopted+{name}"], 0)).items() if round_1[k] != v}
         assert changed == {s.split("=")[0] for s in sets}, name
-    # the adopted shape's recorded runs pair with them: a key added since (obs_obstacle_shape) left its identity
-    assert evaluate.config_identity(spec.config(sooner.LEVERS["adopted"], 0)) == evaluate.config_identity(
-        spec.config(sooner.LEVERS["epochs-8+entropy-3e-3+policy-64x4"], 0))
+    # today's preset is the second round's winner, and the first round's recorded runs (sooner_combo_10M.json,
+    # seed 0) keep their identity: a key added since (obs_obstacle_shape) left it unchanged
+    assert flat(spec.config(sooner.LEVERS["adopted"], 0)) == flat(
+        spec.config(sooner.LEVERS["adopted+lr-6e-4+decay-0.96"], 0))
+    assert evaluate.config_identity(spec.config(sooner.ROUND_1, 0)) == "f2dcda76602f32b5"
     assert sooner.main(["--variants", "adopted", "--reference", "nope", "--runs-dir", "unused"]) == 2
     assert "--reference 'nope' is not a variant here" in capsys.readouterr().err
     assert sooner.main(["--seeds", "0-", "--runs-dir", "unused"]) == 2

@@ -17,7 +17,7 @@ TINY_ARGS = [
     "--preset", "cpu-quick", "--total-steps", "1024", "--seed", "0", "--no-progress",
     "--set", "eval.num_cycles=1", "--set", "eval.episodes=8", "--set", "ppo.num_envs=64",
     "--set", "ppo.num_epochs=1", "--set", "ppo.num_minibatches=1", "--set", "ppo.network.policy_hidden=32,32,32,32",
-    "--set", "env.task.max_steps=50",
+    "--set", "ppo.learning_rate=3e-4", "--set", "sa.decay=0.98", "--set", "env.task.max_steps=50",
 ]  # fmt: skip
 _RUNS: dict[str, str] = {}
 
