@@ -82,6 +82,8 @@ _OVER_ADOPTED: dict[str, tuple[str, ...]] = {
     "lr-6e-4+decay-0.96": ("ppo.learning_rate=6e-4", "sa.decay=0.96"),
     # half the rollout per iteration: twice the updates per env step, each on fresh data
     "envs-128": ("ppo.num_envs=128",),
+    # the paper's PPO schedule (constant lr 3e-4) with the first round's levers: is SA still level with it?
+    "constant-lr": ("lr.schedule=constant",),
 }
 LEVERS: dict[str, tuple[str, ...]] = {**{name: BEFORE + sets for name, sets in _LEVERS.items()},
                                       "adopted": (),  # the preset unchanged: today's cpu-quick
