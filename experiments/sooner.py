@@ -37,10 +37,6 @@ from experiments import compare_schedules
 # levers that won, and pinning the old shape keeps every recorded run of this table valid (same configs, same hashes).
 BEFORE: tuple[str, ...] = ("ppo.num_epochs=4", "ppo.entropy_coef=1e-3", "ppo.network.policy_hidden=32,32,32,32",
                            "ppo.learning_rate=3e-4", "sa.decay=0.98")
-# The preset after the first round (its first three levers adopted; SA still from 3e-4 ×0.98): the shape the
-# second round's levers ("adopted+LEVER") were measured over, recorded as "epochs-8+entropy-3e-3+policy-64x4".
-ROUND_1: tuple[str, ...] = BEFORE + ("ppo.num_epochs=8", "ppo.entropy_coef=3e-3",
-                                     "ppo.network.policy_hidden=64,64,64,64")
 
 # lever -> its overrides of BEFORE
 _LEVERS: dict[str, tuple[str, ...]] = {
@@ -67,6 +63,9 @@ _LEVERS: dict[str, tuple[str, ...]] = {
     "epochs-8+entropy-3e-3+policy-64x4": ("ppo.num_epochs=8", "ppo.entropy_coef=3e-3",
                                           "ppo.network.policy_hidden=64,64,64,64"),
 }
+# The preset after the first round (its first three levers adopted; SA still from 3e-4 ×0.98): the shape the
+# second round's levers ("adopted+LEVER") were measured over, recorded as "epochs-8+entropy-3e-3+policy-64x4".
+ROUND_1: tuple[str, ...] = BEFORE + _LEVERS["epochs-8+entropy-3e-3+policy-64x4"]
 # the second round: levers measured over ROUND_1 (the first round's levers adopted), named "adopted+LEVER": pair
 # them with that shape's recorded runs (--reference epochs-8+entropy-3e-3+policy-64x4, --reference-from FILE).
 # "lr-6e-4+decay-0.96" won and is today's preset ("adopted").
