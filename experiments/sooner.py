@@ -7,7 +7,7 @@ success per episode kind, never by env-steps/s alone.  Each lever is a variant o
 adopted) trained for ``--total-steps`` env steps on ``--seeds`` and paired seed by seed with ``baseline``
 (``BEFORE`` alone; ``--variants adopted`` is the preset as it is now; ``adopted+LEVER`` is a second-round
 lever over ``ROUND_1``, the preset after the first round, paired with ``--reference NAME``, e.g. that shape's
-recorded runs).  The machinery is ``compare_schedules``'
+recorded runs; ``round-2+LEVER`` is a third-round lever over ``ROUND_2``, today's preset pinned).  The machinery is ``compare_schedules``'
 (``run_table``: the study driver's folder rule, seed groups, evaluations, t-intervals, paired tests,
 JSON); only the table is this module's.  From the repository root:
 
@@ -84,9 +84,18 @@ _OVER_ADOPTED: dict[str, tuple[str, ...]] = {
     # the paper's PPO schedule (constant lr 3e-4) with the first round's levers: is SA still level with it?
     "constant-lr": ("lr.schedule=constant",),
 }
+# The preset after the second round (its winner, SA from 6e-4 ×0.96, adopted): today's cpu-quick, pinned so that the
+# third round's levers ("round-2+LEVER") keep their configs when the preset moves on; pair them with
+# --reference adopted+lr-6e-4+decay-0.96 (the same config) and that lever's recorded runs.
+ROUND_2: tuple[str, ...] = ROUND_1 + _OVER_ADOPTED["lr-6e-4+decay-0.96"]
+_OVER_ROUND_2: dict[str, tuple[str, ...]] = {
+    # more obstacle information at the full budget: most failures left are obstacle hits on blocking scenes
+    "obstacle-shape": ("env.task.obs_obstacle_shape=true",),
+}
 LEVERS: dict[str, tuple[str, ...]] = {**{name: BEFORE + sets for name, sets in _LEVERS.items()},
                                       "adopted": (),  # the preset unchanged: today's cpu-quick
-                                      **{f"adopted+{name}": ROUND_1 + sets for name, sets in _OVER_ADOPTED.items()}}
+                                      **{f"adopted+{name}": ROUND_1 + sets for name, sets in _OVER_ADOPTED.items()},
+                                      **{f"round-2+{name}": ROUND_2 + sets for name, sets in _OVER_ROUND_2.items()}}
 REFERENCE = "baseline"
 DEFAULT = ("baseline", "epochs-8", "envs-128", "lr-6e-4")
 

@@ -411,6 +411,12 @@ def test_sooner_levers_each_change_what_they_name_and_nothing_else(capsys: pytes
     assert flat(spec.config(sooner.LEVERS["adopted"], 0)) == flat(
         spec.config(sooner.LEVERS["adopted+lr-6e-4+decay-0.96"], 0))
     assert evaluate.config_identity(spec.config(sooner.ROUND_1, 0)) == "f2dcda76602f32b5"
+    # the third round is measured over today's preset, pinned: the same config as the second round's winner
+    round_2 = flat(spec.config(sooner.ROUND_2, 0))
+    assert round_2 == flat(spec.config(sooner.LEVERS["adopted"], 0))
+    for name, sets in sooner._OVER_ROUND_2.items():
+        changed = {k for k, v in flat(spec.config(sooner.LEVERS[f"round-2+{name}"], 0)).items() if round_2[k] != v}
+        assert changed == {s.split("=")[0] for s in sets}, name
     assert sooner.main(["--variants", "adopted", "--reference", "nope", "--runs-dir", "unused"]) == 2
     assert "--reference 'nope' is not a variant here" in capsys.readouterr().err
     assert sooner.main(["--seeds", "0-", "--runs-dir", "unused"]) == 2
