@@ -414,6 +414,9 @@ def test_sooner_levers_each_change_what_they_name_and_nothing_else(capsys: pytes
     # the third round is measured over today's preset, pinned: the same config as the second round's winner
     round_2 = flat(spec.config(sooner.ROUND_2, 0))
     assert round_2 == flat(spec.config(sooner.LEVERS["adopted"], 0))
+    # ... and the recorded runs it is paired with (sooner_lr6_decay96_10M.json, seed 0) keep their identity
+    full = study.Study("cpu-quick", 10_000_000, (0,), "unused")
+    assert evaluate.config_identity(full.config(sooner.ROUND_2, 0)) == "e15bf1772faa0ce7"
     for name, sets in sooner._OVER_ROUND_2.items():
         changed = {k for k, v in flat(spec.config(sooner.LEVERS[f"round-2+{name}"], 0)).items() if round_2[k] != v}
         assert changed == {s.split("=")[0] for s in sets}, name
