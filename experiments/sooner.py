@@ -91,6 +91,9 @@ ROUND_2: tuple[str, ...] = ROUND_1 + _OVER_ADOPTED["lr-6e-4+decay-0.96"]
 _OVER_ROUND_2: dict[str, tuple[str, ...]] = {
     # more obstacle information at the full budget: most failures left are obstacle hits on blocking scenes
     "obstacle-shape": ("env.task.obs_obstacle_shape=true",),
+    # SA's plateau decay steeper still (×0.95: ≈ 1.1e-4 by the end where ×0.96 ends at 1.5e-4): ×0.98 → ×0.96
+    # polished the final policy; does a smaller last step size polish more?
+    "decay-0.95": ("sa.decay=0.95",),
 }
 LEVERS: dict[str, tuple[str, ...]] = {**{name: BEFORE + sets for name, sets in _LEVERS.items()},
                                       "adopted": (),  # the preset unchanged: today's cpu-quick
