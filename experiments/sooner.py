@@ -7,9 +7,9 @@ success per episode kind, never by env-steps/s alone.  Each lever is a variant o
 adopted) trained for ``--total-steps`` env steps on ``--seeds`` and paired seed by seed with ``baseline``
 (``BEFORE`` alone; ``--variants adopted`` is the preset as it is now; ``adopted+LEVER`` is a second-round
 lever over ``ROUND_1``, the preset after the first round, paired with ``--reference NAME``, e.g. that shape's
-recorded runs; ``round-2+LEVER`` is a third-round lever over ``ROUND_2``, today's preset pinned).  The machinery is ``compare_schedules``'
-(``run_table``: the study driver's folder rule, seed groups, evaluations, t-intervals, paired tests,
-JSON); only the table is this module's.  From the repository root:
+recorded runs; ``round-2+LEVER`` is a third-round lever over ``ROUND_2``, today's preset pinned).  The
+machinery is ``compare_schedules``' (``run_table``: the study driver's folder rule, seed groups, evaluations,
+t-intervals, paired tests, JSON); only the table is this module's.  From the repository root:
 
     python -m experiments.sooner --variants baseline,epochs-8,envs-128,lr-6e-4 --seeds 3 \\
         --total-steps 3000000 --out experiments/results/sooner_3M.json

@@ -394,18 +394,19 @@ def test_sooner_levers_each_change_what_they_name_and_nothing_else(capsys: pytes
             out.update(flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {prefix + k: v})
         return out
 
+    def changes_only_what_it_names(over: dict, levers: dict[str, tuple[str, ...]], prefix: str) -> None:
+        for name, sets in levers.items():
+            changed = {k for k, v in flat(spec.config(sooner.LEVERS[prefix + name], 0)).items() if over[k] != v}
+            assert changed == {s.split("=")[0] for s in sets}, prefix + name
+
     base = flat(spec.config(sooner.LEVERS[sooner.REFERENCE], 0))
     assert sooner.REFERENCE in sooner.DEFAULT and set(sooner.DEFAULT) <= set(sooner.LEVERS)
-    for name, sets in sooner._LEVERS.items():
-        changed = {k for k, v in flat(spec.config(sooner.LEVERS[name], 0)).items() if base[k] != v}
-        assert changed == {s.split("=")[0] for s in sets}, name
+    changes_only_what_it_names(base, sooner._LEVERS, "")
     # the recorded baseline runs (sooner_levers3_3M.json, seed 0) were trained with exactly this config
     assert evaluate.config_identity(spec.config(sooner.LEVERS["baseline"], 0)) == "0d6b7c82eeef9d39"
     assert SUITE_PPO == list(sooner.BEFORE)  # the suite's short runs keep the shape the levers are measured over
     round_1 = flat(spec.config(sooner.ROUND_1, 0))  # BEFORE + the first round's winning lever
-    for name, sets in sooner._OVER_ADOPTED.items():  # second-round levers change only what they name
-        changed = {k for k, v in flat(spec.config(sooner.LEVERS[f"adopted+{name}"], 0)).items() if round_1[k] != v}
-        assert changed == {s.split("=")[0] for s in sets}, name
+    changes_only_what_it_names(round_1, sooner._OVER_ADOPTED, "adopted+")  # the second round's levers
     # today's preset is the second round's winner, and the first round's recorded runs (sooner_combo_10M.json,
     # seed 0) keep their identity: a key added since (obs_obstacle_shape) left it unchanged
     assert flat(spec.config(sooner.LEVERS["adopted"], 0)) == flat(
@@ -417,9 +418,7 @@ def test_sooner_levers_each_change_what_they_name_and_nothing_else(capsys: pytes
     # ... and the recorded runs it is paired with (sooner_lr6_decay96_10M.json, seed 0) keep their identity
     full = study.Study("cpu-quick", 10_000_000, (0,), "unused")
     assert evaluate.config_identity(full.config(sooner.ROUND_2, 0)) == "e15bf1772faa0ce7"
-    for name, sets in sooner._OVER_ROUND_2.items():
-        changed = {k for k, v in flat(spec.config(sooner.LEVERS[f"round-2+{name}"], 0)).items() if round_2[k] != v}
-        assert changed == {s.split("=")[0] for s in sets}, name
+    changes_only_what_it_names(round_2, sooner._OVER_ROUND_2, "round-2+")  # the third round's levers
     assert sooner.main(["--variants", "adopted", "--reference", "nope", "--runs-dir", "unused"]) == 2
     assert "--reference 'nope' is not a variant here" in capsys.readouterr().err
     assert sooner.main(["--seeds", "0-", "--runs-dir", "unused"]) == 2
