@@ -21,6 +21,10 @@ EXTRAS: dict[str, tuple[str, ...]] = {
     "render": ("mujoco", "imageio", "imageio_ffmpeg"),
     "plots": ("matplotlib",),
     "warp": ("warp",),
+    # hardware adapters (sagrasp_jax/deploy/aubo.py, cameras.py): the vendors' own SDKs
+    "aubo": ("pyaubo_sdk",),
+    "mecheye": ("mecheye",),
+    "realsense": ("pyrealsense2",),
 }
 
 

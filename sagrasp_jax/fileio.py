@@ -4,7 +4,13 @@ Every file the project writes (checkpoints, policies, MJCF, JSON results, videos
 through here, so a crash or a refused input never leaves a half-written file, and the
 result gets the usual ``0666 & ~umask`` mode rather than ``mkstemp``'s private 0600.  Also the one
 redirect of file descriptor 1 that keeps C libraries' chatter off stdout (``stdout_fd_to``).
-No jax import (the deployment runtime uses it).
+
+Files that are not files: every input the commands read goes through ``read_regular`` (or
+``check_regular`` before a library opens it), which refuses a FIFO, device, socket or folder before
+it is opened (a FIFO's open waits for a writer, ``/dev/zero`` never ends) and a file over the
+reader's size cap before it is read; every output path goes through ``check_output_file`` (also
+inside ``atomic_write`` and ``check_writable``): a regular file or absent, never a device node
+the rename would replace.  No jax import (the deployment runtime uses it).
 """
 
 from __future__ import annotations
@@ -14,6 +20,7 @@ import errno
 import json
 import os
 import re
+import stat
 import sys
 import tempfile
 from collections.abc import Callable, Iterator
@@ -74,7 +81,10 @@ def check_writable(path: str, what: str = "output folder", is_folder: bool = Tru
     the folder (or with ``is_folder=False`` the file) to be written.  A probe file of ``size``
     bytes is written, synced and removed in the folder, or in its nearest existing parent when it
     does not exist yet (it would be made there), so read-only mounts, permissions and full disks
-    all show (``OutOfSpace`` for the last)."""
+    all show (``OutOfSpace`` for the last); a file ``path`` must be a regular file or absent
+    (``check_output_file``)."""
+    if not is_folder:
+        check_output_file(path)
     folder = os.path.abspath(path if is_folder else os.path.dirname(os.path.abspath(path)))
     while not os.path.exists(folder):
         folder = os.path.dirname(folder)
@@ -99,7 +109,9 @@ def atomic_write(path: str, write: Callable[[str], None]) -> str:
     """Call ``write(tmp_path)`` (the temp name keeps the extension, for writers that pick the
     format by it), then rename over ``path``; the temp file is removed on any error.
     Out of space (ENOSPC / EDQUOT) anywhere on the way raises ``OutOfSpace`` naming ``path``;
-    the old file, if any, is left as it was."""
+    the old file, if any, is left as it was.  A ``path`` that is a FIFO, device, socket or folder is
+    refused (``NotWritable``) before anything is written."""
+    check_output_file(path)
     folder = os.path.dirname(os.path.abspath(path))
     try:
         os.makedirs(folder, exist_ok=True)
@@ -130,6 +142,90 @@ def out_of_space_error(path: str, exc: OSError) -> OutOfSpace:
                        "was)")
     error.errno = exc.errno
     return error
+
+
+# ---------------------------------------------------------------------- files that are not files
+
+class NotRegularFile(OSError):
+    """A path that exists but is no regular file (a FIFO, device, socket or folder) where a file is
+    read; ``kind`` says what it is ("a FIFO (named pipe)", "a folder", ...)."""
+
+    def __init__(self, path: str, kind: str) -> None:
+        super().__init__(f"{path} is {kind}, not a regular file")
+        self.path, self.kind = path, kind
+
+    def __str__(self) -> str:
+        return str(self.args[0])
+
+
+class FileTooLarge(OSError):
+    """An input over its reader's size cap, refused before it is read."""
+
+    def __str__(self) -> str:
+        return str(self.args[0])
+
+
+_KINDS = ((stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a FIFO (named pipe)"), (stat.S_ISCHR, "a character device"),
+          (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"))
+
+
+def file_kind(mode: int) -> str:
+    """What a ``st_mode`` is, in words ("a regular file", "a FIFO (named pipe)", "a character device", ...)."""
+    if stat.S_ISREG(mode):
+        return "a regular file"
+    return next((kind for test, kind in _KINDS if test(mode)), "not a regular file")
+
+
+def check_regular(path: str) -> os.stat_result:
+    """``os.stat`` of an input that must be a regular file (a symlink counts as what it points to):
+    ``NotRegularFile`` for a FIFO, device, socket or folder, without opening it.  A missing file raises
+    ``FileNotFoundError`` as ``os.stat`` does."""
+    st = os.stat(path)
+    if not stat.S_ISREG(st.st_mode):
+        raise NotRegularFile(path, file_kind(st.st_mode))
+    return st
+
+
+def read_regular(path: str, max_bytes: int | None = None, what: str = "file") -> bytes:
+    """The bytes of a regular file, in bounded time and memory: refused (``NotRegularFile``) before it
+    is opened when it is a FIFO, device, socket or folder, and (``FileTooLarge``) before it is read
+    when over ``max_bytes``.  The file is opened non-blocking and checked again on its descriptor (a
+    path swapped meanwhile), and no more than ``max_bytes`` are read even from a file that grows."""
+    check_regular(path)
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise NotRegularFile(path, file_kind(st.st_mode))
+        if max_bytes is not None and st.st_size > max_bytes:
+            raise FileTooLarge(f"{path}: {st.st_size} bytes, over the {max_bytes} bytes a {what} may hold; not read")
+        limit = max_bytes + 1 if max_bytes is not None else None
+        chunks, size = [], 0
+        while limit is None or size < limit:
+            chunk = os.read(fd, 1 << 20 if limit is None else min(1 << 20, limit - size))
+            if not chunk:
+                break
+            chunks.append(chunk)
+            size += len(chunk)
+        if max_bytes is not None and size > max_bytes:
+            raise FileTooLarge(f"{path}: over the {max_bytes} bytes a {what} may hold (it grew while read); not read")
+        return b"".join(chunks)
+    finally:
+        os.close(fd)
+
+
+def check_output_file(path: str) -> None:
+    """Refuse (``NotWritable``) an output file path that exists and is not a regular file: a FIFO,
+    device, socket or folder (a symlink counts as what it points to).  The rename of ``atomic_write``
+    would replace a device node by a regular file, and reading an earlier result there would block on
+    a FIFO.  An absent path (or a dangling symlink) is fine: it will be created."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return  # absent, or a parent that is no folder: check_writable / the write itself says so
+    if not stat.S_ISREG(st.st_mode):
+        raise NotWritable(f"cannot write {path}: it is {file_kind(st.st_mode)}; an output must be a regular file "
+                          "or absent")
 
 
 def atomic_write_bytes(path: str, data: bytes) -> str:

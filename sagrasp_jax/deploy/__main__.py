@@ -3,6 +3,8 @@
     python -m sagrasp_jax.deploy --policy policy/policy.npz --target-cam X Y Z [--units mm|m]
         [--target-yaw DEG] [--obstacle KIND X Y Z SIZE... ]... [--calibration FILE]
         [--backend twin] [--gui] [--json]
+    python -m sagrasp_jax.deploy ... --backend aubo --host IP [--port N] [--gripper-io SPEC]
+    python -m sagrasp_jax.deploy --backend aubo --host IP [--port N] --dry-run [--policy P] [--json]
 
 Detections are camera-frame points as the depth camera reports them: the **top** of the cube
 (and of each obstacle), in ``--units`` (default mm, the Mech-Eye's and the calibration's
@@ -23,6 +25,14 @@ through the fitted servo model (``--twin-servo-gain F`` scales its gain), and ``
 DX DY DZ`` (in ``--units``) puts the twin's cube that far from the detection: the loop only knows the
 detection, and the grasp-and-lift says whether the cube came along anyway.
 
+The real AUBO-i5 (``--backend aubo --host IP``, ``pip install "sagrasp_jax[aubo]"``, ``deploy.aubo``): the
+controller's RPC service (``--port``, default 30004; the login from $AUBO_USER / $AUBO_PASSWORD, default the
+factory's), one ``servoJoint`` per control period, every target through the same safety layer.  The arm must
+stand within ``--home-tolerance`` rad of the policy's home pose (else exit 2, nothing moved); the gripper is
+driven by the tool outputs of ``--gripper-io`` (configurable, untested on hardware).  ``--dry-run`` only
+connects and reports the joints and whether the arm is at home (exit 0 at home, 1 not, 2 no connection).  A
+refused or silent controller exits 2 naming host and port.
+
 Exit status: 0 grasp pose reached (and lifted, unless --no-grasp), 1 timeout or collision,
 2 input refused before anything moved, 3 the safety layer stopped the robot.
 """
@@ -32,6 +42,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 import typing
 from typing import Any, Sequence
@@ -48,11 +59,13 @@ from sagrasp_jax.deploy.calibration import (
 )
 from sagrasp_jax import extras, shapes
 from sagrasp_jax.deploy.loop import DeployError, Obstacle, format_report, run_episode, scene_spec, with_obstacle_kinds
+from sagrasp_jax.config import HOME_Q
+from sagrasp_jax.deploy import aubo
 from sagrasp_jax.deploy.safety import SafetyViolation, check_policy_constants, check_policy_scene, deployment_env
 from sagrasp_jax.deploy.transfer import TransferErrors
 from sagrasp_jax.runtime import PolicyFormatError, load_policy
 
-BACKENDS = ("twin",)
+BACKENDS = ("twin", "aubo")
 UNITS = ("mm", "m")
 DETECTION_RANGE = (0.3, 3.0)  # m from the camera: where a depth camera over the table can see anything
 OBSTACLE_SIZE_RANGE = (0.005, 0.5)  # m, any obstacle dimension
@@ -163,6 +176,14 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--base-yaw", type=float, default=0.0, help="controller base yaw about z relative to the URDF, rad")
     p.add_argument("--backend", choices=BACKENDS, default="twin", help="robot backend (default: PyBullet twin)")
     p.add_argument("--gui", action="store_true", help="open the PyBullet viewer (twin)")
+    p.add_argument("--host", default=None, help="aubo: the controller's IP address or host name")
+    p.add_argument("--port", type=int, default=None, help=f"aubo: its RPC port (default {aubo.DEFAULT_PORT})")
+    p.add_argument("--dry-run", action="store_true",
+                   help="aubo: connect, report the joints and whether the arm is at home; command nothing")
+    p.add_argument("--gripper-io", default=None, metavar="SPEC",
+                   help=f"aubo: tool outputs that drive the gripper (default {aubo.GripperIO().describe()}; untested)")
+    p.add_argument("--home-tolerance", type=float, default=None, metavar="RAD",
+                   help=f"aubo: largest joint distance from home to start from (default {aubo.HOME_TOLERANCE})")
     p.add_argument("--max-steps", type=int, default=None, help="step cap (default: the policy's env.task.max_steps)")
     p.add_argument("--no-grasp", action="store_true", help="stop at the grasp pose: do not close the gripper and lift")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
@@ -214,9 +235,105 @@ def _twin_errors(args: argparse.Namespace, spec: Any) -> tuple[Any, Any]:
     return errors, spec._replace(target_pos=np.asarray(spec.target_pos) + offset)
 
 
+# ---- the real AUBO-i5 (deploy.aubo, the [aubo] extra) ----
+
+AUBO_OPTIONS = ("host", "port", "gripper_io", "home_tolerance")
+
+
+def _flags(names: Sequence[str]) -> str:
+    return ", ".join("--" + n.replace("_", "-") for n in names)
+
+
+def _aubo_settings(args: argparse.Namespace) -> aubo.AuboSettings | None:
+    """The AUBO adapter's settings from the command line (None for another backend); refuses AUBO options
+    without ``--backend aubo``, twin rehearsal options with it, a missing ``--host`` and a missing SDK."""
+    if args.backend != "aubo":
+        stray = [n for n in AUBO_OPTIONS if getattr(args, n, None) is not None]
+        if stray:
+            raise InputRefused(f"{_flags(stray)} {'is' if len(stray) == 1 else 'are'} only for --backend aubo")
+        return None
+    twin_flags = _twin_flags(args)
+    if twin_flags:
+        raise InputRefused(f"{_flags(twin_flags)} rehearse on the PyBullet twin; with --backend aubo they are refused")
+    if not args.host:
+        raise InputRefused("--backend aubo needs --host IP (the controller's address)")
+    tolerance = aubo.HOME_TOLERANCE if args.home_tolerance is None else args.home_tolerance
+    if not (math.isfinite(tolerance) and 0 < tolerance <= 0.5):
+        raise InputRefused(f"--home-tolerance {tolerance} rad must be in (0, 0.5]")
+    extras.require("aubo", what="--backend aubo (AUBO's SDK)")
+    try:
+        return aubo.AuboSettings(
+            port=aubo.DEFAULT_PORT if args.port is None else args.port,
+            user=os.environ.get("AUBO_USER", aubo.DEFAULT_USER),
+            password=os.environ.get("AUBO_PASSWORD", aubo.DEFAULT_PASSWORD),
+            gripper=aubo.GripperIO.parse(args.gripper_io) if args.gripper_io is not None else aubo.GripperIO())
+    except ValueError as exc:
+        raise InputRefused(f"--backend aubo: {exc}") from None
+
+
+def _twin_flags(args: argparse.Namespace) -> list[str]:
+    """The twin-only options given a non-default value (``--gui``, ``--twin-*``)."""
+    defaults = _parser()
+    return [k for k, v in vars(args).items() if (k == "gui" or k.startswith("twin_")) and v != defaults.get_default(k)]
+
+
+def _aubo_robot(args: argparse.Namespace, settings: aubo.AuboSettings, q_home: np.ndarray) -> aubo.AuboRobot:
+    """Connect, refuse an arm that is not at the home pose the policy starts from, open the gripper."""
+    robot = aubo.AuboRobot(args.host, settings=settings, log=lambda line: print(line, file=sys.stderr))
+    try:
+        tolerance = aubo.HOME_TOLERANCE if args.home_tolerance is None else args.home_tolerance
+        check = aubo.home_check(robot.read_joints(), q_home, tolerance)
+        if not check.at_home:
+            raise aubo.AuboError(f"the arm is {math.degrees(check.max_error):.2f}° from the home pose on its farthest "
+                                 f"joint (tolerance {math.degrees(tolerance):.2f}°): move it home on the teach "
+                                 "pendant first (--dry-run shows the joints)")
+        robot.open_gripper()
+    except BaseException:
+        robot.close()
+        raise
+    return robot
+
+
+def _dry_run_parser() -> argparse.ArgumentParser:
+    p = _Parser(prog="python -m sagrasp_jax.deploy",
+                description="Read-only check of the AUBO-i5: connect, report the joints and whether the arm is at the "
+                            "home pose; nothing is commanded.  Exit 0 at home, 1 not at home, 2 no connection.")
+    p.add_argument("--dry-run", action="store_true", required=True)
+    p.add_argument("--backend", choices=("aubo",), required=True)
+    p.add_argument("--host", required=True)
+    p.add_argument("--port", type=int, default=None)
+    p.add_argument("--policy", default=None, help="its env.task.home_q is the home pose (default: the config's)")
+    p.add_argument("--home-tolerance", type=float, default=None, metavar="RAD")
+    p.add_argument("--gripper-io", default=None, metavar="SPEC",
+                   help="only echoed: the dry run never touches the gripper")
+    p.add_argument("--json", action="store_true")
+    return p
+
+
+def _aubo_dry_run(tokens: list[str]) -> int:
+    parser = _dry_run_parser()
+    if "--json" in tokens:
+        parser.json_argv = tokens
+    args = parser.parse_args(tokens)
+    given = {"backend": "aubo", "host": args.host, "port": args.port, "dry_run": True}
+    try:
+        settings = _aubo_settings(args)
+        home = np.asarray(load_policy(args.policy).env_config().task.home_q if args.policy else HOME_Q, dtype=float)
+        with aubo.AuboRobot(args.host, settings=settings, log=lambda line: print(line, file=sys.stderr)) as robot:
+            report = robot.dry_run(home, aubo.HOME_TOLERANCE if args.home_tolerance is None else args.home_tolerance)
+    except (InputRefused, PolicyFormatError, ValueError, extras.MissingExtra, DeployError) as exc:
+        _emit(args, {"outcome": "input_refused", "message": str(exc), "input": given},
+              f"error: refused before moving: {exc}", error=True)
+        return 2
+    _emit(args, report.to_dict(), report.format())
+    return 0 if report.home.at_home else 1
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = _parser()
     tokens = list(sys.argv[1:] if argv is None else argv)
+    if "--dry-run" in tokens:  # the AUBO's read-only check: no policy or detection needed
+        return _aubo_dry_run(tokens)
     if "--json" in tokens:
         parser.json_argv = tokens
     args = parser.parse_args(tokens)
@@ -252,6 +369,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         twin_errors, true_spec = _twin_errors(args, spec)
         if args.backend == "twin":
             extras.require("twin", what="--backend twin (the PyBullet digital twin)")
+        aubo_settings = _aubo_settings(args)
     except (InputRefused, TargetRejected, CalibrationError, PolicyFormatError, ValueError, extras.MissingExtra) as exc:
         _emit(args, {"outcome": "input_refused", "message": str(exc), "input": given},
               f"error: refused before moving: {exc}", error=True)
@@ -260,11 +378,20 @@ def main(argv: Sequence[str] | None = None) -> int:
                  obstacles_world=[{"kind": o.kind, "centre": list(o.centre), "size": list(o.size), "yaw": o.yaw}
                                   for o in obstacles])
 
-    from sagrasp_jax.deploy.twin import PyBulletTwin  # the only backend; PyBullet only when it is used
+    if args.backend == "aubo":  # the real arm: connect, check it stands at home, open the gripper
+        try:
+            robot_cm: Any = _aubo_robot(args, aubo_settings, q_home)
+        except (DeployError, extras.MissingExtra) as exc:  # no connection, not at home: the arm has not moved
+            _emit(args, {"outcome": "input_refused", "message": str(exc), "input": given},
+                  f"error: refused before moving: {exc}", error=True)
+            return 2
+    else:
+        from sagrasp_jax.deploy.twin import PyBulletTwin  # PyBullet only when it is used
 
-    if true_spec is not spec:
-        given["twin_cube_world"] = [float(v) for v in true_spec.target_pos]
-    with PyBulletTwin(true_spec, env_cfg, q0=q_home, gui=args.gui, errors=twin_errors) as robot:
+        if true_spec is not spec:
+            given["twin_cube_world"] = [float(v) for v in true_spec.target_pos]
+        robot_cm = PyBulletTwin(true_spec, env_cfg, q0=q_home, gui=args.gui, errors=twin_errors)
+    with robot_cm as robot:
         try:
             report = run_episode(robot, policy, centre, yaw, obstacles, max_steps=args.max_steps, grasp=not args.no_grasp)
         except (SafetyViolation, DeployError) as exc:
