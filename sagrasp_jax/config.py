@@ -739,30 +739,129 @@ def _as_overrides(flat: dict[str, Any], where: str) -> list[str]:
     return out
 
 
+# A --config file and a saved config.json are read within these bounds (refused, ConfigError / RunDirError,
+# beyond them): a config is a few kB with keys three sections deep.
+MAX_CONFIG_BYTES = 1 << 20  # 1 MiB, checked before the file is read
+MAX_CONFIG_DEPTH = 32  # nested mappings and lists
+MAX_NUMBER_DIGITS = 64  # digits of an integer literal (Python's own int() stops at 4,300 with a ValueError)
+_JSON_TYPES = (str, int, float, bool, type(None))
+
+
+def _bounded_int(text: str) -> int:
+    if len(text.lstrip("-+")) > MAX_NUMBER_DIGITS:
+        raise ValueError(f"an integer of {len(text.lstrip('-+'))} digits (at most {MAX_NUMBER_DIGITS})")
+    return int(text)
+
+
+def _check_plain(data: Any) -> None:
+    """Refuse (ValueError) nesting deeper than ``MAX_CONFIG_DEPTH`` and any value that is not a JSON
+    type (YAML's sets, dates, binary); iterative, so depth costs no recursion."""
+    stack = [(data, 1)]
+    while stack:
+        node, depth = stack.pop()
+        if depth > MAX_CONFIG_DEPTH:
+            raise ValueError(f"nested deeper than {MAX_CONFIG_DEPTH} levels")
+        if isinstance(node, dict):
+            for k, v in node.items():
+                if not isinstance(k, _JSON_TYPES):
+                    raise ValueError(f"a key of type {type(k).__name__} ({k!r}); keys are strings")
+                stack.append((v, depth + 1))
+        elif isinstance(node, list):
+            stack.extend((v, depth + 1) for v in node)
+        elif not isinstance(node, _JSON_TYPES):
+            raise ValueError(f"a value of type {type(node).__name__} ({str(node)[:60]!r}); a config holds mappings, "
+                             "lists, strings, numbers, booleans and null only")
+
+
+def parse_json(text: str | bytes) -> Any:
+    """JSON within the config bounds: integers of at most ``MAX_NUMBER_DIGITS`` digits, nesting of at
+    most ``MAX_CONFIG_DEPTH``; ValueError (``json.JSONDecodeError`` among them) otherwise."""
+    try:
+        data = json.loads(text, parse_int=_bounded_int)
+    except RecursionError:
+        raise ValueError(f"nested deeper than {MAX_CONFIG_DEPTH} levels") from None
+    _check_plain(data)
+    return data
+
+
+def _yaml_loader() -> type:
+    """PyYAML's SafeLoader, narrowed to JSON's types: no aliases (so no billion-laughs expansion), no
+    timestamps (``2001-12-14`` stays a string, which the key's type then refuses), no ``!!set``,
+    ``!!binary``, ``!!omap`` or ``!!pairs``, and integers bounded like ``parse_json``'s."""
+    import yaml
+
+    class ConfigLoader(yaml.SafeLoader):
+        def compose_node(self, parent: Any, index: Any) -> Any:
+            if self.check_event(yaml.AliasEvent):
+                event = self.peek_event()
+                raise yaml.composer.ComposerError(None, None, f"an alias (*{event.anchor}) is not allowed in a config "
+                                                  "file: write the value out", event.start_mark)
+            return super().compose_node(parent, index)
+
+        def construct_yaml_int(self, node: Any) -> int:
+            digits = sum(c.isdigit() for c in str(node.value))
+            if digits > MAX_NUMBER_DIGITS:
+                raise yaml.constructor.ConstructorError(None, None, f"an integer of {digits} digits (at most "
+                                                        f"{MAX_NUMBER_DIGITS})", node.start_mark)
+            return super().construct_yaml_int(node)
+
+        def refuse_tag(self, node: Any) -> Any:
+            raise yaml.constructor.ConstructorError(None, None, f"tag {node.tag} is not allowed in a config file "
+                                                    "(mappings, lists, strings, numbers, booleans and null only)",
+                                                    node.start_mark)
+
+    timestamp = "tag:yaml.org,2002:timestamp"
+    ConfigLoader.yaml_implicit_resolvers = {
+        first: [(tag, regexp) for tag, regexp in resolvers if tag != timestamp]
+        for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()}
+    ConfigLoader.add_constructor("tag:yaml.org,2002:int", ConfigLoader.construct_yaml_int)
+    for tag in ("timestamp", "set", "binary", "omap", "pairs"):
+        ConfigLoader.add_constructor(f"tag:yaml.org,2002:{tag}", ConfigLoader.refuse_tag)
+    return ConfigLoader
+
+
+def parse_yaml(text: str) -> Any:
+    """YAML through ``_yaml_loader`` within the config bounds; ValueError or ``yaml.YAMLError`` otherwise."""
+    import yaml
+
+    try:
+        data = yaml.load(text, Loader=_yaml_loader())  # noqa: S506 (a SafeLoader subclass)
+    except RecursionError:
+        raise ValueError(f"nested deeper than {MAX_CONFIG_DEPTH} levels") from None
+    _check_plain(data)
+    return data
+
+
 def file_overrides(path: str) -> list[str]:
     """``--config FILE``: the file's keys as ``key=value`` overrides, applied over the chosen preset
     like ``--set`` (keys it leaves out keep the preset's values).  JSON; YAML (``.yaml``/``.yml``)
     when PyYAML is installed.  Sections may nest (``{"ppo": {"num_envs": 512}}``) or be dotted
-    (``{"ppo.num_envs": 512}``).  A file that cannot be read or parsed raises ConfigError."""
+    (``{"ppo.num_envs": 512}``).  A file that cannot be read or parsed raises ConfigError: it must be
+    a regular file (not a FIFO or device: refused before it is opened) of at most ``MAX_CONFIG_BYTES``,
+    nested at most ``MAX_CONFIG_DEPTH`` deep, with integers of at most ``MAX_NUMBER_DIGITS`` digits, and
+    YAML yields JSON's types only (no aliases, dates or sets)."""
+    from sagrasp_jax import fileio
+
     where = f"--config {path}"
     if not path.lower().endswith((".json", ".yaml", ".yml")):
         raise ConfigError(f"{where}: expected a .json, .yaml or .yml file")
     try:
-        with open(path, encoding="utf-8") as f:
-            text = f.read()
+        text = fileio.read_regular(path, MAX_CONFIG_BYTES, "config file").decode("utf-8")
+    except (fileio.NotRegularFile, fileio.FileTooLarge) as exc:  # their messages start with the path
+        raise ConfigError(f"--config {exc}") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise ConfigError(f"{where}: cannot read it ({exc})") from None
     if path.lower().endswith(".json"):
-        load, kind, errors = json.loads, "JSON", (json.JSONDecodeError,)
+        load, kind, errors = parse_json, "JSON", ()
     else:
         try:
             import yaml
         except ImportError:
             raise ConfigError(f"{where}: reading YAML needs PyYAML (pip install pyyaml), or use JSON") from None
-        load, kind, errors = yaml.safe_load, "YAML", (yaml.YAMLError,)
+        load, kind, errors = parse_yaml, "YAML", (yaml.YAMLError,)
     try:
         data = load(text)
-    except errors as exc:
+    except (ValueError, *errors) as exc:
         raise ConfigError(f"{where}: not valid {kind} ({exc})") from None
     return _as_overrides(_flatten(data, "", where), where)
 

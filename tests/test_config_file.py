@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 
@@ -104,3 +105,34 @@ def test_list_keys_survives_a_closed_pipe():
     err = proc.stderr.read().decode()
     assert proc.wait(timeout=120) == 0, err
     assert "BrokenPipeError" not in err and "Traceback" not in err
+
+
+def test_yaml_yields_json_types_only():
+    """YAML through the config's narrowed SafeLoader: dates stay strings, sets, binary, ordered maps and
+    aliases are refused, integers are bounded like JSON's (issue 40)."""
+    pytest.importorskip("yaml")
+    import yaml
+
+    assert config.parse_yaml("a: 2001-12-14\nb: yes\nc: &x 3\nd: [1.5, null]\n") == {
+        "a": "2001-12-14", "b": True, "c": 3, "d": [1.5, None]}  # an anchor alone is harmless
+    for text, message in [("a: !!set {x, y}", "tag:yaml.org,2002:set is not allowed"),
+                          ("a: !!binary aGVsbG8=", "tag:yaml.org,2002:binary is not allowed"),
+                          ("a: !!omap [x: 1]", "tag:yaml.org,2002:omap is not allowed"),
+                          ("a: !!timestamp 2001-12-14", "tag:yaml.org,2002:timestamp is not allowed"),
+                          ("a: &x [1]\nb: *x", "an alias (*x) is not allowed"),
+                          ("a: 1" + "0" * 64, "an integer of 65 digits (at most 64)")]:
+        with pytest.raises((ValueError, yaml.YAMLError), match=re.escape(message)):
+            config.parse_yaml(text)
+    with pytest.raises(ValueError, match="nested deeper than 32 levels"):
+        config.parse_yaml("a: " + "[" * 33 + "]" * 33)
+    deepest = config.parse_yaml("a: " + "[" * 31 + "]" * 31)  # 32 levels with the mapping: the bound itself
+    assert json.dumps(deepest) == '{"a": ' + "[" * 31 + "]" * 31 + "}"
+
+
+def test_json_numbers_and_nesting_are_bounded():
+    assert config.parse_json('{"a": ' + "9" * 64 + "}") == {"a": int("9" * 64)}
+    with pytest.raises(ValueError, match="an integer of 65 digits"):
+        config.parse_json('{"a": ' + "9" * 65 + "}")
+    with pytest.raises(ValueError, match="nested deeper than 32 levels"):
+        config.parse_json("[" * 33 + "]" * 33)
+    assert json.dumps(config.parse_json("[" * 32 + "]" * 32)) == "[" * 32 + "]" * 32  # the bound itself
