@@ -113,14 +113,13 @@ def save(path: str, *, trees: dict[str, Any], host: dict[str, Any], config: Conf
 
 
 def load(path: str) -> Checkpoint:
-    """Read and verify a checkpoint (magic, format version, lengths, checksum)."""
+    """Read and verify a checkpoint (magic, format version, lengths, checksum); only a regular file is read."""
     try:
-        with open(path, "rb") as f:
-            blob = f.read()
+        blob = fileio.read_regular(path)  # a FIFO or device is refused before it is opened
     except FileNotFoundError:
         raise CheckpointError(f"{path}: no checkpoint found") from None
-    except IsADirectoryError:
-        raise CheckpointError(f"{path} is a folder, not a checkpoint file") from None
+    except fileio.NotRegularFile as exc:
+        raise CheckpointError(f"{path} is {exc.kind}, not a checkpoint file") from None
     except OSError as exc:
         raise CheckpointError(f"{path}: cannot read the checkpoint ({exc.strerror or exc})") from None
     if not blob.startswith(MAGIC):
@@ -135,7 +134,7 @@ def load(path: str) -> Checkpoint:
         header = json.loads(blob[start:start + head_len].decode())
         version = header["format_version"]
         size, digest = header["payload_bytes"], header["payload_sha256"]
-    except (UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as exc:
+    except (ValueError, KeyError, TypeError, RecursionError) as exc:  # ValueError: bad UTF-8 or JSON, 5,000-digit ints
         raise CheckpointError(f"{path}: corrupt checkpoint header ({exc})") from None
     if version != FORMAT_VERSION:
         raise CheckpointError(

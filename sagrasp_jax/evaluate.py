@@ -382,6 +382,7 @@ def main(argv: list[str] | None = None) -> int:
                     "physical_check": args.physical,
                     "scenes": args.scenes, **({"env_overrides": list(args.overrides)} if args.overrides else {})}
         folder = os.path.dirname(os.path.abspath(path))
+        run_dir.check_output_file(path)  # a FIFO or device: refused before the lock file or anything is made
         with run_dir.ResultLock(path, what="output folder"):  # the file: other results may go into its folder
             run_dir.check_writable(folder, "output folder")  # before the evaluation, not after it
             run_dir.check_replace(path, identity, args.force)

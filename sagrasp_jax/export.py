@@ -34,7 +34,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from sagrasp_jax import __version__, extras, runtime
+from sagrasp_jax import __version__, extras, fileio, runtime
 from sagrasp_jax.runtime import NumpyPolicy
 
 NPZ_FILE = "policy.npz"
@@ -197,6 +197,8 @@ def export_run(run: str, out_dir: str, *, onnx: bool = True, opset: int = DEFAUL
         load_run(run)  # says what is wrong with it
     if os.path.exists(out_dir) and not os.path.isdir(out_dir):
         raise ExportError(f"{out_dir}: exists and is not a folder")
+    for name in (NPZ_FILE, ONNX_FILE, MANIFEST_FILE):  # a FIFO or device there: refused before anything is made
+        fileio.check_output_file(os.path.join(out_dir, name))
     try:
         with run_dir.FolderLock(out_dir, create=True, what="output folder"):
             run_dir.check_writable(out_dir, "output folder")

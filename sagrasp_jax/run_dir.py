@@ -47,6 +47,7 @@ import json
 import math
 import os
 import shutil
+import stat
 from typing import Any
 
 import jax
@@ -54,7 +55,7 @@ import numpy as np
 
 from sagrasp_jax import actor_critic, checkpoint, fileio, observation, runtime, sharding
 from sagrasp_jax.control import ACTION_SIZE
-from sagrasp_jax.config import Config, ConfigError, config_from_dict, config_to_dict
+from sagrasp_jax.config import MAX_CONFIG_BYTES, Config, ConfigError, config_from_dict, config_to_dict, parse_json
 
 CONFIG_FILE = "config.json"
 METRICS_FILE = "metrics.jsonl"
@@ -62,8 +63,11 @@ CHECKPOINT_FILE = "checkpoint.ckpt"
 POLICY_FILE = "policy.npz"
 TB_DIR = "tb"
 EVALUATION_PREFIX = "evaluation-"
+MAX_RESULT_BYTES = 64 << 20  # an earlier evaluation read back to compare (a few kB; bounded like every input)
 # What a training writes; the other files of a run folder are evaluations.
 TRAINING_FILES = (CONFIG_FILE, METRICS_FILE, CHECKPOINT_FILE, POLICY_FILE, TB_DIR)
+_WHAT = {CONFIG_FILE: "run config file", METRICS_FILE: "metrics log", CHECKPOINT_FILE: "checkpoint file",
+         POLICY_FILE: "policy file", TB_DIR: "TensorBoard folder"}
 
 
 class RunDirError(RuntimeError):
@@ -185,7 +189,8 @@ class ResultLock:
         try:
             for _ in range(10):  # the holder removes the lock file as it releases: lock the file the path names
                 try:
-                    fd = os.open(self.lock_path, os.O_RDWR | os.O_CREAT, 0o644)
+                    fd = os.open(self.lock_path, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0)
+                                 | getattr(os, "O_NONBLOCK", 0), 0o644)
                 except OSError as exc:
                     raise RunDirError(f"cannot write into {self.folder_lock.what} {self.folder_lock.folder}: "
                                       f"{exc.strerror or exc}") from None
@@ -246,17 +251,18 @@ def load_config(run: str) -> Config:
     """The run's ``config.json``, validated; RunDirError naming the file if missing or damaged."""
     file = path(run, CONFIG_FILE)
     try:
-        with open(file, "rb") as f:
-            blob = f.read()
+        blob = fileio.read_regular(file, MAX_CONFIG_BYTES, "run config")
     except FileNotFoundError:
         raise RunDirError(f"{file}: not a run folder (no {CONFIG_FILE})") from None
+    except (fileio.NotRegularFile, fileio.FileTooLarge) as exc:
+        raise RunDirError(f"{exc} (damaged run config)") from None
     except OSError as exc:
         raise RunDirError(f"{file}: cannot read ({exc.strerror or exc})") from None
     if not blob.strip():
         raise RunDirError(f"{file}: damaged run config (the file is empty)")
     try:
-        data = json.loads(blob.decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+        data = parse_json(blob.decode("utf-8"))
+    except ValueError as exc:  # UnicodeDecodeError and json.JSONDecodeError among them
         raise RunDirError(f"{file}: damaged run config, not valid JSON ({exc})") from None
     try:
         return config_from_dict(data)
@@ -276,8 +282,9 @@ def read_metrics(file: str) -> list[dict[str, Any]]:
     any other damage (a bad line, binary bytes, a row without an iteration) raises RunDirError
     naming the file and the line."""
     try:
-        with open(file, "rb") as f:
-            lines = [(i + 1, line) for i, line in enumerate(f.read().split(b"\n")) if line.strip()]
+        lines = [(i + 1, line) for i, line in enumerate(fileio.read_regular(file).split(b"\n")) if line.strip()]
+    except fileio.NotRegularFile as exc:
+        raise RunDirError(f"{exc} (the metrics log)") from None
     except OSError as exc:
         raise RunDirError(f"{file}: cannot read the metrics log ({exc.strerror or exc})") from None
     rows = []
@@ -490,6 +497,7 @@ def prepare_training(out: str, cfg: Config, resume: bool) -> str:
             raise RunDirError(f"{out} exists and is not empty; choose a new --out or pass --resume")
         mode = "fresh"
     else:
+        check_training_entries(out)
         ckpt = load_checkpoint(out, cfg) if has_ckpt else None
         if has_config:
             saved = load_config(out)
@@ -518,6 +526,26 @@ def prepare_training(out: str, cfg: Config, resume: bool) -> str:
     return mode
 
 
+def check_training_entries(out: str) -> None:
+    """Refuse a run folder whose training entries (``TRAINING_FILES``) a resume would read or write
+    through: a symbolic link (a training writes only inside its run folder, and ``tb/`` or
+    ``metrics.jsonl`` are appended to in place, so a link would take its writes elsewhere), or an entry
+    of another kind than the training writes (a FIFO or device where a file belongs: its read would
+    block or never end)."""
+    for name in TRAINING_FILES:
+        entry = path(out, name)
+        if os.path.islink(entry):
+            raise RunDirError(f"{entry} is a symbolic link (to {os.readlink(entry)}): a training writes only inside "
+                              f"its run folder; put the {'folder' if name == TB_DIR else 'file'} itself there, or "
+                              "start a new run")
+        try:
+            mode = os.lstat(entry).st_mode
+        except FileNotFoundError:
+            continue
+        if not (stat.S_ISDIR(mode) if name == TB_DIR else stat.S_ISREG(mode)):
+            raise RunDirError(f"{entry} is {fileio.file_kind(mode)}, not a {_WHAT[name]}")
+
+
 # ---------------------------------------------------------------------- evaluation outputs
 
 def evaluation_file(episodes: int, seed: int, max_steps: int | None = None, scenes: str = "mix",
@@ -532,21 +560,28 @@ def evaluation_file(episodes: int, seed: int, max_steps: int | None = None, scen
 def check_replace(file: str, identity: dict[str, Any], force: bool = False) -> None:
     """Refuse to replace ``file`` unless it holds the same evaluation (every ``identity`` entry
     equal: re-running it gives the same numbers) or ``force`` is set."""
-    if os.path.isdir(file):
-        raise RunDirError(f"{file} is a folder; the output must be a file")
+    check_output_file(file)
     if not os.path.exists(file) or force:
         return
     try:
-        with open(file, encoding="utf-8") as f:
-            old = json.load(f)
+        old = json.loads(fileio.read_regular(file, MAX_RESULT_BYTES, "result file").decode("utf-8"))
         if not isinstance(old, dict):
             raise ValueError("not a JSON object")
-    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:
+    except (OSError, ValueError, RecursionError) as exc:  # UnicodeDecodeError is a ValueError
         raise RunDirError(f"{file} exists and is not a readable result ({exc}); pass --force to replace it") from None
     diffs = [f"{key} {old.get(key)!r} -> {value!r}" for key, value in identity.items() if old.get(key) != value]
     if diffs:
         raise RunDirError(f"{file} holds a different result ({'; '.join(diffs)}); pass --force to replace it, "
                           "or choose another --out")
+
+
+def check_output_file(file: str) -> None:
+    """Refuse an output file path that is a FIFO, device, socket or folder (``fileio.check_output_file``)
+    as a RunDirError, before anything is locked or written."""
+    try:
+        fileio.check_output_file(file)
+    except fileio.NotWritable as exc:
+        raise RunDirError(str(exc)) from None
 
 
 def write_json(file: str, data: Any) -> str:
