@@ -47,9 +47,15 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 
 from sagrasp_jax import __version__, fileio, observation
-from sagrasp_jax.config import Config, ConfigError, EnvConfig, config_from_dict, config_hash, config_to_dict, env_dict_hash
+from sagrasp_jax.config import (
+    Config, ConfigError, EnvConfig, config_from_dict, config_hash, config_to_dict, env_dict_hash, parse_json,
+)
 
 FORMAT_VERSION = 1
+# The cell a policy was trained for (env.sampling keys): recorded by every policy file (version 0.1's too,
+# tests/data/legacy_v0_1), and checked against the deployment's by ``deploy.safety.check_policy_scene``; a file
+# without one is refused rather than read with today's default, which would pass that check unseen.
+RECORDED_CELL_KEYS = ("target_clearance", "target_size", "target_x", "target_y", "target_radius")
 
 OBS_LAYOUT = observation.OBS_LAYOUT  # re-exported: the paper layout's names (every version-0.1 policy)
 
@@ -314,11 +320,18 @@ def _policy_from_arrays(arrays: Mapping[str, np.ndarray], path: str) -> NumpyPol
     cfg_json = _scalar(arrays, "config_json", path, str)
     stored_hash = _scalar(arrays, "config_hash", path, str)
     try:
-        raw = json.loads(cfg_json)
+        raw = parse_json(cfg_json)
         cfg = config_from_dict(raw)  # keys added since the file was written get their legacy values
         actual_hash = env_dict_hash(raw["env"])
     except (ConfigError, ValueError, TypeError, KeyError) as exc:
         raise PolicyFormatError(f"{path}: config_json does not load as a Config: {exc}") from None
+    missing = [f"env.sampling.{k}" for k in RECORDED_CELL_KEYS
+               if not isinstance(raw["env"].get("sampling"), dict) or k not in raw["env"]["sampling"]]
+    if missing:  # filled from today's defaults they would pass the deployment's cell check unseen
+        raise PolicyFormatError(
+            f"{path}: config_json does not record {', '.join(missing)} (every policy file since format version 1 "
+            "records the cell it was trained for: the obstacle clearance, the cube and the target region): file edited?"
+        )
     if actual_hash != stored_hash:
         raise PolicyFormatError(
             f"{path}: config_hash {stored_hash} does not match its config_json ({actual_hash}): file edited?"
@@ -355,8 +368,12 @@ def _policy_from_arrays(arrays: Mapping[str, np.ndarray], path: str) -> NumpyPol
 def load_policy(path: str | os.PathLike[str]) -> NumpyPolicy:
     """Read and validate ``policy.npz``; raises PolicyFormatError naming the file and the problem."""
     path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise PolicyFormatError(f"{path}: policy file not found")
+    try:
+        fileio.check_regular(path)  # a FIFO or device is refused before it is opened
+    except fileio.NotRegularFile as exc:
+        raise PolicyFormatError(f"{path} is {exc.kind}, not a policy file") from None
+    except OSError:
+        raise PolicyFormatError(f"{path}: policy file not found") from None
     try:
         arrays = _read_npz(path)
     except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, ValueError, EOFError, NotImplementedError,
