@@ -63,6 +63,7 @@ EnvFactory = Callable[[Config], tuple[rollout.Env, rollout.Env]]  # config -> (a
 # episode when its own ends (policy_eval.evaluate_policy): ≈ 2x faster than all 128 at once, the same
 # numbers.  Accelerators evaluate all episodes at once.
 CPU_EVAL_SLOTS = 32
+MAX_SEEDS = 64  # seeds in one group (--seeds): one program holds every seed's envs and networks at once
 
 
 def enable_compilation_cache() -> None:
@@ -862,7 +863,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=None)
     p.add_argument("--seeds", default=None, metavar="LIST",
                    help="train a seed group in one program, e.g. 0-4 or 0,2,5: one run folder OUT/seed<S> per seed, "
-                        "each as a single run's (--resume on OUT continues them all)")
+                        f"each as a single run's (--resume on OUT continues them all); at most {MAX_SEEDS} seeds")
     p.add_argument("--out", required=True, help="run folder (refused if it exists and is not empty, unless --resume)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="config override, repeatable (e.g. ppo.num_envs=512)")
@@ -1002,30 +1003,42 @@ def run(cfg: Config, out: str, *, resume: bool = False, env_factory: EnvFactory 
 
 
 def parse_seeds(text: str) -> list[int]:
-    """``--seeds``: comma-separated seeds or inclusive ranges, e.g. ``0-4`` or ``0,2,5`` or ``0-2,7``."""
+    """``--seeds``: comma-separated seeds or inclusive ranges, e.g. ``0-4`` or ``0,2,5`` or ``0-2,7``; at most
+    ``MAX_SEEDS`` of them, each in ``SEED_RANGE``, none twice.  A range is counted before it is spelled out,
+    so ``0-100000`` is refused at once."""
     seeds: list[int] = []
     for item in text.split(","):
         first, sep, last = item.strip().partition("-")
         try:
             lo, hi = int(first), int(last) if sep else int(first)
-        except ValueError:
-            raise ConfigError(f"--seeds {text!r}: {item.strip()!r} is not a seed or a range A-B of seeds") from None
+        except ValueError:  # 5,000 digits too (Python's int() limit)
+            raise ConfigError(f"--seeds {text[:80]!r}: {item.strip()[:40]!r} is not a seed or a range A-B of seeds") from None
         if hi < lo:
-            raise ConfigError(f"--seeds {text!r}: the range {item.strip()} is empty (write it low-high)")
+            raise ConfigError(f"--seeds {text[:80]!r}: the range {item.strip()} is empty (write it low-high)")
+        check_range("--seeds", lo, *SEED_RANGE)
+        check_range("--seeds", hi, *SEED_RANGE)
+        if len(seeds) + hi - lo + 1 > MAX_SEEDS:
+            raise ConfigError(f"--seeds {text[:80]!r}: more than {MAX_SEEDS} seeds; a seed group trains at most "
+                              f"{MAX_SEEDS} seeds in one program (train larger sets as several groups)")
         seeds.extend(range(lo, hi + 1))
     check_seeds(seeds, "--seeds")
     return seeds
 
 
 def check_seeds(seeds: list[int], what: str = "seeds") -> None:
-    """A seed group's seeds: at least one, each in the seed range, none twice."""
+    """A seed group's seeds: at least one, at most ``MAX_SEEDS``, each in the seed range, none twice."""
     if not seeds:
         raise ConfigError(f"{what}: no seed given")
+    if len(seeds) > MAX_SEEDS:
+        raise ConfigError(f"{what}: {len(seeds)} seeds; a seed group trains at most {MAX_SEEDS}")
     for seed in seeds:
         check_range(what, seed, *SEED_RANGE)
-    twice = sorted({s for s in seeds if seeds.count(s) > 1})
+    seen: set[int] = set()
+    twice: set[int] = set()
+    for seed in seeds:  # linear: a set, not seeds.count per seed
+        (twice if seed in seen else seen).add(seed)
     if twice:
-        raise ConfigError(f"{what}: seed {', '.join(map(str, twice))} given twice")
+        raise ConfigError(f"{what}: seed {', '.join(map(str, sorted(twice)))} given twice")
 
 
 def group_seeds_in(out: str) -> list[int] | None:
