@@ -23,7 +23,8 @@ end in an abort after minutes), the processes meet at the coordinator's port (``
 process 0 listens there and waits for every other process to check in, the others connect to it.
 Whoever is missing after ``--connect-timeout`` seconds (default ``CONNECT_TIMEOUT``, 300) is
 named in a ``DistributedError`` (exit status 2): "process 1 never connected" on process 0,
-"cannot reach the coordinator" on the others.  Process 0 then closes the port and jax's
+"cannot reach the coordinator" on the others (also when something else at that address accepts the
+connection without answering as process 0: a proxy or a firewall in front of an unroutable address).  Process 0 then closes the port and jax's
 coordination service takes it over, with the same timeout.
 """
 
@@ -42,6 +43,8 @@ from sagrasp_jax.config import ConfigError
 CONNECT_TIMEOUT = 300.0  # s: how long the processes wait for each other at start (--connect-timeout)
 MAX_PROCESSES = 65_536
 _HELLO = b"sagrasp-jax-rendezvous"
+_ACK = b"sagrasp-jax-coordinator\n"  # process 0's answer to a hello, before the go
+HELLO_TIMEOUT = 5.0  # s: a process sends its hello as it connects; a silent connection is dropped after this
 
 
 class DistributedError(RuntimeError):
@@ -116,13 +119,18 @@ def _host_rendezvous(port: int, num_processes: int, timeout: float, address: str
                         f"{timeout:g} s (--connect-timeout): start every process with the same --coordinator and "
                         f"--num-processes {num_processes}, each with its own --process-id") from None
                 try:
-                    pid = _peer_id(conn, deadline)
+                    pid = _peer_id(conn, min(deadline, time.monotonic() + HELLO_TIMEOUT))
                 except OSError:
                     pid = None
                 if pid is None or not 1 <= pid < num_processes or pid in peers:
                     conn.close()  # not one of ours (a port scanner), or a duplicate --process-id
                     if pid is not None and (pid in peers or pid == 0):
                         raise DistributedError(f"two processes started with --process-id {pid} (coordinator {address})")
+                    continue
+                try:
+                    conn.sendall(_ACK)  # "you reached process 0": the peer now waits for the others
+                except OSError:
+                    conn.close()
                     continue
                 peers[pid] = conn
             for conn in peers.values():
@@ -138,8 +146,29 @@ def _host_rendezvous(port: int, num_processes: int, timeout: float, address: str
             conn.close()
 
 
+def _read_line(conn: socket.socket, deadline: float, buffer: bytearray, limit: int = 64) -> bytes | None:
+    """The next line from ``conn`` (without its newline; what follows it stays in ``buffer``) before
+    ``deadline``; b"" when the other side closed first, None when no whole line came in time."""
+    while b"\n" not in buffer and len(buffer) < limit:
+        conn.settimeout(max(0.01, deadline - time.monotonic()))
+        try:
+            chunk = conn.recv(limit)
+        except (socket.timeout, TimeoutError):
+            return None
+        if not chunk:
+            break
+        buffer += chunk
+    line, _, rest = bytes(buffer).partition(b"\n")
+    buffer[:] = rest
+    return line
+
+
 def _peer_rendezvous(host: str, port: int, process_id: int, timeout: float, address: str) -> None:
-    """Process ``process_id`` > 0: check in with process 0 (retrying until it listens), wait for the go."""
+    """Process ``process_id`` > 0: check in with process 0 (retrying until it listens), wait for the go.
+
+    Process 0 answers a hello at once (``_ACK``), so a connection that something else accepted (a proxy,
+    a firewall or another service at an unroutable or wrong address) is told from process 0 waiting for
+    the others: only after that answer is the coordinator reached."""
     deadline = time.monotonic() + timeout
     last = "no answer"
     while True:
@@ -151,16 +180,20 @@ def _peer_rendezvous(host: str, port: int, process_id: int, timeout: float, addr
         try:
             with socket.create_connection((host, port), timeout=min(left, 5.0)) as conn:
                 conn.sendall(_HELLO + b" %d\n" % process_id)
-                conn.settimeout(max(0.1, deadline - time.monotonic()))
-                try:
-                    answer = conn.recv(16)
-                except (socket.timeout, TimeoutError):
-                    raise DistributedError(
-                        f"process {process_id}: the coordinator {address} did not see every process within "
-                        f"{timeout:g} s (--connect-timeout); see process 0's error for the missing one") from None
-                if answer.startswith(b"go"):
-                    return
-                last = "the coordinator closed the connection"
+                buffer = bytearray()
+                ack = _read_line(conn, deadline, buffer)
+                if ack != _ACK.strip():
+                    last = (f"something at {address} accepted the connection but never answered as process 0"
+                            + (f" (it answered {ack[:24]!r})" if ack else "") + ": the coordinator was not reached")
+                else:
+                    answer = _read_line(conn, deadline, buffer)
+                    if answer is None:
+                        raise DistributedError(
+                            f"process {process_id}: the coordinator {address} did not see every process within "
+                            f"{timeout:g} s (--connect-timeout); see process 0's error for the missing one")
+                    if answer.startswith(b"go"):
+                        return
+                    last = "the coordinator closed the connection"
         except socket.gaierror as exc:
             raise DistributedError(f"--coordinator {address}: unknown host {host!r} ({exc.strerror or exc})") from None
         except OSError as exc:
