@@ -541,6 +541,9 @@ EVAL_CONDITIONS: dict[str, tuple[str, ...]] = {
     "robot": ("env.control.mode=dynamic", *ROBOT_KNOBS),  # MJX servos and every transfer knob on
     "robot-latency2": ("env.control.mode=dynamic", *ROBOT_KNOBS[:1], "env.randomize.latency=2", *ROBOT_KNOBS[2:]),
     "kinematic-target-error": ("env.control.mode=kinematic", *KNOBS_OFF[:-1], ROBOT_KNOBS[-1]),
+    # 1.5× the robot condition's gain and detection errors and twice its latency: the margin a cell may need
+    "robot-wide": ("env.control.mode=dynamic", "env.randomize.servo_gain=0.3", "env.randomize.latency=2",
+                   *ROBOT_KNOBS[2:4], "env.randomize.target_error=0.0075"),
 }
 
 

@@ -206,43 +206,37 @@ def write_results(path: str, results: dict[str, Any]) -> str:
 
 
 def evaluate_physical(run: str, episodes: int, seed: int, max_steps: int, lift: float | None = None,
-                      overrides: list[str] | None = None) -> dict[str, Any]:
-    """Replay ``evaluate_run``'s episodes (same keys, same jitted evaluator) recording each final
-    pose, and run the physical grasp check (``physical.physical_grasp_check``) on every kinematic
+                      overrides: list[str] | None = None, scenes: str = "mix") -> dict[str, Any]:
+    """Replay ``evaluate_run``'s episodes (same keys, same jitted evaluator, same scene set) recording each
+    final pose, and run the physical grasp check (``physical.physical_grasp_check``) on every kinematic
     success.
 
     The replay goes through ``policy_eval.evaluate_policy`` with the env wrapped to copy the final
     joints into the episode record, so it is the evaluation's own code path; the kinematic
     success count is reported next to the physical one so a mismatch would show.  As the
-    deployment loop does, the gripper first centres on the cube the policy saw (the true cube plus
-    the episode's detection error, ``reward.grasp_centre``), then closes on the true cube.
+    deployment loop does, the gripper closes where the episode ended (the pose the success test
+    judged) on the true cube, and lifts keeping its orientation (docs/design.md, "One grasp").
     """
-    from sagrasp_jax import physical, reward, robot
+    from sagrasp_jax import physical
 
     lift = physical.LIFT_HEIGHT if lift is None else lift
-    replay = replay_final_poses(run, episodes, seed, max_steps, overrides)
+    replay = replay_final_poses(run, episodes, seed, max_steps, overrides, scenes)
     successes = np.nonzero(replay.episodes["success"] > 0)[0]
-    model = robot.load_robot()
-    checks = []
-    for i in successes:
-        spec = replay.spec(i)
-        # as the deployment loop does: centre on the *detected* cube (true + this episode's error), then close
-        goal = reward.grasp_centre(np, replay.env_cfg.task, np.asarray(spec.target_pos) + replay.target_error[i])
-        try:
-            q_grasp = robot.approach_pose(model, replay.q_final[i], goal, what="centring pose")
-        except robot.IKError as exc:
-            checks.append({"success": False, "reason": str(exc), "criteria": {"centring_pose": False}})
-            continue
-        checks.append(physical.physical_grasp_check(q_grasp, spec, lift=lift))
+    checks = [physical.physical_grasp_check(replay.q_final[i], replay.spec(i), lift=lift) for i in successes]
     held = sum(c["success"] for c in checks)
     names = dict.fromkeys(name for c in checks for name in c["criteria"])
     failures = {name: sum(not c["criteria"].get(name, True) for c in checks) for name in names}
+    blocking = replay.episodes["blocking"] > 0 if "blocking" in replay.episodes else np.zeros(episodes, bool)
+    held_mask = np.zeros(episodes, bool)
+    held_mask[successes] = [c["success"] for c in checks]
     return {
         "episodes": episodes,
         "kinematic_successes": int(len(successes)),
         "physical_successes": int(held),
         "physical_success_rate": held / episodes,
         "physical_given_kinematic": held / len(successes) if len(successes) else None,
+        "blocking_episodes": int(blocking.sum()),
+        "blocking_physical_success_rate": float(held_mask[blocking].mean()) if blocking.any() else None,
         "mean_cube_rise": float(np.mean([c["cube_rise"] for c in checks if "cube_rise" in c])) if checks else None,
         "failed_criteria": failures,
         "lift": lift,
@@ -264,13 +258,13 @@ class FinalPoses(NamedTuple):
 
 
 def replay_final_poses(run: str, episodes: int, seed: int, max_steps: int,
-                       overrides: list[str] | None = None) -> FinalPoses:
+                       overrides: list[str] | None = None, scenes: str = "mix") -> FinalPoses:
     """Replay ``evaluate_run``'s episodes (same keys, same jitted evaluator, the env wrapped to copy the final
     joints into the episode record) for what happens after them: the physical grasp check, the detection
     ceiling study."""
     from sagrasp_jax.env import GraspEnv
 
-    env_cfg = env_overrides(run_dir.load_config(run), overrides).env
+    env_cfg = scene_config(env_overrides(run_dir.load_config(run), overrides), scenes).env
     env = _FinalPoseRecorder(GraspEnv(env_cfg))
     cfg, params, normaliser, _ = run_dir.load_policy_state(run, env.observation_size, env.action_size)
     networks = actor_critic.make_networks(cfg.ppo.network, env.observation_size, env.action_size, cfg.ppo.obs_clip)
@@ -361,7 +355,14 @@ def main(argv: list[str] | None = None) -> int:
                         "robot-latency2 (the same with up to 2 steps of latency), kinematic-target-error")
     p.add_argument("--config", default=None, metavar="FILE",
                    help="env.* keys from a JSON (or YAML) file, applied before --set (same rules as --set)")
+    p.add_argument("--backend", choices=("mjx", "twin"), default="mjx",
+                   help="mjx: the JAX env (default); twin: the run's policy.npz through the deploy loop on the PyBullet "
+                        "twin, judged by the cube held after the lift (sagrasp_jax.deploy.rehearse; --episodes scenes, "
+                        "--condition, --scenes, --seed, --workers, --out)")
+    p.add_argument("--workers", type=int, default=1, help="twin backend: processes (default 1; one per core)")
     args = p.parse_args(argv)
+    if args.backend == "twin":
+        return _twin_backend(args)
     try:
         if args.config is not None:
             args.overrides = file_overrides(args.config) + list(args.overrides)
@@ -389,7 +390,8 @@ def main(argv: list[str] | None = None) -> int:
             results = evaluate_run(args.run, args.episodes, seed, steps, scenes=args.scenes, overrides=args.overrides)
             results["physical_check"] = args.physical
             if args.physical:
-                results["physical"] = evaluate_physical(args.run, args.episodes, seed, steps, overrides=args.overrides)
+                results["physical"] = evaluate_physical(args.run, args.episodes, seed, steps, overrides=args.overrides,
+                                                        scenes=args.scenes)
             try:
                 write_results(path, results)
             except OSError as exc:  # e.g. the disk filled up meanwhile: show what was evaluated, then refuse
@@ -405,6 +407,22 @@ def main(argv: list[str] | None = None) -> int:
               f"the cube when lifted {ph['lift'] * 100:.0f} cm ({100 * ph['physical_success_rate']:.1f} % of all episodes)")
     print(f"written to {path}")
     return 0
+
+
+def _twin_backend(args: argparse.Namespace) -> int:
+    """``--backend twin``: the run's exported ``policy.npz`` through ``deploy.rehearse`` (no jax needed)."""
+    from sagrasp_jax.deploy import rehearse
+
+    unsupported = [flag for flag, on in (("--physical", args.physical), ("--set", args.overrides),
+                                         ("--config", args.config), ("--max-steps", args.max_steps),
+                                         ("--force", args.force)) if on]
+    if unsupported:
+        print(f"error: --backend twin takes no {', '.join(unsupported)} (the twin judges the held cube itself; "
+              "conditions are named with --condition)", file=sys.stderr)
+        return 2
+    args.condition = args.condition or "robot"
+    args.seed = 0 if args.seed is None else args.seed
+    return rehearse.run_cli(os.path.join(args.run, "policy.npz"), args)
 
 
 if __name__ == "__main__":

@@ -380,13 +380,52 @@ LIFT_MAX_JOINT_MOVE = 0.5  # rad; a lift pose further than this from the grasp p
 
 
 def lift_pose(model: RobotModel, q: Any, height: float, max_joint_move: float = LIFT_MAX_JOINT_MOVE) -> np.ndarray:
-    """Joints that put the gripper centre ``height`` m straight above where it is at ``q``,
-    pointing down, found by IK seeded at ``q`` (so the arm stays on its branch).  Used by the
-    deployment loop's lift and the physical grasp check; raises IKError if the solution misses
-    the goal by more than 1 mm or moves a joint by more than ``max_joint_move``."""
+    """Joints that put the gripper centre ``height`` m straight above where it is at ``q``, the gripper
+    keeping its orientation (``translated_pose``): the grasp is lifted as it was closed, never swung
+    upright on the way (a tilted grasp's wrist would sweep sideways).  Used by the deployment loop's lift
+    and the physical grasp check; raises IKError if the solution misses the goal by more than 1 mm or
+    moves a joint by more than ``max_joint_move``."""
+    return translated_pose(model, q, (0.0, 0.0, height), max_joint_move, what="lift pose")
+
+
+def _orientation_error(rot: np.ndarray, rot_goal: np.ndarray) -> np.ndarray:
+    """Small-angle rotation vector that turns ``rot`` into ``rot_goal`` (both 3×3, world frame)."""
+    return 0.5 * sum(np.cross(rot[:, i], rot_goal[:, i]) for i in range(3))
+
+
+def translated_pose(model: RobotModel, q: Any, delta: Any, max_joint_move: float = LIFT_MAX_JOINT_MOVE,
+                    what: str = "pose", iterations: int = 100, damping: float = 1e-4) -> np.ndarray:
+    """Joints that move the gripper centre by ``delta`` (m, world) from where it is at ``q`` with the gripper's
+    orientation unchanged: damped-least-squares IK on position and orientation, seeded at ``q`` (the arm stays
+    on its branch).  IKError if it misses by more than 1 mm or 0.1°, or moves a joint by more than
+    ``max_joint_move``."""
     q = np.asarray(q, dtype=float)
-    goal = forward_kinematics(np, model, q).gripper_centre + np.array([0.0, 0.0, height])
-    return approach_pose(model, q, goal, max_joint_move, what="lift pose")
+    kin0 = forward_kinematics(np, model, q)
+    goal = kin0.gripper_centre + np.asarray(delta, dtype=float)
+    rot_goal = kin0.link_rot[-1]
+
+    def residual(qv: np.ndarray) -> np.ndarray:
+        kin = forward_kinematics(np, model, qv)
+        return np.concatenate([goal - kin.gripper_centre, _orientation_error(kin.link_rot[-1], rot_goal)])
+
+    qv = q.copy()
+    for _ in range(iterations):
+        r = residual(qv)
+        if np.linalg.norm(r) < 1e-12:
+            break
+        jac = np.zeros((6, 6))
+        for j in range(6):
+            dq = np.zeros(6)
+            dq[j] = 1e-7
+            jac[:, j] = -(residual(qv + dq) - residual(qv - dq)) / 2e-7
+        qv = qv + jac.T @ np.linalg.solve(jac @ jac.T + damping**2 * np.eye(6), r)
+    r = residual(qv)
+    move = float(np.abs(qv - q).max())
+    if not (np.isfinite(qv).all() and np.linalg.norm(r[:3]) <= 1e-3 and np.linalg.norm(r[3:]) <= np.radians(0.1)
+            and move <= max_joint_move):
+        raise IKError(f"no {what} found near the grasp pose (IK error {np.linalg.norm(r[:3]) * 1000:.1f} mm, "
+                      f"{np.degrees(np.linalg.norm(r[3:])):.2f}°, joint move {move:.3f} rad)")
+    return qv
 
 
 def approach_pose(model: RobotModel, q: Any, goal: Any, max_joint_move: float = LIFT_MAX_JOINT_MOVE,

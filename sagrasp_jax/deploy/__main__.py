@@ -19,11 +19,16 @@ Obstacles (``shapes.SHAPES``): ``--obstacle sphere X Y Z R``, ``--obstacle cylin
 turned by YAW_DEG about its optical axis), ``--obstacle capsule X Y Z R L [YAW_DEG]`` (lying on
 the table, L tip to tip along the camera's x axis turned by YAW_DEG), at most two.
 
-Rehearsing transfer errors on the twin: ``--twin-latency STEPS`` delays every command by that many
-control steps (fractions blend two commands, as in training), ``--twin-servo-lag`` makes the arm follow
-through the fitted servo model (``--twin-servo-gain F`` scales its gain), and ``--twin-target-error
-DX DY DZ`` (in ``--units``) puts the twin's cube that far from the detection: the loop only knows the
-detection, and the grasp-and-lift says whether the cube came along anyway.
+The twin's cube stands on the table where the detection says (its centre half its height above the
+table: the loop takes the cube's height as known, ``calibration.standing_cube_centre``).  Rehearsing
+transfer errors on the twin: ``--twin-latency STEPS`` delays every command by that many control steps
+(fractions blend two commands, as in training), ``--twin-servo-lag`` makes the arm follow through the
+fitted servo model (``--twin-servo-gain F`` scales its gain, one factor or one per joint),
+``--twin-joint-offset RAD`` (one value or one per joint) and ``--twin-joint-noise RAD`` put a calibration
+offset and noise on the joint readings, and ``--twin-target-error DX DY DZ`` (in ``--units``) moves the
+detection the loop is handed away from the twin's cube, never the cube itself: the grasp-and-lift says
+whether the cube came along anyway.  ``python -m sagrasp_jax.deploy.rehearse`` runs the same loop over
+many random scenes in the MJX evaluation's named conditions.
 
 The real AUBO-i5 (``--backend aubo --host IP``, ``pip install "sagrasp_jax[aubo]"``, ``deploy.aubo``): the
 controller's RPC service (``--port``, default 30004; the login from $AUBO_USER / $AUBO_PASSWORD, default the
@@ -33,8 +38,9 @@ driven by the tool outputs of ``--gripper-io`` (configurable, untested on hardwa
 connects and reports the joints and whether the arm is at home (exit 0 at home, 1 not, 2 no connection).  A
 refused or silent controller exits 2 naming host and port.
 
-Exit status: 0 grasp pose reached (and lifted, unless --no-grasp), 1 timeout or collision,
-2 input refused before anything moved, 3 the safety layer stopped the robot.
+Exit status: 0 the cube is held after the lift (with --no-grasp: the grasp pose reached), 1 not held
+(timeout, collision, a faulty approach, a dropped cube, or a backend that cannot tell: the JSON report's
+``held`` says which), 2 input refused before anything moved, 3 the safety layer stopped the robot.
 """
 
 from __future__ import annotations
@@ -55,6 +61,7 @@ from sagrasp_jax.deploy.calibration import (
     TargetRejected,
     _unit_scale,
     detected_top_to_cube_centre,
+    standing_cube_centre,
     validate_target,
 )
 from sagrasp_jax import extras, shapes
@@ -190,10 +197,17 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--twin-latency", type=float, default=0.0, metavar="STEPS",
                    help="twin: command latency in control steps (default 0)")
     p.add_argument("--twin-servo-lag", action="store_true", help="twin: joints follow commands through the servo model")
-    p.add_argument("--twin-servo-gain", type=float, default=1.0, metavar="F",
-                   help="twin: servo-model gain factor with --twin-servo-lag (default 1)")
+    p.add_argument("--twin-servo-gain", type=float, nargs="+", default=[1.0], metavar="F",
+                   help="twin: servo-model gain factor with --twin-servo-lag, one or one per joint (default 1)")
+    p.add_argument("--twin-joint-offset", type=float, nargs="+", default=[0.0], metavar="RAD",
+                   help="twin: offset of the joint readings, one or one per joint (default 0)")
+    p.add_argument("--twin-joint-noise", type=float, default=0.0, metavar="RAD",
+                   help="twin: std of the joint-reading noise (default 0)")
+    p.add_argument("--twin-start-q", nargs=6, type=float, default=None, metavar="Q",
+                   help="twin: the arm's start joints, rad (default the policy's home pose)")
     p.add_argument("--twin-target-error", nargs=3, type=float, default=None, metavar=("DX", "DY", "DZ"),
-                   help="twin: the real cube's offset from the detection, in --units (world axes)")
+                   help="twin: the detection's error, in --units (world axes): the loop is handed the detection "
+                        "moved by this, the twin's cube stays where it stands")
     return p
 
 
@@ -220,19 +234,26 @@ def _emit(args: argparse.Namespace, payload: dict[str, Any], text: str, error: b
         print(text, file=sys.stderr if error else sys.stdout)
 
 
-def _twin_errors(args: argparse.Namespace, spec: Any) -> tuple[Any, Any]:
-    """The twin's transfer errors and the scene it builds (the cube moved by ``--twin-target-error``)."""
+def _twin_errors(args: argparse.Namespace) -> tuple[TransferErrors, np.ndarray]:
+    """The twin's transfer errors and the detection error the loop is handed (m, world axes)."""
+    for name in ("twin_servo_gain", "twin_joint_offset"):
+        if len(getattr(args, name)) not in (1, 6):
+            flag = "--" + name.replace("_", "-")
+            raise InputRefused(f"{flag} takes one value or one per joint (6), got {len(getattr(args, name))}")
+    one = lambda v: v[0] if len(v) == 1 else tuple(v)  # noqa: E731
     try:
-        errors = TransferErrors(latency=args.twin_latency, servo_lag=args.twin_servo_lag, servo_gain=args.twin_servo_gain)
+        errors = TransferErrors(latency=args.twin_latency, servo_lag=args.twin_servo_lag,
+                                servo_gain=one(args.twin_servo_gain), joint_offset=one(args.twin_joint_offset),
+                                joint_noise=args.twin_joint_noise)
     except ValueError as exc:
-        raise InputRefused(f"--twin-latency / --twin-servo-gain: {exc}") from None
+        raise InputRefused(f"--twin-*: {exc}") from None
     if args.twin_target_error is None:
-        return errors, spec
+        return errors, np.zeros(3)
     offset = np.asarray(args.twin_target_error, dtype=float) * _unit_scale(args.units)
     if not (np.isfinite(offset).all() and np.all(np.abs(offset) <= MAX_TARGET_ERROR)):
         raise InputRefused(f"--twin-target-error {args.twin_target_error} {args.units} must be finite and within "
                            f"±{MAX_TARGET_ERROR * 1000:g} mm per axis")
-    return errors, spec._replace(target_pos=np.asarray(spec.target_pos) + offset)
+    return errors, offset
 
 
 # ---- the real AUBO-i5 (deploy.aubo, the [aubo] extra) ----
@@ -363,10 +384,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         # a square cube is the same turned by 90°: report its yaw in the trained range ±45°
         yaw = camera_yaw_to_world(cal, math.radians(args.target_yaw), math.pi / 2 if square else 2 * math.pi)
         obstacles = [parse_obstacle(tokens, cal, args.units, i) for i, tokens in enumerate(args.obstacle)]
-        q_home = np.asarray(env_cfg.task.home_q, dtype=float)
+        q_home = np.asarray(env_cfg.task.home_q if args.twin_start_q is None else args.twin_start_q, dtype=float)
+        if not (np.isfinite(q_home).all() and np.all(np.abs(q_home) <= math.pi)):
+            raise InputRefused(f"--twin-start-q {args.twin_start_q} must be 6 finite joint angles within ±π rad")
         env_cfg = with_obstacle_kinds(env_cfg, obstacles)
-        spec = scene_spec(q_home, centre, yaw, obstacles, env_cfg)
-        twin_errors, true_spec = _twin_errors(args, spec)
+        spec = scene_spec(q_home, standing_cube_centre(centre, env_cfg.sampling), yaw, obstacles, env_cfg)
+        twin_errors, detection_error = _twin_errors(args)
+        detection = validate_target(centre + detection_error, env_cfg.sampling)
         if args.backend == "twin":
             extras.require("twin", what="--backend twin (the PyBullet digital twin)")
         aubo_settings = _aubo_settings(args)
@@ -388,12 +412,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     else:
         from sagrasp_jax.deploy.twin import PyBulletTwin  # PyBullet only when it is used
 
-        if true_spec is not spec:
-            given["twin_cube_world"] = [float(v) for v in true_spec.target_pos]
-        robot_cm = PyBulletTwin(true_spec, env_cfg, q0=q_home, gui=args.gui, errors=twin_errors)
+        given["twin_cube_world"] = [float(v) for v in spec.target_pos]
+        robot_cm = PyBulletTwin(spec, env_cfg, q0=q_home, gui=args.gui, errors=twin_errors)
+    if args.twin_target_error is not None:
+        given["detection_world"] = [float(v) for v in detection]
     with robot_cm as robot:
         try:
-            report = run_episode(robot, policy, centre, yaw, obstacles, max_steps=args.max_steps, grasp=not args.no_grasp)
+            report = run_episode(robot, policy, detection, yaw, obstacles, max_steps=args.max_steps,
+                                 grasp=not args.no_grasp)
         except (SafetyViolation, DeployError) as exc:
             _emit(args, {"outcome": "refused", "message": str(exc), "input": given}, f"error: stopped: {exc}", error=True)
             return 3
@@ -401,8 +427,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     _emit(args, payload, format_report(report))
     if report.outcome == "refused":
         return 3
-    held = report.grasp is None or report.grasp.get("lifted", False)
-    return 0 if report.success and held else 1
+    if args.no_grasp:
+        return 0 if report.success else 1
+    return 0 if report.held is True else 1
 
 
 if __name__ == "__main__":

@@ -44,6 +44,7 @@ __all__ = [
     "TargetRejected",
     "checked_rotation",
     "detected_top_to_cube_centre",
+    "standing_cube_centre",
     "validate_obstacle_clearance",
     "validate_target",
     "yaw_rotation",
@@ -51,7 +52,8 @@ __all__ = [
 
 ORTHONORMAL_TOL = 1e-3  # max |RᵀR − I|: the printed matrix is at ≈ 9e-5; worse means a typo or wrong file
 CUBE_HALF_HEIGHT = SamplingConfig().target_size[2] / 2  # 0.025 m: detected top face -> cube centre
-TARGET_Z_RANGE = (0.015, 0.035)  # m, cube centre on the table ± 1 cm of detection error
+TARGET_Z_TOLERANCE = 0.010  # m: a detected cube centre this far above/below a cube standing on the table is still one
+TARGET_Z_RANGE = (CUBE_HALF_HEIGHT - TARGET_Z_TOLERANCE, CUBE_HALF_HEIGHT + TARGET_Z_TOLERANCE)  # (0.015, 0.035) m
 MAX_CAMERA_DISTANCE = 5.0  # m; a larger translation almost surely means mm read as m
 _UNIT_SCALE = {"mm": 1e-3, "m": 1.0}
 
@@ -263,6 +265,18 @@ def validate_target(
         )
     if problems:
         raise TargetRejected(f"target centre ({x:.4f}, {y:.4f}, {z:.4f}) m refused: " + "; ".join(problems))
+    return p
+
+
+def standing_cube_centre(p_base: Any, sampling_cfg: SamplingConfig | None = None) -> np.ndarray:
+    """The cube centre with its height taken from what is known, not from the detection: the cube stands on
+    the table (the plane z = 0 of the world frame), so its centre is half its height above it, as in every
+    training scene.  A depth camera's error in z (and a calibration's) then cannot put the grasp band above
+    or below the real cube; ``validate_target`` has already refused a detection more than
+    ``TARGET_Z_TOLERANCE`` off that height (not a cube standing on the table)."""
+    cfg = sampling_cfg or SamplingConfig()
+    p = np.array(p_base, dtype=float)
+    p[..., 2] = cfg.target_size[2] / 2
     return p
 
 

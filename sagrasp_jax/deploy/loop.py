@@ -17,10 +17,19 @@ training env runs, with NumPy:
   here also refuses a command whose pose would collide with the cell, the detected
   obstacles or the cube (``collision.check``), so the arm stops instead of touching them.
 
-After a success the gripper centre moves over the detected cube's centre to the middle of the
-success band's heights (``reward.grasp_centre``: a detection error then has the band's whole
-margin), the gripper closes and the arm lifts the gripper centre by ``lift_height`` (0.05 m), all in
-small IK steps, each passing the same safety layer.  Nothing here imports jax.
+After a success the arm holds the pose it reached (the measured joints, commanded for
+``SETTLE_STEPS`` periods while latency and servo lag die out), the gripper closes there and the arm
+lifts the gripper centre by ``lift_height`` (0.05 m) keeping the grasp's orientation
+(``robot.lift_pose``), in small steps, each passing the same safety layer.  That is the grasp training
+judges: the success pose is where the fingers close (the MJX physical check closes at an episode's
+final pose, ``physical.physical_grasp_check``), with no re-orientation that could swing the wrist into
+the obstacle the policy avoided (docs/design.md, "One grasp").  The cube's centre is taken on the
+table: a detected height off by up to ``calibration.TARGET_Z_TOLERANCE`` is replaced by the height of
+a cube standing there (``calibration.standing_cube_centre``), a larger one is refused.  Whether the cube
+is held is measured, not inferred from the pose: by the backend's cube position (simulators) or its
+finger opening (a gripper that reports it); a backend that also reports contacts during the approach
+(the twin, ``approach_faults``) fails a grasp whose approach knocked the cube or touched an obstacle.
+Nothing here imports jax.
 """
 
 from __future__ import annotations
@@ -35,18 +44,18 @@ import numpy as np
 
 from sagrasp_jax import collision, control, observation, reward, shapes
 from sagrasp_jax.config import EnvConfig
-from sagrasp_jax.deploy.calibration import validate_obstacle_clearance, validate_target
+from sagrasp_jax.deploy.calibration import standing_cube_centre, validate_obstacle_clearance, validate_target
 from sagrasp_jax.deploy.safety import (
     SafetyLayer, SafetyViolation, check_policy_constants, check_policy_scene, deployment_env,
 )
-from sagrasp_jax.robot import IKError, RobotModel, approach_pose, forward_kinematics, lift_pose, load_robot
+from sagrasp_jax.robot import IKError, RobotModel, forward_kinematics, lift_pose, load_robot
 from sagrasp_jax.runtime import NumpyPolicy
 from sagrasp_jax.sampling import ResetSpec
 
 LIFT_HEIGHT = 0.05  # m, docs/task.md §2/§5: lift after closing the gripper
 LIFT_MIN_STEPS = 10  # control periods the lift takes at least (0.5 s: ≤ 0.1 m/s)
-CENTRE_MIN_STEPS = 4  # control periods the final centring takes at least (it moves a few mm)
-CENTRE_SETTLE_STEPS = 6  # control periods the centring pose is held before closing (3 steps of latency, servo lag)
+SETTLE_STEPS = 6  # control periods the grasp pose is held before closing (3 steps of latency, servo lag)
+HELD_MIN_OPENING = 0.004  # m per finger: closed fingers stopped at least this far apart hold something (the cube: 0.01)
 
 
 class DeployError(RuntimeError):
@@ -190,8 +199,11 @@ class DeployReport:
     step_compute_ms_max: float = 0.0
     step_period_ms_mean: float = 0.0
     step_period_ms_max: float = 0.0
-    grasp: dict[str, Any] | None = None  # closed / lifted / rises, when a grasp was attempted
+    grasp: dict[str, Any] | None = None  # closed / lifted / rises / faults, when a grasp was attempted
     hits: list[str] = field(default_factory=list)
+    # the deployment's verdict: the cube held after the lift (None: not attempted, or the backend cannot tell)
+    held: bool | None = None
+    detected_target: list[float] = field(default_factory=list)  # the cube centre as given, before it was put on the table
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -242,7 +254,8 @@ def run_episode(
     check_policy_constants(env_cfg, settings, model, policy.path)
     check_policy_scene(env_cfg, settings, policy.path)
     env_cfg = deployment_env(env_cfg, settings)  # the cell's facts are the deployment's, never the file's
-    target = validate_target(target_pos, env_cfg.sampling)
+    detected = validate_target(target_pos, env_cfg.sampling)
+    target = standing_cube_centre(detected, env_cfg.sampling)
     q0 = _read(robot)
     spec = scene_spec(q0, target, target_yaw, obstacles, env_cfg)
     if safety is None:
@@ -293,6 +306,7 @@ def run_episode(
         steps=steps,
         message=message,
         target=[float(v) for v in target],
+        detected_target=[float(v) for v in detected],
         target_yaw=float(target_yaw),
         obstacles=len(obstacles),
         min_obstacle_clearance=float(clearance) if obstacles else None,
@@ -312,6 +326,7 @@ def run_episode(
     )
     if report.success and grasp:
         report.grasp = _grasp_and_lift(robot, model, env_cfg, spec, q, q_target, lift_height, safety)
+        report.held = report.grasp.get("held")
     report.wall_s = time.perf_counter() - t0
     return report
 
@@ -324,37 +339,45 @@ def _ramp(robot: RobotInterface, safety: SafetyLayer, q_goal: np.ndarray, q_targ
     return q_target
 
 
-def _centre_on_cube(robot: RobotInterface, model: RobotModel, env_cfg: EnvConfig, spec: ResetSpec, q: np.ndarray,
-                    q_target: np.ndarray, safety: SafetyLayer) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
-    """Before closing: bring the gripper centre over the detected cube's centre, to the middle of the success
-    band's heights (``reward.grasp_centre``), in safety-checked steps (the cube is still an obstacle), and hold
-    the command until the arm has settled there (latency and servo lag).  A detection error then has the
-    band's whole margin on every side.  Returns the measured joints, the commanded target and a summary."""
-    goal = reward.grasp_centre(np, env_cfg.task, np.asarray(spec.target_pos, dtype=float))
-    start = forward_kinematics(np, model, q).gripper_centre
-    q_goal = approach_pose(model, q, goal, what="centring pose")
-    q_target = _ramp(robot, safety, q_goal, q_target, CENTRE_MIN_STEPS)
-    for _ in range(CENTRE_SETTLE_STEPS):
+def _settle(robot: RobotInterface, safety: SafetyLayer, q: np.ndarray, q_target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Stop where the grasp pose was reached: command the measured joints for ``SETTLE_STEPS`` periods (the
+    commands still queued by latency run out, the servos come to rest), each through the safety layer."""
+    q_target = send_checked(robot, safety, q, q_target)
+    for _ in range(SETTLE_STEPS - 1):
         q_target = send_checked(robot, safety, q_target, q_target)
-    q = _read(robot)
-    end = forward_kinematics(np, model, q).gripper_centre
-    return q, q_target, {"centring_move_mm": float(1000 * np.linalg.norm(goal - start)),
-                         "centring_residual_mm": float(1000 * np.linalg.norm(end - goal))}
+    return _read(robot), q_target
+
+
+def _held(robot: RobotInterface, cube0: np.ndarray | None, gripper_rise: float, height: float) -> tuple[bool | None, dict[str, Any]]:
+    """Whether the cube came along, from what the backend can report: the cube's own rise (simulators), else
+    the finger opening (closed fingers kept apart by the cube); None when it reports neither."""
+    if cube0 is not None:
+        rise = float(np.asarray(robot.object_position(), float)[2] - cube0[2])  # type: ignore[attr-defined]
+        return bool(rise >= gripper_rise - 0.01 and rise > 0.5 * height), {"object_rise": rise}
+    opening = getattr(robot, "finger_opening", None)
+    if opening is not None:
+        fingers = np.asarray(opening(), float)
+        return bool(np.all(fingers >= HELD_MIN_OPENING)), {"finger_opening": [float(v) for v in fingers]}
+    return None, {}
 
 
 def _grasp_and_lift(robot: RobotInterface, model: RobotModel, env_cfg: EnvConfig, spec: ResetSpec,
                     q: np.ndarray, q_target: np.ndarray, height: float, safety: SafetyLayer) -> dict[str, Any]:
-    """Centre on the detected cube, close the gripper, lift ``height`` m in safety-checked steps, measure what rose."""
+    """Hold the grasp pose, close the gripper there, lift ``height`` m keeping the gripper's orientation, in
+    safety-checked steps, and judge whether the cube is held (``_held``; a faulty approach fails it)."""
     locate = getattr(robot, "object_position", None)
     cube0 = np.asarray(locate(), float) if locate is not None else None
-    result: dict[str, Any] = {"closed": False, "lift_commanded": float(height), "lifted": False, "message": ""}
+    result: dict[str, Any] = {"closed": False, "lift_commanded": float(height), "lifted": False, "held": False,
+                              "message": ""}
     try:
-        q, q_target, centring = _centre_on_cube(robot, model, env_cfg, spec, q, q_target, safety)
-        result.update(centring)
-    except (SafetyViolation, DeployError, IKError) as exc:
-        result["message"] = f"centring stopped: {exc}; gripper not closed"
+        q, q_target = _settle(robot, safety, q, q_target)
+    except SafetyViolation as exc:
+        result["message"] = f"holding the grasp pose stopped: {exc}; gripper not closed"
         return result
-    centre0 = forward_kinematics(np, model, q).gripper_centre
+    kin = forward_kinematics(np, model, q)
+    offset = kin.gripper_centre - np.asarray(spec.target_pos, dtype=float)
+    result.update(closing_offset_mm=[float(1000 * v) for v in offset],
+                  closing_tilt_deg=math.degrees(float(np.arccos(np.clip(-kin.approach_axis[2], -1.0, 1.0)))))
     robot.close_gripper()
     result["closed"] = True
     # The cube now rides between the pads: contact with it is the point, not a collision.
@@ -366,11 +389,16 @@ def _grasp_and_lift(robot: RobotInterface, model: RobotModel, env_cfg: EnvConfig
     except (SafetyViolation, DeployError, IKError) as exc:
         result["message"] = f"lift stopped: {exc}"
     q_end = _read(robot)
-    result["gripper_rise"] = float(forward_kinematics(np, model, q_end).gripper_centre[2] - centre0[2])
-    if cube0 is not None:
-        rise = float(np.asarray(locate(), float)[2] - cube0[2])
-        result["object_rise"] = rise
-        result["object_held"] = bool(rise >= result["gripper_rise"] - 0.01 and rise > 0.5 * height)
+    result["gripper_rise"] = float(forward_kinematics(np, model, q_end).gripper_centre[2] - kin.gripper_centre[2])
+    held, evidence = _held(robot, cube0, result["gripper_rise"], height)
+    result.update(evidence)
+    faults = getattr(robot, "approach_faults", None)
+    result["approach_faults"] = list(faults()) if faults is not None else None
+    if held is not None:
+        held = held and result["lifted"] and not result["approach_faults"]
+    result["held"] = held
+    if "object_rise" in result:  # the simulators' name for it, kept for older readers
+        result["object_held"] = bool(held)
     return result
 
 
@@ -390,11 +418,19 @@ def format_report(report: DeployReport) -> str:
     ]
     if report.grasp is not None:
         g = report.grasp
-        text = f"grasp              closed, lift {'done' if g['lifted'] else 'NOT done'}: gripper rose {g['gripper_rise'] * 1000:.1f} mm"
-        if "object_rise" in g:
-            text += f", cube rose {g['object_rise'] * 1000:.1f} mm ({'held' if g['object_held'] else 'NOT held'})"
-        if g["message"]:
-            text += f"; {g['message']}"
+        if not g["closed"]:
+            text = f"grasp              gripper not closed: {g['message']}"
+        else:
+            text = f"grasp              closed, lift {'done' if g['lifted'] else 'NOT done'}: gripper rose {g['gripper_rise'] * 1000:.1f} mm"
+            if "object_rise" in g:
+                text += f", cube rose {g['object_rise'] * 1000:.1f} mm"
+            if g["message"]:
+                text += f"; {g['message']}"
+        lines.append(text)
+        verdict = {True: "HELD", False: "NOT held", None: "unknown (the backend reports neither the cube nor the fingers)"}
+        text = f"cube               {verdict[g['held']]}"
+        if g.get("approach_faults"):
+            text += f" (approach: {'; '.join(g['approach_faults'])})"
         lines.append(text)
     lines.append(f"wall time          {report.wall_s:.2f} s")
     return "\n".join(lines)

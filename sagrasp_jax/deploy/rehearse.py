@@ -1,0 +1,265 @@
+"""Deployment at scale on the twin: an exported policy through the deploy loop over N random scenes.
+
+    python -m sagrasp_jax.deploy.rehearse --policy policy.npz --episodes 500 --condition robot \
+        [--scenes mix|blocking] [--seed 0] [--workers 2] [--out twin.json]
+
+(also ``python -m sagrasp_jax.evaluate --backend twin --run RUN ...``, which reads the run's ``policy.npz``).
+
+What a user judges on a robot, not what training scores: each scene is drawn with the project's sampler
+(the evaluation mix, or blocking-only scenes), the twin is built on the true scene, and the loop
+(``deploy.loop.run_episode``) is handed what a camera would report: the cube with this episode's detection
+error, the obstacles.  The loop runs the policy, holds the grasp pose, closes, lifts; the verdict is the cube
+**held** after the lift with a clean approach (no obstacle or table touched, the cube not knocked).  The
+named conditions are the MJX evaluation's (``config.EVAL_CONDITIONS``): their ``env.randomize`` knobs are
+drawn per episode as the MJX env draws them (``deploy.transfer.draw``), and every mode but ``kinematic``
+runs the twin's arm through the fitted servo model.  Episode ``i`` of seed ``s`` is the same scene and the
+same errors whatever the number of workers.  Nothing here imports jax.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+import os
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from typing import Any, Sequence
+
+import numpy as np
+
+from sagrasp_jax import extras, robot, sampling
+from sagrasp_jax.config import EVAL_CONDITIONS, Config, ConfigError, EnvConfig, apply_overrides, blocking_sampling
+from sagrasp_jax.deploy import transfer
+from sagrasp_jax.deploy.calibration import ObstacleRejected, TargetRejected
+from sagrasp_jax.deploy.loop import DeployReport, obstacles_from_spec, run_episode
+from sagrasp_jax.runtime import NumpyPolicy, PolicyFormatError, load_policy
+
+SCENE_SETS = ("mix", "blocking")
+MAX_EPISODES = 100_000
+MAX_WORKERS = 64
+
+
+def condition_env(env_cfg: EnvConfig, condition: str) -> EnvConfig:
+    """The policy's env with the named evaluation condition's overrides (the same as ``evaluate --condition``)."""
+    if condition not in EVAL_CONDITIONS:
+        raise ConfigError(f"unknown condition {condition!r}; valid: {', '.join(EVAL_CONDITIONS)}")
+    return apply_overrides(Config(env=env_cfg), list(EVAL_CONDITIONS[condition])).env
+
+
+def scene_env(env_cfg: EnvConfig, scenes: str) -> EnvConfig:
+    """The env the scenes are drawn from: the evaluation mix, or every scene with an obstacle on the approach."""
+    if scenes not in SCENE_SETS:
+        raise ConfigError(f"unknown scene set {scenes!r}; valid: {', '.join(SCENE_SETS)}")
+    if scenes == "mix":
+        return env_cfg
+    return dataclasses.replace(env_cfg, sampling=blocking_sampling(env_cfg.sampling, 1.0, 1.0))
+
+
+def _kind(spec: sampling.ResetSpec, model: robot.RobotModel, env_cfg: EnvConfig) -> str:
+    if not np.any(spec.obstacle_active):
+        return "no obstacle"
+    blocking = sampling.is_blocking(np, model, env_cfg.sampling, env_cfg.task, spec)
+    return "blocking" if bool(blocking) else "obstacle"
+
+
+def _failure(report: DeployReport | None, refused: str) -> str:
+    """One word for why an episode did not end with the cube held."""
+    if report is None:
+        return refused
+    if report.outcome != "success":
+        return {"refused": "safety stop"}.get(report.outcome, report.outcome)
+    g = report.grasp or {}
+    if not g.get("closed"):
+        return "hold refused"
+    if g.get("approach_faults"):
+        return "approach fault"
+    if not g.get("lifted"):
+        return "lift stopped"
+    return "dropped" if not report.held else ""
+
+
+def run_scene(policy_path: str, env_cfg: EnvConfig, scene_cfg: EnvConfig, seed: int, index: int) -> dict[str, Any]:
+    """Scene ``index`` of ``seed`` through the deploy loop on a fresh twin; a JSON-safe record."""
+    from sagrasp_jax.deploy.twin import PyBulletTwin
+
+    policy = _policy(policy_path)
+    model = robot.load_robot()
+    rng = np.random.default_rng([seed, index])
+    spec = sampling.sample_reset(np, model, scene_cfg.sampling, scene_cfg.task,
+                                 rng.uniform(size=sampling.uniforms_needed(scene_cfg.sampling)))
+    spec = sampling.ResetSpec(*(np.asarray(v) for v in spec))
+    errors, target_error = transfer.draw(env_cfg.randomize, env_cfg.control.mode != "kinematic", rng)
+    detected = np.asarray(spec.target_pos, float) + target_error
+    record: dict[str, Any] = {"index": index, "kind": _kind(spec, model, scene_cfg),
+                              "target": [float(v) for v in spec.target_pos],
+                              "detection_error_mm": [float(1000 * v) for v in target_error],
+                              "latency": errors.latency}
+    report, refused = None, ""
+    with PyBulletTwin(spec, env_cfg, q0=spec.q0, errors=errors, seed=index) as twin:
+        try:
+            report = run_episode(twin, policy, detected, float(spec.target_yaw), obstacles_from_spec(spec))
+        except (TargetRejected, ObstacleRejected) as exc:
+            refused, record["message"] = "input refused", str(exc)
+    record["failure"] = _failure(report, refused)
+    record["held"] = bool(report is not None and report.held)
+    if report is not None:
+        g = report.grasp or {}
+        record.update(outcome=report.outcome, reached=report.success, steps=report.steps, message=report.message,
+                      final_tilt_deg=report.final_tilt_deg, grasp_message=g.get("message", ""),
+                      approach_faults=g.get("approach_faults") or [], closing_offset_mm=g.get("closing_offset_mm"),
+                      min_obstacle_clearance=report.min_obstacle_clearance)
+    return record
+
+
+_POLICIES: dict[str, NumpyPolicy] = {}
+
+
+def _policy(path: str) -> NumpyPolicy:
+    if path not in _POLICIES:
+        _POLICIES[path] = load_policy(path)
+    return _POLICIES[path]
+
+
+def _chunk(args: tuple[str, EnvConfig, EnvConfig, int, Sequence[int]]) -> list[dict[str, Any]]:
+    path, env_cfg, scene_cfg, seed, indices = args
+    return [run_scene(path, env_cfg, scene_cfg, seed, i) for i in indices]
+
+
+def wilson(k: int, n: int, z: float = 1.959964) -> tuple[float, float]:
+    """95 % Wilson interval of a rate k / n."""
+    if n == 0:
+        return (0.0, 1.0)
+    p = k / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return (max(0.0, centre - half), min(1.0, centre + half))
+
+
+def summarise(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """Held and reached rates, failure counts and steps per success of a group of episodes."""
+    n = len(records)
+    held = sum(r["held"] for r in records)
+    failures: dict[str, int] = {}
+    for r in records:
+        if r["failure"]:
+            failures[r["failure"]] = failures.get(r["failure"], 0) + 1
+    steps = [r["steps"] for r in records if r["held"]]
+    return {
+        "episodes": n,
+        "held_rate": held / n if n else None,
+        "held_ci95": list(wilson(held, n)),
+        "reached_rate": sum(bool(r.get("reached")) for r in records) / n if n else None,
+        "failures": dict(sorted(failures.items())),
+        "mean_steps_per_success": float(np.mean(steps)) if steps else None,
+    }
+
+
+def rehearse(policy_path: str, episodes: int, condition: str, scenes: str = "mix", seed: int = 0,
+             workers: int = 1, progress: bool = True) -> dict[str, Any]:
+    """Run ``episodes`` twin scenes; the summary per episode kind and every episode's record."""
+    policy = _policy(policy_path)
+    env_cfg = condition_env(policy.env_config(), condition)
+    scene_cfg = scene_env(env_cfg, scenes)
+    workers = max(1, min(workers, episodes))
+    chunks = [list(range(episodes))[w::workers] for w in range(workers)]
+    t0 = time.perf_counter()
+    if workers == 1:
+        records = []
+        for i in range(episodes):
+            records.append(run_scene(policy_path, env_cfg, scene_cfg, seed, i))
+            if progress and (i + 1) % 50 == 0:
+                print(f"  {i + 1}/{episodes} scenes, held {sum(r['held'] for r in records) / len(records):.1%}",
+                      file=sys.stderr, flush=True)
+    else:
+        with ProcessPoolExecutor(workers) as pool:
+            parts = list(pool.map(_chunk, [(policy_path, env_cfg, scene_cfg, seed, c) for c in chunks]))
+        records = sorted((r for part in parts for r in part), key=lambda r: r["index"])
+    groups = {"all": records} | {k: [r for r in records if r["kind"] == k] for k in ("obstacle", "blocking", "no obstacle")}
+    groups["obstacle"] = [r for r in records if r["kind"] in ("obstacle", "blocking")]  # every obstacle scene
+    return {
+        "backend": "twin",
+        "policy": os.path.abspath(policy_path),
+        "condition": condition,
+        "condition_overrides": list(EVAL_CONDITIONS[condition]),
+        "scenes": scenes,
+        "seed": seed,
+        "episodes": episodes,
+        "wall_s": time.perf_counter() - t0,
+        "workers": workers,
+        "summary": {name: summarise(rs) for name, rs in groups.items()},
+        "records": records,
+    }
+
+
+def format_table(result: dict[str, Any]) -> str:
+    groups = [(name, g) for name, g in result["summary"].items() if g["episodes"]]
+    kinds = sorted({k for _, g in groups for k in g["failures"]})
+    pct = lambda v: "-" if v is None else f"{100 * v:.1f} %"  # noqa: E731
+    rows = [("episodes", [str(g["episodes"]) for _, g in groups]),
+            ("cube held", [pct(g["held_rate"]) for _, g in groups]),
+            ("  95 % CI", [f"{100 * g['held_ci95'][0]:.1f}-{100 * g['held_ci95'][1]:.1f}" for _, g in groups]),
+            ("grasp pose reached", [pct(g["reached_rate"]) for _, g in groups]),
+            ("steps / success", ["-" if g["mean_steps_per_success"] is None else f"{g['mean_steps_per_success']:.1f}"
+                                 for _, g in groups])]
+    rows += [(f"  {k}", [str(g["failures"].get(k, 0)) for _, g in groups]) for k in kinds]
+    width = max(len(r[0]) for r in rows) + 2
+    head = f"twin, {result['condition']}, {result['scenes']} scenes, seed {result['seed']}: {result['wall_s']:.0f} s"
+    lines = [head, " " * width + "".join(f"{name:>14}" for name, _ in groups)]
+    lines += [label.ljust(width) + "".join(f"{v:>14}" for v in values) for label, values in rows]
+    return "\n".join(lines)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--episodes", type=int, default=500, help="scenes to run (default 500)")
+    p.add_argument("--condition", choices=sorted(EVAL_CONDITIONS), default="robot",
+                   help="named evaluation condition, as the MJX evaluation's (default robot)")
+    p.add_argument("--scenes", choices=SCENE_SETS, default="mix", help="mix: the evaluation mix; blocking: every "
+                   "scene has an obstacle on the straight approach path")
+    p.add_argument("--seed", type=int, default=0, help="scene and error draws (default 0)")
+    p.add_argument("--workers", type=int, default=1, help="processes (default 1; one per core)")
+    p.add_argument("--out", default=None, help="write the result as JSON here")
+
+
+def check_arguments(args: argparse.Namespace) -> None:
+    if not 1 <= args.episodes <= MAX_EPISODES:
+        raise ValueError(f"--episodes must be in [1, {MAX_EPISODES}], got {args.episodes}")
+    if not 1 <= args.workers <= MAX_WORKERS:
+        raise ValueError(f"--workers must be in [1, {MAX_WORKERS}], got {args.workers}")
+    if not 0 <= args.seed < 2**31:
+        raise ValueError(f"--seed must be in [0, 2^31), got {args.seed}")
+
+
+def run_cli(policy_path: str, args: argparse.Namespace) -> int:
+    """Shared by this module's CLI and ``evaluate --backend twin``: validate, run, print, write; exit status."""
+    from sagrasp_jax import fileio
+
+    try:
+        check_arguments(args)
+        extras.require("twin", what="the twin rehearsal (--backend twin)")
+        _policy(policy_path)
+        if args.out:
+            fileio.check_output_file(args.out)
+            fileio.check_writable(os.path.dirname(os.path.abspath(args.out)))
+    except (ValueError, PolicyFormatError, ConfigError, extras.MissingExtra, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    result = rehearse(policy_path, args.episodes, args.condition, args.scenes, args.seed, args.workers)
+    print(format_table(result))
+    if args.out:
+        fileio.atomic_write_json(args.out, result, indent=1)
+        print(f"written {args.out}")
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m sagrasp_jax.deploy.rehearse", description=__doc__.split("\n\n")[0])
+    p.add_argument("--policy", required=True, help="exported policy.npz")
+    add_arguments(p)
+    args = p.parse_args(argv)
+    return run_cli(args.policy, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
