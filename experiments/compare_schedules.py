@@ -44,7 +44,7 @@ import time
 from typing import Any, Mapping, Sequence
 
 from experiments import paper_figures, stats, study
-from sagrasp_jax import evaluate, run_dir, train
+from sagrasp_jax import evaluate, extras, plot, run_dir, train
 from sagrasp_jax.config import LR_SCHEDULES
 
 SCHEDULE_VARIANTS: dict[str, tuple[str, ...]] = {name: (f"lr.schedule={name}",) for name in LR_SCHEDULES}
@@ -209,24 +209,12 @@ def _line_style(variant: str) -> str:
     return "--" if variant.startswith("sa-no-") else "-"
 
 
-def _save(fig: Any, path: str) -> str:
-    import matplotlib.pyplot as plt
-
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
-
-
 def figures(spec: study.Study, variants: list[str], stem: str) -> list[str]:
     """Per-cycle evaluation success (mean and band across seeds) and lr traces of every variant."""
     try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        print("matplotlib not installed: no figures", file=sys.stderr)
+        plt = plot.pyplot()
+    except extras.MissingExtra as exc:
+        print(f"{exc}: no figures", file=sys.stderr)
         return []
     runs = {v: study.load_curves(spec, v) for v in variants}
     kind = stats.band_kind("auto", len(spec.seeds))
@@ -244,7 +232,7 @@ def figures(spec: study.Study, variants: list[str], stem: str) -> list[str]:
     ax.set_title(f"{spec.preset}, {len(spec.seeds)} seed(s): mean and {stats.BAND_LABELS[kind]}", fontsize=10)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, ncol=2)
-    written.append(_save(fig, f"{stem}_curves.png"))
+    written.append(plot.save(fig, f"{stem}_curves.png"))
     fig, ax = plt.subplots(figsize=(8, 4.2))
     for v in variants:
         x, y = stats.curve_matrix(runs[v], "lr")
@@ -255,7 +243,7 @@ def figures(spec: study.Study, variants: list[str], stem: str) -> list[str]:
     ax.set_ylabel("learning rate (mean over seeds)")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=7, ncol=2)
-    written.append(_save(fig, f"{stem}_lr.png"))
+    written.append(plot.save(fig, f"{stem}_lr.png"))
     return written
 
 

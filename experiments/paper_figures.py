@@ -19,6 +19,7 @@ import numpy as np
 from experiments.stats import BAND_LABELS, band, band_kind, curve_matrix, mean_ci
 from experiments.study import Study, git_state, load_curves, machine
 from sagrasp_jax import evaluate, run_dir, train
+from sagrasp_jax.plot import pyplot, save, smooth  # the package's plotting helpers (python -m sagrasp_jax.plot)
 
 ALGOS = ("ppo", "sa-ppo")
 LABELS = {"ppo": "PPO", "sa-ppo": "SA-PPO"}
@@ -35,18 +36,6 @@ CURVES = (
     ("fig13_success_rate.png", "success", "success rate", "Fig. 13 - success rate"),
     ("fig14_steps_per_episode.png", "episode_steps", "steps per episode", "Fig. 14 - steps per episode"),
 )
-
-
-def smooth(y: np.ndarray, window: int) -> np.ndarray:
-    """Centred moving average along the last axis ignoring NaN (window 1 = unchanged)."""
-    if window <= 1 or y.shape[-1] == 0:
-        return y
-    ok = np.isfinite(y)
-    kernel = np.ones(window)
-    num = np.apply_along_axis(lambda r: np.convolve(r, kernel, "same"), -1, np.where(ok, y, 0.0))
-    den = np.apply_along_axis(lambda r: np.convolve(r, kernel, "same"), -1, ok.astype(float))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(den > 0, num / den, np.nan)
 
 
 def summarise_algo(evals: list[dict[str, Any]], seeds: Sequence[int]) -> dict[str, Any]:
@@ -227,11 +216,7 @@ def markdown_table(results: dict[str, Any]) -> str:
 def plot_all(out_dir: str, curves: dict[str, list[list[dict[str, Any]]]], results: dict[str, Any],
              smooth_window: int) -> list[str]:
     """Write Figures 11-15 and the SA schedule trace; returns the file names."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     written = []
     n_seeds = len(results["meta"]["seeds"])
     kind = results["meta"]["band"]
@@ -275,9 +260,7 @@ def plot_all(out_dir: str, curves: dict[str, list[list[dict[str, Any]]]], result
             ax.set_title("fixed-seed evaluation each SA cycle (deterministic, p = 1)", fontsize=10)
             ax.grid(alpha=0.3)
             ax.legend(title=band_note, title_fontsize=7, fontsize=8)
-        fig.tight_layout()
-        fig.savefig(os.path.join(out_dir, fname), dpi=110)
-        plt.close(fig)
+        save(fig, os.path.join(out_dir, fname))
         written.append(fname)
 
     # Figure 15: final success vs steps per successful grasp, ours (per seed + pooled) and the paper's.
@@ -303,9 +286,7 @@ def plot_all(out_dir: str, curves: dict[str, list[list[dict[str, Any]]]], result
                  f"{results['meta']['eval_episodes']} eval episodes / seed)", fontsize=9)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(os.path.join(out_dir, "fig15_summary.png"), dpi=110)
-    plt.close(fig)
+    save(fig, os.path.join(out_dir, "fig15_summary.png"))
     written.append("fig15_summary.png")
 
     # SA schedule: lr (log) and temperature per cycle, every seed; reject / decay markers.
@@ -333,9 +314,7 @@ def plot_all(out_dir: str, curves: dict[str, list[list[dict[str, Any]]]], result
     ax2.set_ylabel("temperature T (return units)")
     ax2.set_xlabel("env steps")
     ax2.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(os.path.join(out_dir, "sa_schedule.png"), dpi=110)
-    plt.close(fig)
+    save(fig, os.path.join(out_dir, "sa_schedule.png"))
     written.append("sa_schedule.png")
     return written
 

@@ -77,3 +77,9 @@ class _QuietWarpImport(importlib.abc.MetaPathFinder):
 
 if _WARP_MODULE not in sys.modules and not any(isinstance(f, _QuietWarpImport) for f in sys.meta_path):
     sys.meta_path.insert(0, _QuietWarpImport())
+
+# A module of the package that meets an absent optional package raises extras.MissingExtra naming the
+# extra to install (``pip install "sagrasp_jax[train]"``), not a bare ModuleNotFoundError.
+from sagrasp_jax import extras as _extras  # noqa: E402  (stdlib only)
+
+_extras.install_import_hints()

@@ -14,6 +14,17 @@ import jax
 import jax.numpy as jnp
 
 
+# success among the window's episodes of one kind: name -> (episode flag, the flag's value for the kind);
+# NaN (null in metrics.jsonl) while the window holds no episode of that kind
+KIND_SUCCESS = {"success_no_obstacle": ("obstacle_present", False), "success_obstacle": ("obstacle_present", True),
+                "success_blocking": ("blocking", True)}
+
+
+def kind_success_keys(keys: Any) -> list[str]:
+    """The per-kind success means a window with metrics ``keys`` reports (it needs ``success`` and the flag)."""
+    return [name for name, (flag, _) in KIND_SUCCESS.items() if "success" in keys and flag in keys]
+
+
 def init_window(keys: tuple[str, ...], size: int) -> dict[str, Any]:
     """Device-side ring buffer of the last ``size`` finished training episodes' metrics."""
     return {"values": {k: jnp.zeros((size,), jnp.float32) for k in keys},
@@ -23,7 +34,7 @@ def init_window(keys: tuple[str, ...], size: int) -> dict[str, Any]:
 def update_window(window: dict[str, Any], episodes: dict[str, jax.Array]) -> tuple[dict[str, Any], dict[str, jax.Array]]:
     """Append the episodes that finished in [T, B] ``episodes`` (time-major, then env order) and
     return the window means: every metric but ``steps``, ``episode_steps``, ``steps_to_success``
-    (NaN without a success) and ``window_episodes``."""
+    (NaN without a success), ``window_episodes`` and the success per episode kind (``KIND_SUCCESS``)."""
     size = next(iter(window["values"].values())).shape[0]
     done = episodes["done"].reshape(-1) > 0.5
     rank = jnp.cumsum(done, dtype=jnp.int32) - 1  # int32 also under x64: the loop carry's type
@@ -44,4 +55,9 @@ def update_window(window: dict[str, Any], episodes: dict[str, jax.Array]) -> tup
     means["steps_to_success"] = jnp.where(n_success > 0, jnp.sum(steps * success) / jnp.maximum(n_success, 1.0),
                                           jnp.nan)
     means["window_episodes"] = count
+    for name in kind_success_keys(values):
+        flag, value = KIND_SUCCESS[name]
+        member = ((values[flag] > 0.5) == value).astype(jnp.float32) * valid
+        n_kind = jnp.sum(member)
+        means[name] = jnp.where(n_kind > 0, jnp.sum(success * member) / jnp.maximum(n_kind, 1.0), jnp.nan)
     return new, means

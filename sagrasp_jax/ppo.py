@@ -29,7 +29,7 @@ from jax.sharding import Mesh, PartitionSpec
 from sagrasp_jax import lr_schedule
 from sagrasp_jax.config import PPOConfig
 from sagrasp_jax.losses import loss_and_grad, make_batch
-from sagrasp_jax.metrics_window import update_window
+from sagrasp_jax.metrics_window import kind_success_keys, update_window
 from sagrasp_jax.actor_critic import (
     Normaliser, Params, PPONetworks, TrainingState, critic_extra_of, learning_rate_of, mean_policy_entropy,
     with_learning_rate,
@@ -175,7 +175,8 @@ def make_cycle(env: Env, networks: PPONetworks, optimizer: optax.GradientTransfo
         skipped = {**{k: f32() for k in (*CYCLE_METRICS, *RESET_STATS)}, "finite": jnp.zeros((), bool),
                    "episodes_finished": i32(), "learning_rate": f32(), **({"step_kl": f32()} if kl_rule else {}),
                    "window": {**{k: f32() for k in window["values"] if k != "steps"}, "episode_steps": f32(),
-                              "steps_to_success": f32(), "window_episodes": i32()}}
+                              "steps_to_success": f32(), "window_episodes": i32(),
+                              **{k: f32() for k in kind_success_keys(window["values"])}}}
 
         def run(carry: tuple[TrainingState, State, dict[str, Any]], j: jax.Array):
             ts, es, win = carry

@@ -1,4 +1,7 @@
-"""Render policy rollouts to a video: ``python -m sagrasp_jax.render --policy policy/policy.npz --out rollout.mp4``.
+"""Watch a policy: ``python -m sagrasp_jax.render --run runs/NAME --out rollout.mp4`` (or ``--policy policy.npz``).
+
+Writes the video and a still (``--png``, default beside the video: ``rollout.png``).  ``--run``
+takes a finished run folder (its ``policy.npz``); ``--policy`` an exported policy file.
 
 Each episode is a training scene (target, obstacles, start noise from the shared sampler,
 ``--seed``), run by the deployment loop (``deploy.loop.run_episode``: NumPy policy, shared
@@ -26,7 +29,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from sagrasp_jax import extras, fileio
+from sagrasp_jax import extras, fileio, run_files
 from sagrasp_jax.config import SEED_RANGE, ConfigError, check_range
 from sagrasp_jax.deploy.safety import PolicyMismatch
 from sagrasp_jax.runtime import PolicyFormatError, load_policy
@@ -151,11 +154,15 @@ def write_png(path: str, frame: np.ndarray) -> None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m sagrasp_jax.render", description=__doc__.split("\n\n")[0])
-    p.add_argument("--policy", required=True, help="exported policy.npz")
+    source = p.add_mutually_exclusive_group(required=True)
+    source.add_argument("--run", help="a finished run folder (python -m sagrasp_jax.train --out): its policy.npz")
+    source.add_argument("--policy", help="exported policy.npz")
     p.add_argument("--out", required=True, help="video file (.mp4)")
     p.add_argument("--episodes", type=int, default=3)
     p.add_argument("--camera", default="overview", help=f"one of {', '.join(CAMERAS)}")
-    p.add_argument("--png", default=None, help="also write a still: the end of the first successful episode (else of the first)")
+    p.add_argument("--png", default=None, help="the still: the end of the first successful episode (else of the first); "
+                                                "default beside the video, same name .png")
+    p.add_argument("--no-png", action="store_true", help="write the video only")
     p.add_argument("--seed", type=int, default=0, help="scene sampling seed")
     p.add_argument("--width", type=int, default=640)
     p.add_argument("--height", type=int, default=480)
@@ -165,6 +172,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if not args.out.lower().endswith(".mp4"):
             raise RenderError(f"--out {args.out!r} must end in .mp4")
+        if args.run is not None:
+            args.policy = run_files.policy_of_run(args.run)
+        if args.no_png:
+            args.png = None
+        elif args.png is None:
+            args.png = args.out[:-4] + ".png"
         if args.width % 16 or args.height % 16 or args.width < 16 or args.height < 16:
             raise RenderError(f"--width/--height must be positive multiples of 16 (H.264 blocks), got {args.width}×{args.height}")
         check_range("--width", args.width, 16, 4096)
@@ -185,7 +198,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         write_video(args.out, frames, args.fps)
         if args.png:
             write_png(args.png, frames[still])
-    except (RenderError, PolicyFormatError, PolicyMismatch, ConfigError, OSError, extras.MissingExtra) as exc:
+    except (RenderError, PolicyFormatError, PolicyMismatch, ConfigError, OSError, extras.MissingExtra,
+            run_files.RunFolderError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     for i, r in enumerate(reports):

@@ -66,3 +66,37 @@ def test_bad_arguments_refused(tmp_path) -> None:
     assert res.returncode == 2 and "must end in .mp4" in res.stderr
     res = _render("--policy", str(tmp_path / "missing.npz"), "--out", str(tmp_path / "x.mp4"))
     assert res.returncode == 2 and "policy file not found" in res.stderr
+
+
+def test_render_a_run_folder_writes_a_video_and_a_still(tmp_path_factory: pytest.TempPathFactory, tmp_path) -> None:
+    """``--run RUN``: the run's policy.npz; the still lands beside the video by default."""
+    imageio = pytest.importorskip("imageio.v2", reason="the render extra (imageio, imageio-ffmpeg) is not installed")
+    pytest.importorskip("imageio_ffmpeg", reason="the render extra (imageio, imageio-ffmpeg) is not installed")
+    why = _egl_works()
+    if why:
+        pytest.skip(f"no offscreen GL backend (MUJOCO_GL=egl failed: {why})")
+    run = tiny_run(str(tmp_path_factory.getbasetemp()))
+    res = _render("--run", run, "--out", str(tmp_path / "rollout.mp4"), "--episodes", "1", "--max-steps", "3",
+                  "--width", "160", "--height", "128")
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert sorted(os.listdir(tmp_path)) == ["rollout.mp4", "rollout.png"]
+    assert len(imageio.mimread(str(tmp_path / "rollout.mp4"), memtest=False)) == 10 + 3 + 10
+    assert imageio.imread(str(tmp_path / "rollout.png")).shape == (128, 160, 3)
+
+
+def test_run_folders_render_cannot_use_are_refused(tmp_path) -> None:
+    """A seed group, a run without its final policy, a folder that is no run: exit 2 saying what to pass."""
+    (tmp_path / "group" / "seed0").mkdir(parents=True)
+    (tmp_path / "group" / "seed0" / "config.json").write_text("{}")
+    (tmp_path / "stopped").mkdir()
+    (tmp_path / "stopped" / "config.json").write_text("{}")
+    (tmp_path / "other").mkdir()
+    for folder, message in (("group", "is a seed group (1 seeds): pass one seed's folder, e.g. "),
+                            ("stopped", "has no policy.npz (a training writes it when it finishes); for a stopped run "
+                                        "export its latest checkpoint: python -m sagrasp_jax.export --run "),
+                            ("other", "is not a run folder (no config.json"), ("missing", "not found")):
+        res = _render("--run", str(tmp_path / folder), "--out", str(tmp_path / "v.mp4"))
+        assert res.returncode == 2 and message in res.stderr and "Traceback" not in res.stderr, res.stderr
+    res = _render("--run", str(tmp_path / "stopped"), "--policy", "p.npz", "--out", str(tmp_path / "v.mp4"))
+    assert res.returncode == 2 and "not allowed with argument" in res.stderr
+    assert sorted(os.listdir(tmp_path)) == ["group", "other", "stopped"]
