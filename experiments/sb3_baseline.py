@@ -83,9 +83,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def with_task_metrics(env: Any) -> Any:
-    """Wrap a reference env so its episode metrics move to ``info["task_episode"]``
-    (SB3's VecMonitor owns ``info["episode"]``), and its timeouts count as terminal as in the
-    paper's setup (the −1 is the task's verdict, docs/task.md §2.7): the env reports them as
+    """Wrap a reference env so its timeouts count as terminal as in the
+    paper's setup (its episode metrics are ``info["task_episode"]``: SB3's VecMonitor owns ``info["episode"]``) (the −1 is the task's verdict, docs/task.md §2.7): the env reports them as
     ``truncated`` (Gymnasium's convention), which SB3 would bootstrap."""
     import gymnasium as gym
 
@@ -93,8 +92,6 @@ def with_task_metrics(env: Any) -> Any:
         def step(self, action: Any) -> Any:
             obs, reward, terminated, truncated, info = self.env.step(action)
             terminated, truncated = terminated or truncated, False
-            if "episode" in info:
-                info["task_episode"] = info.pop("episode")
             return obs, reward, terminated, truncated, info
 
     return TaskMetrics(env)

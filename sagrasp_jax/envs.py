@@ -12,10 +12,14 @@ wrappers) and ``brax.training.acting.generate_unroll`` run the task correctly:
   done episode restarts with its own counters, never with the old episode's.
 * **Restarts are fresh scenes.**  brax restores each slot's *first* reset, which would replay one
   scene forever (docs/task.md §2.9).  The adapter keeps a never-played start in the wrapper's
-  ``info["first_pipeline_state"]`` / ``info["first_obs"]`` instead: whenever the state it steps
-  is such a start (``pipeline_state["pending"]``), it draws the next one from its own key chain
-  (``info["reset_key"]``).  Under ``vmap`` the draw is a select, so it costs a reset per step;
-  ``wrappers.AutoReset`` (the project trainer's) refills lazily instead.
+  ``info["first_pipeline_state"]`` / ``info["first_obs"]`` instead (MuJoCo Playground's
+  ``BraxAutoResetWrapper``: ``info["AutoResetWrapper_first_data"]`` / ``..._first_obs``): whenever
+  the state it steps is such a start (``pipeline_state["pending"]``), it draws the next one from its
+  own key chain (``info["reset_key"]``).  Under ``vmap`` the draw is a select, so it costs a reset per
+  step; ``wrappers.AutoReset`` (the project trainer's) refills lazily instead.
+* **MuJoCo Playground** (``mujoco_playground.wrapper.wrap_for_brax_training``, PyPI ``playground``,
+  the ``playground`` extra): its wrappers read and replace the physics as ``state.data``, brax's as
+  ``state.pipeline_state``; the states here (:class:`GraspState`) answer to both names.
 * **Stable dtypes and keys.**  The top-level ``info`` holds only what survives restarts
   (``reset_key``, ``progress``, the finished ``episode`` metrics), so brax's ``EpisodeWrapper``
   owns ``info["steps"]`` (float32) and ``info["truncation"]`` without a clash with
@@ -46,6 +50,7 @@ import sagrasp_jax  # noqa: F401  (XLA flags before jax)
 import jax
 import jax.numpy as jnp
 from brax.envs.base import Env, State
+from flax import struct
 
 from sagrasp_jax import config as config_mod
 from sagrasp_jax.env import GraspEnv
@@ -55,6 +60,28 @@ from sagrasp_jax.episode import EPISODE_KEYS
 ENVS = {"grasp-kinematic": "kinematic", "grasp-dynamic": "dynamic", "grasp-lagged": "lagged"}
 BRAX_NAMES = {name: "sagrasp_" + name.replace("-", "_") for name in ENVS}  # ids in brax's own registry
 INNER_KEYS_ON_TOP = ("progress",)  # GraspEnv info keys the adapter keeps at the top level
+# (pipeline state, observation) info keys where an auto-reset wrapper keeps the start it restores:
+# brax's AutoResetWrapper, MuJoCo Playground's BraxAutoResetWrapper
+FIRST_STATE_KEYS = (("first_pipeline_state", "first_obs"), ("AutoResetWrapper_first_data", "AutoResetWrapper_first_obs"))
+
+
+@struct.dataclass
+class GraspState(State):
+    """brax's ``State`` that also answers to MuJoCo Playground's name for the physics, ``data``
+    (read and ``replace(data=...)``), so Playground's wrappers run the env unchanged."""
+
+    @property
+    def data(self) -> Any:
+        return self.pipeline_state
+
+
+def _replace(self: GraspState, **changes: Any) -> GraspState:
+    if "data" in changes:
+        changes["pipeline_state"] = changes.pop("data")
+    return dataclasses.replace(self, **changes)
+
+
+GraspState.replace = _replace  # after the decorator, which installs flax's own replace
 
 
 class BraxGraspEnv(Env):
@@ -86,19 +113,20 @@ class BraxGraspEnv(Env):
         inner = self.inner.reset(key_start)
         zero = inner.reward
         info = {"reset_key": key_chain, "progress": zero, "episode": {k: zero for k in EPISODE_KEYS}}
-        return State(pipeline_state=self._pack(inner, pending=True), obs=self._obs(inner), reward=zero,
-                     done=inner.done, metrics=dict(inner.metrics), info=info)
+        return GraspState(pipeline_state=self._pack(inner, pending=True), obs=self._obs(inner), reward=zero,
+                          done=inner.done, metrics=dict(inner.metrics), info=info)
 
     def step(self, state: State, action: jax.Array) -> State:
         info = dict(state.info)
-        if "first_pipeline_state" in info:  # under brax's AutoResetWrapper: keep a never-played start there
-            pending = state.pipeline_state["pending"]
-            key_chain, key_start = jax.random.split(info["reset_key"])
-            fresh = self.inner.reset(key_start)
-            keep = lambda new, old: jax.tree.map(lambda a, b: jnp.where(pending, a, b), new, old)  # noqa: E731
-            info["first_pipeline_state"] = keep(self._pack(fresh, pending=True), info["first_pipeline_state"])
-            info["first_obs"] = keep(self._obs(fresh), info["first_obs"])
-            info["reset_key"] = jnp.where(pending, key_chain, info["reset_key"])
+        for first_state, first_obs in FIRST_STATE_KEYS:
+            if first_state in info:  # under an auto-reset wrapper: keep a never-played start there
+                pending = state.pipeline_state["pending"]
+                key_chain, key_start = jax.random.split(info["reset_key"])
+                fresh = self.inner.reset(key_start)
+                keep = lambda new, old: jax.tree.map(lambda a, b: jnp.where(pending, a, b), new, old)  # noqa: E731
+                info[first_state] = keep(self._pack(fresh, pending=True), info[first_state])
+                info[first_obs] = keep(self._obs(fresh), info[first_obs])
+                info["reset_key"] = jnp.where(pending, key_chain, info["reset_key"])
         inner = self._unpack(state, info)
         nxt = self.inner.step(inner, action)
         info["episode"] = nxt.info["episode"]

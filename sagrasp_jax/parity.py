@@ -51,6 +51,7 @@ if __name__ == "__main__":  # a missing extra ends in one line naming it (exit 2
 import numpy as np  # noqa: E402
 
 from sagrasp_jax import fileio, robot, sampling, scripted, shapes
+from sagrasp_jax.reference import EPISODE_INFO
 from sagrasp_jax.episode import EPISODE_KEYS
 from sagrasp_jax.config import Config, ConfigError, EnvConfig, apply_overrides, check_range, get_config
 
@@ -351,12 +352,12 @@ class _SourceRun:
                                            "gripper_gap": float(np.linalg.norm(j_obs[6:9] - obs[6:9]))})
             elif ok and j_flags["done"]:
                 for key in EPISODE_KEYS:
-                    diff = abs(float(jout["episode"][key][k]) - float(info["episode"][key]))
+                    diff = abs(float(jout["episode"][key][k]) - float(info[EPISODE_INFO][key]))
                     self.episode_err[key] = max(self.episode_err.get(key, 0.0), diff)
             comparing = not (j_flags["done"] or p_flags["done"])
         if term:
             for key in self.own["pybullet"]:
-                self.own["pybullet"][key].append(float(info["episode"][key]))
+                self.own["pybullet"][key].append(float(info[EPISODE_INFO][key]))
         return obs, not term, comparing, ok
 
     def _single_step(self, k: int, prev: dict[str, np.ndarray], action: np.ndarray, j_obs: np.ndarray,

@@ -1,5 +1,7 @@
 """brax's conventions kept: ``brax.envs.training.wrap`` + ``acting.generate_unroll`` run the grasp
-env through several dones with fresh restarts, stable dtypes and a fixed metric key set."""
+env through several dones with fresh restarts, stable dtypes and a fixed metric key set; so does
+MuJoCo Playground's ``wrap_for_brax_training`` (PyPI ``playground``, the ``playground`` extra; that
+case is skipped where it is not installed)."""
 
 from __future__ import annotations
 
@@ -44,10 +46,18 @@ def test_registry_and_brax_interface():
         envs.load("grasp")
 
 
-def test_training_wrap_restarts_fresh_episodes_with_stable_dtypes_and_keys():
+def _playground_wrap(env, episode_length, action_repeat):
+    wrapper = pytest.importorskip("mujoco_playground._src.wrapper",
+                                  reason='MuJoCo Playground is not installed (pip install "sagrasp_jax[playground]")')
+    return wrapper.wrap_for_brax_training(env, episode_length=episode_length, action_repeat=action_repeat)
+
+
+@pytest.mark.parametrize("wrap", [training.wrap, _playground_wrap], ids=["brax", "playground"])
+def test_training_wrap_restarts_fresh_episodes_with_stable_dtypes_and_keys(wrap):
     env = envs.load("grasp-kinematic", small_config())
-    wrapped = training.wrap(env, episode_length=1000, action_repeat=1)
+    wrapped = wrap(env, episode_length=1000, action_repeat=1)
     state = jax.jit(wrapped.reset)(jax.random.split(jax.random.PRNGKey(0), N_ENVS))
+    assert state.data is state.pipeline_state  # Playground's name for the physics
     keys0, dtypes0 = set(state.metrics), jax.tree.map(lambda x: x.dtype, state)
     unroll = jax.jit(lambda s, k: acting.generate_unroll(wrapped, s, zero_policy, k, 3 * MAX_STEPS + 2,
                                                          extra_fields=("steps", "truncation", "episode")))

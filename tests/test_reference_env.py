@@ -16,7 +16,7 @@ pytest.importorskip("pybullet")
 gym = pytest.importorskip("gymnasium")
 
 from sagrasp_jax import config, observation, robot, sampling  # noqa: E402
-from sagrasp_jax.reference import ENV_ID, ENV_IDS  # noqa: E402
+from sagrasp_jax.reference import ENV_ID, ENV_IDS, EPISODE_INFO, MAX_EPISODE_STEPS  # noqa: E402
 from sagrasp_jax.episode import EPISODE_KEYS
 from sagrasp_jax.reference.pybullet_env import PyBulletGraspEnv  # noqa: E402
 
@@ -70,6 +70,53 @@ def test_registered_per_layout_and_check_env_passes_with_its_defaults(layout):
     assert {"paper": 17, "relative": 29}.get(layout, len(observation.layout(layout))) == len(observation.layout(layout))
     if not os.environ.get("DISPLAY"):
         assert "human" not in env.unwrapped.metadata["render_modes"]
+
+
+@pytest.mark.parametrize("env_id", [*ENV_IDS.values(), ENV_ID])
+def test_gymnasium_time_limit_and_episode_statistics_on_every_id(env_id):
+    """Every registered id: TimeLimit at the env's own timeout (``max_episode_steps``), and
+    RecordEpisodeStatistics, single and vector, at the end of an episode ended by the env itself
+    (a 5-step timeout) and by a shorter TimeLimit: Gymnasium's ``info["episode"]`` is theirs, the task's
+    metrics stay under ``info["task_episode"]``."""
+    from gymnasium.wrappers import RecordEpisodeStatistics, TimeLimit
+    from gymnasium.wrappers.vector import RecordEpisodeStatistics as VectorEpisodeStatistics
+
+    assert gym.spec(env_id).max_episode_steps == MAX_EPISODE_STEPS == config.get_config("paper").env.task.max_steps
+    env = gym.make(env_id)
+    try:
+        assert isinstance(env, TimeLimit) and env.spec.max_episode_steps == MAX_EPISODE_STEPS
+    finally:
+        env.close()
+    zero = np.zeros(6, np.float32)
+    # ended by the env (its timeout): both dicts on the last step, the same return
+    env = RecordEpisodeStatistics(gym.make(env_id, cfg=env_config(max_steps=5), max_episode_steps=5))
+    try:
+        env.reset(seed=0)
+        total, steps, done = 0.0, 0, False
+        while not done:
+            _, reward, term, trunc, info = env.step(zero)
+            total, steps, done = total + reward, steps + 1, term or trunc
+        assert steps <= 5 and info["episode"]["l"] == steps and info["episode"]["r"] == pytest.approx(total)
+        assert info[EPISODE_INFO]["steps"] == steps and info[EPISODE_INFO]["return"] == pytest.approx(total, abs=1e-5)
+    finally:
+        env.close()
+    # cut by a shorter TimeLimit, then the vector wrapper over two envs
+    env = RecordEpisodeStatistics(gym.make(env_id, max_episode_steps=3))
+    try:
+        env.reset(seed=0)
+        for _ in range(3):
+            _, _, term, trunc, info = env.step(zero)
+        assert trunc and not term and info["episode"]["l"] == 3
+    finally:
+        env.close()
+    envs = VectorEpisodeStatistics(gym.make_vec(env_id, num_envs=2, vectorization_mode="sync", max_episode_steps=3))
+    try:
+        envs.reset(seed=0)
+        for _ in range(3):
+            _, _, term, trunc, info = envs.step(np.zeros((2, 6), np.float32))
+        assert np.all(term | trunc) and info["_episode"].all() and np.all(info["episode"]["l"] <= 3)
+    finally:
+        envs.close()
 
 
 def test_plain_id_is_the_paper_layout():
@@ -149,7 +196,7 @@ def test_obstacle_at_the_gripper_is_a_collision_in_both_envs():
         assert env.pybullet_distance()["obstacle_0"] < 0  # PyBullet's own geometry overlaps too
         _, rew, term, trunc, info = env.step(np.zeros(6))
         assert term and not trunc and info["collision"] and info["hits"]["obstacle"]
-        assert info["episode"]["hit_obstacle"] == 1.0 and info["episode"]["collision"] == 1.0
+        assert info[EPISODE_INFO]["hit_obstacle"] == 1.0 and info[EPISODE_INFO]["collision"] == 1.0
     finally:
         env.close()
     jax_env = GraspEnv(cfg)
@@ -176,7 +223,7 @@ def test_timeout_ends_the_episode_with_its_metrics():
             _, _, term, trunc, info = env.step(np.zeros(6))
             assert term is False  # Gymnasium's time-limit convention: a timeout truncates
             assert trunc is (t == 4)
-        ep = info["episode"]
+        ep = info[EPISODE_INFO]
         assert set(ep) == set(EPISODE_KEYS)
         assert ep["timeout"] == 1.0 and ep["steps"] == 5.0 and ep["success"] == 0.0 and info["is_success"] is False
         # zero action, no movement: the return is the weighted −1 timeout verdict alone (F_s = 0.5 + p)
@@ -237,10 +284,10 @@ def test_scripted_controller_succeeds_in_the_reference_env():
             term = trunc = False
             while not (term or trunc):
                 obs, _, term, trunc, info = env.step(scripted_actions(cfg, obs)[0])
-            successes += info["episode"]["success"] == 1.0
-            steps.append(info["episode"]["steps"])
+            successes += info[EPISODE_INFO]["success"] == 1.0
+            steps.append(info[EPISODE_INFO]["steps"])
         assert successes == 3 and max(steps) < 80
-        assert math.isfinite(info["episode"]["return"])
+        assert math.isfinite(info[EPISODE_INFO]["return"])
     finally:
         env.close()
 

@@ -8,15 +8,23 @@ added later; ``SAGrasp-PyBullet-v0`` stays the paper layout.  The ids are regist
 when gymnasium is installed (the ``reference`` extra), so ``gymnasium.make(ENV_ID)`` works
 after ``import sagrasp_jax.reference`` and ``gymnasium.make("sagrasp_jax.reference:SAGrasp-PyBullet-v0")``
 works without it.  Timeouts end an episode with ``truncated=True`` (Gymnasium's time-limit
-convention; the −1 timeout reward is still paid, docs/task.md §2.7).  PyBullet itself is imported
-only when an env is built.  Nothing here imports jax.
+convention; the −1 timeout reward is still paid, docs/task.md §2.7); each id registers
+``max_episode_steps`` = the paper preset's ``env.task.max_steps``, the step the env's own timeout
+ends it on, so ``gymnasium.wrappers.TimeLimit`` agrees with it (an env made with another
+``cfg.task.max_steps`` passes ``max_episode_steps=`` to ``gymnasium.make`` too).  The finished
+episode's task metrics are ``info["task_episode"]`` (``EPISODE_INFO``) on its last step:
+``info["episode"]`` belongs to Gymnasium's ``RecordEpisodeStatistics`` (and SB3's Monitor).
+PyBullet itself is imported only when an env is built.  Nothing here imports jax.
 """
 
 from __future__ import annotations
 
+from sagrasp_jax.config import get_config
 from sagrasp_jax.observation import LAYOUT_NAMES
 
 ENV_ID = "SAGrasp-PyBullet-v0"  # the paper layout
+EPISODE_INFO = "task_episode"  # info key of a finished episode's task metrics (episode.EPISODE_KEYS)
+MAX_EPISODE_STEPS = get_config("paper").env.task.max_steps  # the registered TimeLimit: the env's own timeout
 ENTRY_POINT = "sagrasp_jax.reference.pybullet_env:PyBulletGraspEnv"
 
 
@@ -33,7 +41,7 @@ except ImportError:  # pragma: no cover - the reference extra is not installed
     _gym = None
 
 if _gym is not None:
-    # No max_episode_steps: the env ends its own episodes (env.task.max_steps, truncated at the timeout).
     for _name, _id in {**ENV_IDS, ENV_ID: ENV_ID}.items():
         if _id not in _gym.registry:
-            _gym.register(id=_id, entry_point=ENTRY_POINT, kwargs={"obs_layout": "paper" if _id == ENV_ID else _name})
+            _gym.register(id=_id, entry_point=ENTRY_POINT, max_episode_steps=MAX_EPISODE_STEPS,
+                          kwargs={"obs_layout": "paper" if _id == ENV_ID else _name})

@@ -60,6 +60,7 @@ try:
 except ImportError:  # the twin uses this module's PyBullet helpers without gymnasium
     gym = spaces = None
 
+from sagrasp_jax.reference import EPISODE_INFO
 from sagrasp_jax import assets, collision, config, control, episode, fileio, observation, reward, robot, sampling, shapes
 from sagrasp_jax.config import EnvConfig
 from sagrasp_jax.robot import BOX, CAPSULE, CYLINDER, SPHERE, Kinematics
@@ -537,7 +538,8 @@ class PyBulletGraspEnv(gym.Env if gym is not None else object):  # type: ignore[
             "q_target": self._q_target.copy(),
         }
         if self._done:
-            info["episode"] = {k: float(v) for k, v in step.episode.items()}
+            # not info["episode"]: Gymnasium's RecordEpisodeStatistics (and SB3's Monitor) own that key
+            info[EPISODE_INFO] = {k: float(v) for k, v in step.episode.items()}
             info["is_success"] = bool(outcome.success)  # what Stable-Baselines3 logs as success rate
         if self.render_mode == "human":
             self.render()
