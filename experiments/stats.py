@@ -1,6 +1,7 @@
 """Statistics across seeds for the studies (``experiments.study``): means with 95 % Student-t
-intervals, paired t-tests against a reference variant, first crossings of success levels and
-curve bands.  NumPy only (no jax), so the SB3 worker of ``bench_vs_paper_stack`` can use it too.
+intervals, paired t-tests against a reference variant, binomial rates, first crossings of success
+levels and curve bands.  The distributions are SciPy's (``scipy.stats``; SciPy comes with jax), imported
+on first use, so the SB3 worker of ``bench_vs_paper_stack`` (``first_reach`` only) needs NumPy alone.
 """
 
 from __future__ import annotations
@@ -11,15 +12,13 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-# t_{0.975, df} for df = 1..30 (95 % two-sided); larger df use 1.96.
-_T975 = (12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228, 2.201, 2.179, 2.160, 2.145,
-         2.131, 2.120, 2.110, 2.101, 2.093, 2.086, 2.080, 2.074, 2.069, 2.064, 2.060, 2.056, 2.052, 2.048,
-         2.045, 2.042)
 
+def t975(df: Any) -> Any:
+    """Two-sided 95 % Student-t quantile t_{0.975, df} (``scipy.stats.t.ppf``; df may be an array)."""
+    from scipy import stats as sps
 
-def t975(df: int) -> float:
-    """Two-sided 95 % Student-t quantile."""
-    return _T975[df - 1] if 1 <= df <= len(_T975) else 1.959964
+    q = sps.t.ppf(0.975, df)
+    return float(q) if np.ndim(q) == 0 else q
 
 
 def mean_ci(values: Sequence[float | None]) -> dict[str, Any]:
@@ -40,47 +39,28 @@ def summarise(per_seed: list[dict[str, Any]]) -> dict[str, Any]:
     return {k: mean_ci([p.get(k) for p in per_seed]) for k in keys}
 
 
-def _betacf(a: float, b: float, x: float) -> float:
-    """Continued fraction of the regularised incomplete beta function (modified Lentz)."""
-    tiny, qab, qap, qam = 1e-300, a + b, a + 1.0, a - 1.0
-    c, d = 1.0, 1.0 - qab * x / qap
-    d = 1.0 / (d if abs(d) > tiny else tiny)
-    h = d
-    for m in range(1, 300):
-        m2 = 2 * m
-        for aa in (m * (b - m) * x / ((qam + m2) * (a + m2)), -(a + m) * (qab + m) * x / ((a + m2) * (qap + m2))):
-            d = 1.0 + aa * d
-            d = 1.0 / (d if abs(d) > tiny else tiny)
-            c = 1.0 + aa / c
-            c = c if abs(c) > tiny else tiny
-            h *= d * c
-        if abs(d * c - 1.0) < 1e-15:
-            break
-    return h
-
-
-def betainc(a: float, b: float, x: float) -> float:
-    """Regularised incomplete beta I_x(a, b)."""
-    if x <= 0.0:
-        return 0.0
-    if x >= 1.0:
-        return 1.0
-    front = math.exp(math.lgamma(a + b) - math.lgamma(a) - math.lgamma(b) + a * math.log(x) + b * math.log1p(-x))
-    if x < (a + 1.0) / (a + b + 2.0):
-        return front * _betacf(a, b, x) / a
-    return 1.0 - front * _betacf(b, a, 1.0 - x) / b
-
-
 def t_test_p(t: float, df: int) -> float:
-    """Two-sided p of Student's t with ``df`` degrees of freedom."""
+    """Two-sided p of Student's t with ``df`` degrees of freedom (``scipy.stats.t.sf``)."""
+    from scipy import stats as sps
+
     if not math.isfinite(t):
         return 0.0
-    return betainc(0.5 * df, 0.5, df / (df + t * t))
+    return float(2.0 * sps.t.sf(abs(t), df))
+
+
+def rate_at_least(p: float, n: int, level: float) -> float:
+    """P(successes / n ≥ level) for n episodes of true success rate p (binomial; ``scipy.stats.binom``):
+    how likely one seed's measured rate clears a target when its true rate is p."""
+    from scipy import stats as sps
+
+    k = math.ceil(level * n - 1e-9)  # the fewest successes that reach the level
+    return float(sps.binom.sf(k - 1, n, p))
 
 
 def paired(a: Sequence[float | None], b: Sequence[float | None], larger_is_better: bool = True) -> dict[str, Any]:
     """Paired comparison of ``a`` − ``b`` over the seeds where both have a value: mean difference,
-    95 % t-interval, paired t-test two-sided p, and how many seeds ``a`` wins / ties / loses."""
+    95 % t-interval, paired t-test two-sided p (``scipy.stats.ttest_rel``), and how many seeds ``a``
+    wins / ties / loses."""
     pairs = [(x, y) for x, y in zip(a, b) if x is not None and y is not None and math.isfinite(x) and math.isfinite(y)]
     diffs = [x - y for x, y in pairs]
     out: dict[str, Any] = {"n": len(diffs), "mean_diff": None, "ci95": [None, None], "t": None, "p": None,
@@ -102,8 +82,10 @@ def paired(a: Sequence[float | None], b: Sequence[float | None], larger_is_bette
     if sd == 0.0:
         out["p"] = 1.0 if mean == 0.0 else 0.0  # every seed the same difference: t is infinite (not JSON), p 0
     else:
-        out["t"] = mean / (sd / math.sqrt(n))
-        out["p"] = t_test_p(out["t"], n - 1)
+        from scipy import stats as sps
+
+        test = sps.ttest_rel([x for x, _ in pairs], [y for _, y in pairs])
+        out["t"], out["p"] = float(test.statistic), float(test.pvalue)
     return out
 
 
@@ -171,7 +153,7 @@ def band(y: np.ndarray, kind: str = "t95") -> tuple[np.ndarray, np.ndarray, np.n
         if kind == "minmax":
             return mean, np.nanmin(y, axis=0), np.nanmax(y, axis=0)
         sd = np.nanstd(y, axis=0, ddof=1) if y.shape[0] > 1 else np.zeros_like(mean)
-        t = np.asarray([t975(int(k) - 1) if k > 1 else 0.0 for k in n])
+        t = np.where(n > 1, t975(np.maximum(n - 1, 1)), 0.0)
         half = np.where(n > 1, t * sd / np.sqrt(np.maximum(n, 1)), 0.0)
     return mean, mean - half, mean + half
 

@@ -22,7 +22,7 @@ repository root as ``python -m experiments.NAME`` (``experiments`` is a package:
   ``config.EVAL_CONDITIONS`` condition (what ``python -m sagrasp_jax.evaluate --condition NAME`` plays),
   and ``--condition NAME`` adds such an evaluation to every study.  The record is saved in the run
   folder and re-used while its identity (episode counts, conditions) is unchanged.
-* **Summaries** (``experiments.stats``, NumPy only): ``mean_ci`` (mean, 95 % Student-t interval
+* **Summaries** (``experiments.stats``, SciPy's distributions): ``mean_ci`` (mean, 95 % Student-t interval
   across seeds), ``paired`` (paired t-test against a reference variant, seed by seed), curve bands.
 * **JSON** through ``sagrasp_jax.fileio`` (``write_json``: atomic, sorted keys, no NaN).
 """

@@ -13,9 +13,12 @@ p = env steps done / ``train.total_steps`` (the progress the reward weights read
 schedule starts at ``ppo.learning_rate``.
 
 Pure functions over a typed :class:`ScheduleState` (a NamedTuple, like brax's training
-states), host-side and jax-free, with the two per-step rules written for any array module
-(``progress_lr(xp, …)``, ``kl_adaptive_lr(xp, …)``: numpy on the host and in the tests,
-jax.numpy for ``kl_adaptive_lr`` inside the jitted cycle, ``ppo.sgd_epochs``).  The trainer calls
+states), host-side, with the two per-step rules for any array module (``progress_lr(xp, …)``,
+``kl_adaptive_lr(xp, …)``: numpy on the host and in the tests, jax.numpy for ``kl_adaptive_lr``
+inside the jitted cycle, ``ppo.sgd_epochs``).  ``cosine`` and ``linear`` are optax's
+``cosine_decay_schedule`` and ``linear_schedule`` over progress (one "step" = the whole budget):
+the same maths as the formulas they replaced (lr_f + (lr0 − lr_f)·(1 + cos πp)/2, lr0 + (lr_f − lr0)·p),
+equal within float32 rounding (a few ulp; ``tests/test_lr_schedule.py``), not bit for bit.  The trainer calls
 
 * :func:`iteration_lrs` before a jitted call: the lr of each of its iterations (used by the
   ``per_iteration`` schedules; the others keep the optimizer's lr);
@@ -35,9 +38,10 @@ continues exactly, whatever the schedule.
 from __future__ import annotations
 
 import math
-from typing import Any, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import numpy as np
+import optax
 
 from sagrasp_jax import sa_schedule
 from sagrasp_jax.config import LR_SCHEDULES, Config, SAConfig
@@ -113,14 +117,23 @@ class CycleOutcome(NamedTuple):
 
 # ------------------------------------------------------------------ the per-step rules (any array module)
 
-def progress_lr(xp: Any, rule: Rule, progress: Any) -> Any:
-    """The lr at training progress p ∈ [0, 1] (clipped): cosine lr_f + (lr0 − lr_f)·(1 + cos πp)/2,
-    linear lr0 + (lr_f − lr0)·p; any other schedule starts at lr0 and this returns lr0."""
-    p = xp.clip(xp.asarray(progress, dtype=xp.float32), 0.0, 1.0)
+def optax_schedule(rule: Rule) -> Callable[[Any], Any] | None:
+    """optax's schedule of ``rule`` over progress p ∈ [0, 1] (``None`` for schedules that are not a function of p):
+    cosine lr_f + (lr0 − lr_f)·(1 + cos πp)/2, linear lr0 + (lr_f − lr0)·p (a warm-up when lr_f > lr0)."""
     if rule.name == "cosine":
-        return rule.final + (rule.lr0 - rule.final) * 0.5 * (1.0 + xp.cos(math.pi * p))
+        return optax.cosine_decay_schedule(rule.lr0, decay_steps=1, alpha=rule.final / rule.lr0)
     if rule.name == "linear":
-        return rule.lr0 + (rule.final - rule.lr0) * p
+        return optax.linear_schedule(rule.lr0, rule.final, transition_steps=1)
+    return None
+
+
+def progress_lr(xp: Any, rule: Rule, progress: Any) -> Any:
+    """The lr (float32, an ``xp`` array) at training progress p ∈ [0, 1] (clipped): ``optax_schedule``'s for
+    cosine and linear; any other schedule starts at lr0 and this returns lr0."""
+    p = xp.clip(xp.asarray(progress, dtype=xp.float32), 0.0, 1.0)
+    schedule = optax_schedule(rule)
+    if schedule is not None:
+        return xp.asarray(schedule(p), dtype=xp.float32)
     return xp.full_like(p, rule.lr0)
 
 
