@@ -744,7 +744,8 @@ def _as_overrides(flat: dict[str, Any], where: str) -> list[str]:
 
 # A --config file and a saved config.json are read within these bounds (refused, ConfigError / RunDirError,
 # beyond them): a config is a few kB with keys three sections deep.
-MAX_CONFIG_BYTES = 1 << 20  # 1 MiB, checked before the file is read
+MAX_CONFIG_BYTES = 256 << 10  # 256 KiB, 50 full configs; checked before the file is read (pure-Python YAML
+# takes a few seconds for this much)
 MAX_CONFIG_DEPTH = 32  # nested mappings and lists
 MAX_NUMBER_DIGITS = 64  # digits of an integer literal (Python's own int() stops at 4,300 with a ValueError)
 _JSON_TYPES = (str, int, float, bool, type(None))
@@ -800,6 +801,12 @@ def _yaml_loader() -> type:
                 raise yaml.composer.ComposerError(None, None, f"an alias (*{event.anchor}) is not allowed in a config "
                                                   "file: write the value out", event.start_mark)
             return super().compose_node(parent, index)
+
+        def fetch_flow_collection_start(self, token_class: Any) -> None:
+            if self.flow_level >= MAX_CONFIG_DEPTH:  # refused while scanning: its simple-key table grows as depth²
+                raise yaml.scanner.ScannerError(None, None, f"nested deeper than {MAX_CONFIG_DEPTH} levels",
+                                                self.get_mark())
+            super().fetch_flow_collection_start(token_class)
 
         def construct_yaml_int(self, node: Any) -> int:
             digits = sum(c.isdigit() for c in str(node.value))
