@@ -56,13 +56,22 @@ BAD_INTS = ("nan", "inf", "-inf", str(10**30))
 # ---------------------------------------------------------------------- helpers
 
 def snapshot(folder: str) -> dict[str, tuple[int, str]]:
-    """Every file below ``folder``: (mtime_ns, sha256), to assert that nothing changed."""
+    """Every file below ``folder``: (mtime_ns, sha256), to assert that nothing changed; a symlink or a
+    FIFO, device or socket as (mtime_ns, what it is), never opened."""
+    import stat
+
     out = {}
-    for root, _, files in os.walk(folder):
-        for name in files:
+    for root, dirs, files in os.walk(folder):
+        for name in files + [d for d in dirs if os.path.islink(os.path.join(root, d))]:
             path = os.path.join(root, name)
-            with open(path, "rb") as f:
-                out[os.path.relpath(path, folder)] = (os.stat(path).st_mtime_ns, hashlib.sha256(f.read()).hexdigest())
+            st = os.lstat(path)
+            if stat.S_ISLNK(st.st_mode):
+                out[os.path.relpath(path, folder)] = (st.st_mtime_ns, f"link to {os.readlink(path)}")
+            elif not stat.S_ISREG(st.st_mode):
+                out[os.path.relpath(path, folder)] = (st.st_mtime_ns, fileio.file_kind(st.st_mode))
+            else:
+                with open(path, "rb") as f:
+                    out[os.path.relpath(path, folder)] = (st.st_mtime_ns, hashlib.sha256(f.read()).hexdigest())
     return out
 
 
@@ -948,3 +957,336 @@ def test_27_11_an_empty_hidden_layer_list_is_refused(tmp_path, capsys, monkeypat
         code, _, err = call(train.main, ["--out", out, "--no-progress", "--set", f"{key}="], capsys)
         assert code == 2 and f"{key} is empty: give at least one hidden layer width" in err and "Traceback" not in err
     assert not os.path.exists(out)
+
+
+# ====================================================================== issue 40
+# The input surfaces added in issue 27's round and files that are not files: 1-4 --config files (digits,
+# nesting, YAML types, devices and alias bombs), 5 --seeds, 6 output paths that are devices or FIFOs,
+# 7 sysid on a log it cannot fit, 8 an evaluation output that is a FIFO, 9 run-folder inputs that are FIFOs;
+# and a symlinked tb/, a coordinator that is never reached, a policy file without its clearance key.
+
+LEGACY_RUN = os.path.join(REPO, "tests", "data", "legacy_v0_1")
+
+
+@contextlib.contextmanager
+def _fifo(path: str) -> typing.Iterator[str]:
+    """A FIFO at ``path``.  Should the code under test open it after all, a watchdog opens the other end
+    after 10 s so that the open returns: the test then fails on its time or message instead of hanging."""
+    import threading
+
+    os.mkfifo(path)
+    stop = threading.Event()
+
+    def release() -> None:
+        if stop.wait(10.0):
+            return
+        while not stop.is_set():
+            for flags in (os.O_WRONLY | os.O_NONBLOCK, os.O_RDONLY | os.O_NONBLOCK):
+                with contextlib.suppress(OSError):
+                    os.close(os.open(path, flags))
+            stop.wait(0.1)
+
+    watchdog = threading.Thread(target=release, daemon=True)
+    watchdog.start()
+    try:
+        yield path
+    finally:
+        stop.set()
+        watchdog.join()
+
+
+def _billion_laughs() -> str:
+    text = 'a: &a ["lol","lol","lol","lol","lol","lol","lol","lol","lol"]\n'
+    for prev, cur in zip("abcdefgh", "bcdefghi"):
+        text += f"{cur}: &{cur} [{','.join([f'*{prev}'] * 9)}]\n"
+    return text
+
+
+# (file name, content, what the message says); the content of a device or FIFO case is the special file it is
+CONFIG_FILE_CASES = [
+    ("digits.json", '{"ppo": {"num_envs": 1' + "0" * 5000 + "}}", "not valid JSON (an integer of 5001 digits (at most 64))"),
+    ("deep.json", "[" * 100_000 + "]" * 100_000, "not valid JSON (nested deeper than 32 levels)"),
+    ("deep-objects.json", '{"a":' * 40_000 + "1" + "}" * 40_000, "nested deeper than 32 levels"),
+    ("set.yaml", "ppo: !!set {a, b}\n", "tag tag:yaml.org,2002:set is not allowed in a config file"),
+    ("date.yaml", "env: {task: {max_steps: 2001-12-14}}\n", "bad value '2001-12-14' for env.task.max_steps (int)"),
+    ("laughs.yaml", _billion_laughs(), "an alias (*a) is not allowed in a config file"),
+    ("deep.yaml", "a: " + "[" * 100_000 + "]" * 100_000 + "\n", "nested deeper than 32 levels"),
+    ("big.json", '{"train.seed": 1, "x": "' + "a" * (config_mod.MAX_CONFIG_BYTES + 1) + '"}',
+     f"bytes, over the {config_mod.MAX_CONFIG_BYTES} bytes a config file may hold; not read"),
+    ("null.json", "/dev/null", "is a character device, not a regular file"),
+    ("fifo.json", "FIFO", "is a FIFO (named pipe), not a regular file"),
+]
+
+
+@pytest.mark.parametrize("name,content,message", CONFIG_FILE_CASES, ids=[c[0] for c in CONFIG_FILE_CASES])
+def test_40_1_2_3_4_config_files_beyond_their_bounds_are_refused(name, content, message, run_copy, tmp_path, capsys,
+                                                                    monkeypatch):
+    if name.endswith(".yaml"):
+        pytest.importorskip("yaml")
+    monkeypatch.setattr(train, "Trainer", lambda *a, **k: pytest.fail("the env was built before refusing"))
+    path = str(tmp_path / name)
+    with contextlib.ExitStack() as stack:
+        if content == "FIFO":
+            stack.enter_context(_fifo(path))
+        elif content.startswith("/dev/"):
+            os.symlink(content, path)
+        else:
+            with open(path, "w") as f:
+                f.write(content)
+        before = snapshot(run_copy)
+        out, result = str(tmp_path / "fresh"), str(tmp_path / "e.json")
+        for main, argv in [(train.main, ["--out", out, "--no-progress", "--config", path]),
+                           (evaluate.main, ["--run", run_copy, "--episodes", "8", "--out", result, "--config", path])]:
+            t = time.monotonic()
+            code, _, err = call(main, argv, capsys)
+            assert code == 2 and message in err and "Traceback" not in err, err
+            assert time.monotonic() - t < 5.0, name
+        assert not os.path.exists(out) and not os.path.exists(result) and snapshot(run_copy) == before
+
+
+def _bounded_python(code: str, memory: int = 1 << 30) -> subprocess.CompletedProcess:
+    """``code`` in a jax-free Python process capped at ``memory`` bytes of address space and 60 s: a
+    regression that reads without bound fails here instead of filling this machine's memory."""
+    cap = f"import resource\nresource.setrlimit(resource.RLIMIT_AS, ({memory}, {memory}))\n"
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([REPO, *filter(None, [os.environ.get("PYTHONPATH")])]))
+    return subprocess.run([sys.executable, "-c", cap + code], capture_output=True, text=True, timeout=60, cwd=REPO,
+                          env=env)
+
+
+def test_40_4_dev_zero_and_a_billion_laughs_are_refused_in_bounded_memory(tmp_path):
+    pytest.importorskip("yaml")
+    zero, laughs = str(tmp_path / "z.json"), str(tmp_path / "laughs.yaml")
+    os.symlink("/dev/zero", zero)
+    with open(laughs, "w") as f:
+        f.write(_billion_laughs())
+    probe = ("import time\nfrom sagrasp_jax import config\n"
+             "for path in {paths!r}:\n"
+             "    t = time.monotonic()\n"
+             "    try:\n        config.file_overrides(path)\n    except config.ConfigError as exc:\n"
+             "        print(f'{{time.monotonic() - t:.3f}} {{exc}}'.splitlines()[0])\n")
+    res = _bounded_python(probe.format(paths=[zero, laughs]))
+    assert res.returncode == 0 and "Traceback" not in res.stderr, res.stderr[-2000:]
+    (t_zero, zero_msg), (t_laughs, laughs_msg) = [line.split(" ", 1) for line in res.stdout.splitlines()]
+    assert zero_msg == f"--config {zero} is a character device, not a regular file"
+    assert "an alias (*a) is not allowed in a config file" in laughs_msg
+    assert float(t_zero) < 1.0 and float(t_laughs) < 1.0
+
+
+@pytest.mark.parametrize("seeds,message", [
+    ("0-100000", f"--seeds '0-100000': more than {train.MAX_SEEDS} seeds"),
+    ("0-999", f"--seeds '0-999': more than {train.MAX_SEEDS} seeds"),
+    (",".join(["7"] * 200_000), f"more than {train.MAX_SEEDS} seeds"),
+    ("0-4294967296", "--seeds=4294967296 is outside the allowed range [0, 4294967295]"),
+    ("1-" + "9" * 5000, "is not a seed or a range A-B of seeds"),
+    ("0-4,3", "--seeds: seed 3 given twice"),
+])
+def test_40_5_seed_lists_are_bounded_and_refused_before_any_folder(seeds, message, tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(train, "Trainer", lambda *a, **k: pytest.fail("the env was built before refusing"))
+    out = str(tmp_path / "group")
+    t = time.monotonic()
+    code, _, err = call(train.main, ["--out", out, "--no-progress", "--seeds", seeds], capsys)
+    assert code == 2 and message in err and "Traceback" not in err, err
+    assert time.monotonic() - t < 2.0 and not os.path.exists(out)
+    assert train.parse_seeds(f"0-{train.MAX_SEEDS - 1}") == list(range(train.MAX_SEEDS))  # the bound itself trains
+    with pytest.raises(config_mod.ConfigError, match="seed 5 given twice"):  # the duplicate check is linear
+        train.check_seeds(list(range(train.MAX_SEEDS - 1)) + [5])
+
+
+def _servo_log(latency: float = 1.0, steps: int = 300, offset: float = 0.0, seed: int = 0) -> Any:
+    """A log of the lagged servo model itself (random-walk commands), any latency, no noise."""
+    from sagrasp_jax import control, sysid
+    from sagrasp_jax.config import ControlConfig
+
+    cfg = ControlConfig()
+    rng = np.random.default_rng(seed)
+    command = np.cumsum(rng.uniform(-0.04, 0.04, (steps, 6)), axis=0)
+    queue = np.zeros((control.latency_queue_size(latency) or 1, 6))
+    x = x_prev = np.zeros(6)
+    readings = np.empty((steps, 6))
+    gain = np.asarray(cfg.lag_gain)
+    for t in range(steps):
+        readings[t] = x + offset
+        queue = np.concatenate([command[t][None], queue[:-1]])
+        c, p, f = control.delayed_commands(np, queue, latency) if latency else (command[t], command[t], 0.0)
+        w = control.held_command_weight(np, f, gain)
+        x, x_prev = control.servo_model_step(np, cfg, x, x_prev, (1 - w) * c + w * p, gain), x
+    return sysid.RobotLog(np.arange(steps) * cfg.control_dt, command, readings)
+
+
+def _write_log(path: str, log: Any) -> str:
+    from sagrasp_jax import sysid
+
+    with open(path, "w") as f:
+        f.write(",".join(sysid.COLUMNS) + "\n")
+        for t, c, y in zip(log.time, log.command, log.measured):
+            f.write(",".join(repr(float(v)) for v in [t, *c, *y]) + "\n")
+    return path
+
+
+def test_40_6_8_outputs_that_are_devices_or_fifos_are_refused(run_copy, tmp_path, capsys, monkeypatch):
+    from sagrasp_jax import sysid
+
+    monkeypatch.setattr(evaluate, "evaluate_run", lambda *a, **k: pytest.fail("evaluated before refusing"))
+    log = _write_log(str(tmp_path / "log.csv"), _servo_log())
+    results = tmp_path / "results"
+    results.mkdir()
+    with _fifo(str(results / "f.json")) as fifo, _fifo(str(results / "v.mp4")) as video:
+        before, before_run = snapshot(str(tmp_path)), snapshot(run_copy)
+        for main, argv, message in [
+            (sysid.main, ["--log", log, "--out", "/dev/full"], "cannot write /dev/full: it is a character device"),
+            (sysid.main, ["--log", log, "--out", fifo], f"cannot write {fifo}: it is a FIFO (named pipe)"),
+            (evaluate.main, ["--run", run_copy, "--episodes", "8", "--out", fifo], f"cannot write {fifo}: it is a FIFO"),
+            (evaluate.main, ["--run", run_copy, "--episodes", "8", "--out", "/dev/full"], "it is a character device"),
+            (render.main, ["--policy", run_dir.path(run_copy, run_dir.POLICY_FILE), "--out", video], "it is a FIFO"),
+        ]:
+            t = time.monotonic()
+            code, out, err = call(main, argv, capsys)
+            assert code == 2 and message in err and "Traceback" not in err and "written" not in out, (argv, err)
+            assert time.monotonic() - t < 5.0
+        assert sorted(os.listdir(results)) == ["f.json", "v.mp4"]  # no .f.json.evallock.tmp left behind
+        assert snapshot(str(tmp_path)) == before and snapshot(run_copy) == before_run
+        assert fileio.file_kind(os.stat("/dev/full").st_mode) == "a character device"  # not replaced by a file
+    export_dir = tmp_path / "export"
+    export_dir.mkdir()
+    with _fifo(str(export_dir / "policy.npz")) as fifo:
+        code, _, err = call(export.main, ["--run", run_copy, "--out", str(export_dir), "--no-onnx"], capsys)
+        assert code == 2 and f"cannot write {fifo}: it is a FIFO" in err and os.listdir(export_dir) == ["policy.npz"]
+
+
+def _sysid_refuses(log: Any, message: str, tmp_path, capsys) -> str:
+    from sagrasp_jax import sysid
+
+    out = str(tmp_path / "sysid.json")
+    code, stdout, err = call(sysid.main, ["--log", _write_log(str(tmp_path / "log.csv"), log), "--out", out], capsys)
+    assert code == 2 and message in err and "Traceback" not in err, err
+    assert "--set" not in stdout and not os.path.exists(out)
+    return err
+
+
+def test_40_7_sysid_refuses_a_log_it_cannot_fit_and_says_what_it_could_not_identify(tmp_path, capsys):
+    from sagrasp_jax import sysid
+
+    good = _servo_log(latency=1.0)
+    fit = sysid.identify(good)
+    items = sysid.overrides(fit)  # a log the model fits: every item passes training's own check
+    assert config_mod.apply_overrides(get_config("cpu-quick"), items).env.randomize.latency == pytest.approx(2.0, abs=0.1)
+    rng = np.random.default_rng(1)
+    noise = sysid.RobotLog(good.time, rng.uniform(-1, 1, good.command.shape), rng.uniform(-1, 1, good.measured.shape))
+    err = _sysid_refuses(noise, "log: cannot identify the arm from this log: the servo model explains only", tmp_path,
+                         capsys)
+    assert "of q6's step-to-step motion (≥ 90% in a servo log)" in err
+    _sysid_refuses(_servo_log(latency=5.0), "the command latency is at least 4 control steps, beyond the 3 steps "
+                   "training can randomise (env.randomize.latency): not identified", tmp_path, capsys)
+    err = _sysid_refuses(_servo_log(latency=3.5), "control steps, beyond the 3 steps training can randomise", tmp_path,
+                         capsys)
+    assert "at least" not in err
+    still = sysid.RobotLog(good.time, good.command, np.full_like(good.measured, 0.1))  # commanded, never moves
+    _sysid_refuses(still, "q1, q2, q3, q4, q5, q6 never move (readings or commands span under 0.001 rad)", tmp_path,
+                   capsys)
+    off = _servo_log(offset=0.15)  # a good fit, but an offset training cannot randomise over
+    _sysid_refuses(off, "training would refuse, so it is not identified: --set env.randomize.joint_offset=0.225 "
+                   "(invalid value for env.randomize.joint_offset: 0.225 (must be in [0, 0.2]))", tmp_path, capsys)
+
+
+@pytest.mark.parametrize("name,commands,message", [
+    (run_dir.CHECKPOINT_FILE, ("evaluate", "export", "resume"), "is a FIFO (named pipe), not a checkpoint file"),
+    (run_dir.CONFIG_FILE, ("evaluate", "export", "resume"), "is a FIFO (named pipe), not a regular file"),
+    (run_dir.METRICS_FILE, ("resume",), "is a FIFO (named pipe), not a metrics log"),
+    (run_dir.POLICY_FILE, ("deploy", "render"), "is a FIFO (named pipe), not a policy file"),
+])
+def test_40_9_run_files_that_are_fifos_are_refused_before_they_are_opened(name, commands, message, run_copy, tmp_path,
+                                                                          capsys, no_twin):
+    path = run_dir.path(run_copy, name)
+    os.unlink(path)
+    with _fifo(path):
+        before = snapshot(run_copy)
+        for command in commands:
+            t = time.monotonic()
+            code, err = _run_command(command, run_copy, tmp_path, capsys)
+            assert code == 2 and f"{path} {message}" in err and "Traceback" not in err, (command, err)
+            assert time.monotonic() - t < 5.0, command
+        assert snapshot(run_copy) == before
+
+
+def test_40_a_symlink_in_the_run_folder_is_never_written_through(run_copy, tmp_path, capsys):
+    outside = str(tmp_path / "outside")
+    shutil.move(run_dir.path(run_copy, run_dir.TB_DIR), outside)
+    os.symlink(outside, run_dir.path(run_copy, run_dir.TB_DIR))
+    metrics_outside = str(tmp_path / "metrics.jsonl")
+    before_run, before_outside = snapshot(run_copy), snapshot(outside)
+    for name in (run_dir.TB_DIR, run_dir.METRICS_FILE):
+        if name == run_dir.METRICS_FILE:  # the same for a file that training appends to
+            os.unlink(run_dir.path(run_copy, run_dir.TB_DIR))
+            shutil.move(outside, run_dir.path(run_copy, run_dir.TB_DIR))
+            shutil.move(run_dir.path(run_copy, name), metrics_outside)
+            os.symlink(metrics_outside, run_dir.path(run_copy, name))
+            before_run, before_outside = snapshot(run_copy), {"m": snapshot(str(tmp_path))["metrics.jsonl"]}
+        code, _, err = call(train.main, ["--out", run_copy, "--resume", "--no-progress"], capsys)
+        entry = run_dir.path(run_copy, name)
+        assert code == 2 and f"{entry} is a symbolic link (to " in err and "writes only inside its run folder" in err, err
+        assert "Traceback" not in err and snapshot(run_copy) == before_run
+        assert (snapshot(outside) if name == run_dir.TB_DIR else {"m": snapshot(str(tmp_path))["metrics.jsonl"]}) \
+            == before_outside
+
+
+def test_40_a_coordinator_that_is_never_reached_is_named_as_such(tmp_path, capsys, monkeypatch):
+    """Something at the coordinator's address accepts the connection (a proxy or firewall in front of an
+    unroutable address) but is not process 0: 'cannot reach', not 'did not see every process'."""
+    import socket
+    import threading
+
+    monkeypatch.setattr(train, "Trainer", lambda *a, **k: pytest.fail("the env was built before refusing"))
+    out = str(tmp_path / "run")
+    for answer, said in [(None, ""), (b"HTTP/1.1 400 Bad Request\r\n\r\n", " (it answered b'HTTP/1.1 400 Bad Request')")]:
+        server = socket.create_server(("localhost", 0))
+        port = server.getsockname()[1]
+        stop = threading.Event()
+
+        def serve() -> None:
+            conns = []
+            server.settimeout(0.1)
+            while not stop.is_set():
+                with contextlib.suppress(OSError):
+                    conn, _ = server.accept()
+                    conns.append(conn)
+                    if answer:
+                        conn.sendall(answer)
+                        conn.close()
+            for conn in conns:
+                conn.close()
+
+        thread = threading.Thread(target=serve)
+        thread.start()
+        try:
+            code, _, err = call(train.main, ["--out", out, "--no-progress", "--coordinator", f"localhost:{port}",
+                                             "--num-processes", "2", "--process-id", "1", "--connect-timeout", "1"],
+                                capsys)
+        finally:
+            stop.set()
+            thread.join()
+            server.close()
+        address = f"localhost:{port}"
+        assert code == 2 and "Traceback" not in err and "did not see every process" not in err, err
+        assert (f"process 1 cannot reach the coordinator {address} (process 0) within 1 s (--connect-timeout): "
+                f"something at {address} accepted the connection but never answered as process 0{said}: the "
+                "coordinator was not reached") in err, err
+    assert not os.path.exists(out)
+
+
+def test_40_a_policy_file_without_its_clearance_key_is_refused(policy_file, tmp_path, capsys, no_twin):
+    path = shutil.copy(policy_file, str(tmp_path / "policy.npz"))
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files}
+    cfg = json.loads(str(arrays["config_json"]))
+    del cfg["env"]["sampling"]["target_clearance"]
+    arrays["config_json"] = np.asarray(json.dumps(cfg, sort_keys=True))
+    arrays["config_hash"] = np.asarray(config_mod.env_dict_hash(cfg["env"]))  # a consistent edit: the hash matches
+    with open(path, "wb") as f:
+        np.savez(f, **arrays)
+    message = f"{path}: config_json does not record env.sampling.target_clearance"
+    with pytest.raises(runtime.PolicyFormatError, match="does not record env.sampling.target_clearance"):
+        runtime.load_policy(path)
+    code, out, err = call(deploy_cli.main, ["--policy", path, "--target-cam", *TARGET_CAM, "--json"], capsys)
+    assert code == 2 and message in err and json.loads(out)["outcome"] == "input_refused" and "Traceback" not in err
+    legacy = runtime.load_policy(os.path.join(LEGACY_RUN, "policy_cpu_quick_3M.npz"))  # version 0.1 records it
+    assert legacy.env_config().sampling.target_clearance == get_config("paper").env.sampling.target_clearance
