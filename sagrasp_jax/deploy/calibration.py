@@ -281,10 +281,13 @@ def standing_cube_centre(p_base: Any, sampling_cfg: SamplingConfig | None = None
 
 
 def validate_obstacle_clearance(target: Any, kind: Any, pos: Any, yaw: Any, size: Any,
-                                sampling_cfg: SamplingConfig | None = None, names: Any = None) -> None:
+                                sampling_cfg: SamplingConfig | None = None, names: Any = None,
+                                tolerance: float = 0.0) -> None:
     """Refuse obstacles whose footprint comes nearer the cube centre than training ever put one
     (``env.sampling.target_clearance``, horizontal, docs/task.md §1 (a); 0.10 m): the policy was never
     trained to reach past an obstacle that close, so the scene is refused before anything moves.
+    ``tolerance`` (m) is how much nearer a *detected* cube may seem: training placed obstacles around the
+    true cube and showed the policy a detection up to ``env.randomize.target_error`` off on each axis.
 
     ``kind``, ``pos``, ``yaw``, ``size`` describe the active obstacles (N,), (N, 3), (N,), (N, 3);
     ``names`` label them in the message."""
@@ -296,8 +299,9 @@ def validate_obstacle_clearance(target: Any, kind: Any, pos: Any, yaw: Any, size
                                np.asarray(size, float).reshape(-1, 3), np.asarray(target, float)[:2])
     names = list(names) if names is not None else [f"obstacle {i + 1}" for i in range(kind.size)]
     close = [f"{names[i]} is {float(gap[i]):.4f} m from it" for i in range(kind.size)
-             if not float(gap[i]) >= cfg.target_clearance - 1e-9]
+             if not float(gap[i]) >= cfg.target_clearance - tolerance - 1e-9]
     if close:
         raise ObstacleRejected(
             f"obstacle too close to the cube: {'; '.join(close)} horizontally (surface to cube centre), under the "
-            f"training clearance env.sampling.target_clearance = {cfg.target_clearance:g} m; refused before moving")
+            f"training clearance env.sampling.target_clearance = {cfg.target_clearance:g} m"
+            + (f" less {tolerance * 1000:.1f} mm of detection error" if tolerance else "") + "; refused before moving")

@@ -55,6 +55,7 @@ from sagrasp_jax.sampling import ResetSpec
 LIFT_HEIGHT = 0.05  # m, docs/task.md §2/§5: lift after closing the gripper
 LIFT_MIN_STEPS = 10  # control periods the lift takes at least (0.5 s: ≤ 0.1 m/s)
 SETTLE_STEPS = 6  # control periods the grasp pose is held before closing (3 steps of latency, servo lag)
+HOLD_TOLERANCE = 0.01  # m the cube may lag behind the lift and still count as held (physical.HOLD_TOLERANCE)
 HELD_MIN_OPENING = 0.004  # m per finger: closed fingers stopped at least this far apart hold something (the cube: 0.01)
 
 
@@ -122,8 +123,10 @@ def scene_spec(q0: Any, target_pos: Any, target_yaw: float, obstacles: Sequence[
             raise ValueError(f"obstacle {i} ({ob.kind}) has NaN/inf in its position, size or yaw")
         active[i], kind[i], pos[i], yaw[i], size[i] = True, shapes.BY_NAME[ob.kind].id, ob.centre, ob.yaw, ob.size
     n = len(obstacles)
+    error = env_cfg.randomize.target_error  # the detection error training showed the policy (per axis)
     validate_obstacle_clearance(target_pos, kind[:n], pos[:n], yaw[:n], size[:n], env_cfg.sampling,
-                                [f"obstacle {i + 1} ({ob.kind})" for i, ob in enumerate(obstacles)])
+                                [f"obstacle {i + 1} ({ob.kind})" for i, ob in enumerate(obstacles)],
+                                tolerance=math.hypot(error, error))
     return ResetSpec(
         q0=np.asarray(q0, dtype=float),
         target_pos=np.asarray(target_pos, dtype=float),
@@ -348,12 +351,12 @@ def _settle(robot: RobotInterface, safety: SafetyLayer, q: np.ndarray, q_target:
     return _read(robot), q_target
 
 
-def _held(robot: RobotInterface, cube0: np.ndarray | None, gripper_rise: float, height: float) -> tuple[bool | None, dict[str, Any]]:
+def _held(robot: RobotInterface, cube0: np.ndarray | None, height: float) -> tuple[bool | None, dict[str, Any]]:
     """Whether the cube came along, from what the backend can report: the cube's own rise (simulators), else
     the finger opening (closed fingers kept apart by the cube); None when it reports neither."""
-    if cube0 is not None:
+    if cube0 is not None:  # the cube's own rise against the lift commanded (the arm's reading may be offset)
         rise = float(np.asarray(robot.object_position(), float)[2] - cube0[2])  # type: ignore[attr-defined]
-        return bool(rise >= gripper_rise - 0.01 and rise > 0.5 * height), {"object_rise": rise}
+        return bool(rise >= height - HOLD_TOLERANCE), {"object_rise": rise}
     opening = getattr(robot, "finger_opening", None)
     if opening is not None:
         fingers = np.asarray(opening(), float)
@@ -390,7 +393,7 @@ def _grasp_and_lift(robot: RobotInterface, model: RobotModel, env_cfg: EnvConfig
         result["message"] = f"lift stopped: {exc}"
     q_end = _read(robot)
     result["gripper_rise"] = float(forward_kinematics(np, model, q_end).gripper_centre[2] - kin.gripper_centre[2])
-    held, evidence = _held(robot, cube0, result["gripper_rise"], height)
+    held, evidence = _held(robot, cube0, height)
     result.update(evidence)
     faults = getattr(robot, "approach_faults", None)
     result["approach_faults"] = list(faults()) if faults is not None else None
