@@ -113,7 +113,7 @@ class _HintingLoader(importlib.abc.Loader):
             if extra is None:
                 raise
             absent = missing(extra) or [exc.name.partition(".")[0]]
-            raise MissingExtra((extra,), absent, module.__name__) from exc
+            raise MissingExtra((extra,), absent, module.__name__) from None  # the hint says it all
 
     def __getattr__(self, name: str) -> Any:  # get_source, get_resource_reader, ... for tools and resources
         return getattr(self._loader, name)
