@@ -130,8 +130,10 @@ def test_wheel_with_train_and_twin_trains_exports_and_deploys_outside_the_repo(w
     assert res.stdout.strip().startswith(os.path.join(work, "venv")), res.stdout  # the wheel's copy
     res = run([python, "-m", "sagrasp_jax.train", "--out", "run", *TINY_ARGS], cwd=work)
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
-    res = run([python, "-m", "sagrasp_jax.export", "--run", "run", "--out", "policy", "--no-onnx"], cwd=work)
+    # the console script, ONNX included: [train] brings export's packages
+    res = run([os.path.join(work, "venv", "bin", "sagrasp-export"), "--run", "run", "--out", "policy"], cwd=work)
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    assert os.path.isfile(os.path.join(work, "policy", "policy.onnx")), os.listdir(os.path.join(work, "policy"))
     res = run([python, "-m", "sagrasp_jax.deploy", "--policy", "policy/policy.npz", *DEPLOY_ARGS], cwd=work)
     assert res.returncode in (0, 1), res.stdout[-3000:] + res.stderr[-3000:]  # success, or a tiny policy's timeout
     assert json.loads(res.stdout)["outcome"] in ("success", "timeout", "collision")
@@ -180,6 +182,12 @@ def test_core_install_is_numpy_only_and_deploys(wheel, tmp_path_factory):
     outcome, steps, commands, gripper, heavy = res.stdout.split()
     assert outcome == "success" and int(steps) < 60 and int(commands) > int(steps), res.stdout
     assert gripper == "close" and heavy == "heavy:", res.stdout  # after the success: close, then lift
+
+    res = run([python, "-m", "sagrasp_jax"], cwd=work)  # the command list, in a core install too
+    assert res.returncode == 0 and "sagrasp_jax[" in res.stdout and "  plot " in res.stdout, res.stdout + res.stderr
+    res = run([python, "-c", "from sagrasp_jax import envs"], cwd=work)
+    assert res.returncode == 1 and "ModuleNotFoundError" not in res.stderr, res.stderr
+    assert res.stderr.strip().splitlines()[-1].endswith('which are not installed: pip install "sagrasp_jax[train]"')
 
     # what needs an extra says which, in wheel syntax, with exit 2 (deploy: before anything moves)
     res = run([python, "-m", "sagrasp_jax.deploy", "--policy", "policy.npz", *DEPLOY_ARGS], cwd=work)
