@@ -56,11 +56,9 @@ import numpy as np
 from sagrasp_jax import actor_critic, checkpoint, fileio, observation, runtime, sharding
 from sagrasp_jax.control import ACTION_SIZE
 from sagrasp_jax.config import MAX_CONFIG_BYTES, Config, ConfigError, config_from_dict, config_to_dict, parse_json
+from sagrasp_jax.run_files import CONFIG_FILE, METRICS_FILE, POLICY_FILE  # shared with the jax-free readers
 
-CONFIG_FILE = "config.json"
-METRICS_FILE = "metrics.jsonl"
 CHECKPOINT_FILE = "checkpoint.ckpt"
-POLICY_FILE = "policy.npz"
 TB_DIR = "tb"
 EVALUATION_PREFIX = "evaluation-"
 MAX_RESULT_BYTES = 64 << 20  # an earlier evaluation read back to compare (a few kB; bounded like every input)

@@ -3,8 +3,7 @@
 ``run_dir`` owns the run folder (writing, locking, checkpoints) and needs jax; the commands that
 only read a finished run on any machine — ``plot`` (metrics.jsonl, the ``plots`` extra) and
 ``render --run`` (policy.npz, the ``render`` extra) — read it through this module, which is
-NumPy-free and jax-free.  ``run_dir`` spells the same names (``tests/test_plot.py`` checks
-that they agree).
+NumPy-free and jax-free.  ``run_dir`` takes these names from here.
 """
 
 from __future__ import annotations
