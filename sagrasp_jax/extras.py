@@ -25,6 +25,7 @@ EXTRAS: dict[str, tuple[str, ...]] = {
     "plots": ("matplotlib",),
     "warp": ("warp",),
     "playground": ("mujoco_playground",),
+    "yolo": ("ultralytics",),  # the YOLO option of the perception (sagrasp_jax/deploy/yolo.py)
     # hardware adapters (sagrasp_jax/deploy/aubo.py, cameras.py): the vendors' own SDKs
     "aubo": ("pyaubo_sdk",),
     "mecheye": ("mecheye",),

@@ -1,0 +1,792 @@
+"""From the depth camera's point cloud to the cube and the obstacles, in the robot's base frame (docs/task.md §5.7).
+
+The paper marks the cube's pixel with YOLO and reads its camera-frame point from the point cloud.  This
+module does the same job with classical geometry, NumPy only (it runs on the robot PC), and returns what
+the deployment loop validates: the cube centre and yaw in the world (URDF base) frame and every obstacle
+as a ``deploy.loop.Obstacle`` (kind, centre, MuJoCo size, yaw).  Steps (``detect_scene``):
+
+1. **Check the input.** An organized cloud (H, W, 3) in the camera frame, millimetres, NaN where the
+   camera had no return (the Mech-Eye's format).  Refused with ``PerceptionError``: another shape, no
+   valid point, too few valid points, depths that are not a depth camera's in millimetres (a cloud in
+   metres read as millimetres lies 1.4 mm from the camera; the message says which unit it looks like).
+2. **Table plane.** Points within ``plane_band_m`` of the table top (z = 0 through the calibration) are
+   fitted by least squares, twice trimmed to 3 σ (robust MAD); the plane must hold a fair share of the
+   points and lie within ``max_plane_tilt_deg`` of level, else the calibration is wrong.
+3. **Above the table.** Points more than ``min_height_m`` (or 5 σ of the table's noise) above the plane,
+   minus the cell's static parts (gantry posts, camera: ``scene.SCENE``) and, given the arm's joints,
+   the arm itself (``robot.primitive_poses``, ``robot_margin_m``).
+4. **Regions.** Connected regions on the image grid (4-neighbours whose points are within
+   ``max_gap_m`` in 3-D: objects the sampler keeps ≥ 10 cm apart never merge, a steep side stays with
+   its top); regions smaller than ``min_region_m2`` are noise.
+5. **The cube.** With RGB: the region whose pixels are mostly red (r − max(g, b) ≥ ``red_margin``).
+   Without RGB (or ``use_colour=False``): the region whose flat top is the cube's top face (height and
+   both sides within tolerance).  None → "no cube found"; two → "two cube candidates"; a red region
+   whose top is not a 20 × 20 mm face 50 mm above the table → "cube not standing on the table".  Its
+   top face (points within ``top_tol_m`` of the top) gives the top-face centre (area-weighted centroid,
+   each point weighted by its pixel's footprint on the top's plane) and the yaw (minimum-area rectangle
+   of the face's outline, wrapped to [−45°, 45°): a square looks the same turned by 90°); the centre is
+   the top-face centre 25 mm lower (``calibration.detected_top_to_cube_centre``).
+6. **Obstacles.** Every other region is fitted as each kind of ``shapes.SHAPES`` as it rests in the cell
+   (sphere: least-squares sphere; cylinder: upright, top disc's area and centroid; box: top face's
+   minimum-area rectangle with its area matched to the measured one; capsule: lying, radius half the
+   height, axis along the outline's long side), and the kind whose exact surface (``shapes.sdf``) lies
+   nearest the region's points wins.  A region larger than any trained obstacle is refused (the arm in
+   view without its joints, or something that is not part of the task).
+
+A detector (the YOLO option, ``deploy.yolo``) may replace the colour test: its target boxes choose the
+cube region (``detections=``), and ``point_at_pixel`` is the paper's own pixel → camera point.
+Nothing here imports more than NumPy and the package's NumPy modules.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Any, NamedTuple, Sequence
+
+import numpy as np
+
+from sagrasp_jax import geometry, shapes
+from sagrasp_jax.config import SamplingConfig
+from sagrasp_jax.deploy.calibration import CameraCalibration, detected_top_to_cube_centre
+from sagrasp_jax.deploy.loop import Obstacle
+from sagrasp_jax.robot import RobotModel, forward_kinematics, load_robot, primitive_poses
+from sagrasp_jax.scene import SCENE
+
+DEPTH_RANGE_MM = (300.0, 3000.0)  # where a depth camera over the table reports anything (deploy's DETECTION_RANGE)
+PLANE_POINTS = 20_000  # table points the plane is fitted to (evenly strided)
+OCCLUDER_JUMP_M = 0.01  # a neighbour this much nearer (camera z) and not of the region hides part of it
+MIN_RED_PIXELS = 12  # red pixels in a region that is not mostly red: a cube on or against something
+BOX_FILL = 0.89  # hull area / minimum-area rectangle: a disc's π/4 = 0.785, a rectangle's 1
+
+
+def _trained_obstacle_limits(cfg: SamplingConfig = SamplingConfig(), margin: float = 0.05) -> tuple[float, float]:
+    """(reach, top) of the largest obstacle the sampler draws, plus ``margin``: horizontal distance from its
+    centre to its farthest point (a capsule's tip), and its top above the table (a floating sphere's)."""
+    reach = max(cfg.sphere_radius[1], cfg.cylinder_radius[1], math.sqrt(2) * cfg.box_half[1],
+                cfg.capsule_length[1] / 2 + cfg.capsule_radius[1])
+    top = max(cfg.sphere_z[1] + cfg.sphere_radius[1], cfg.cylinder_height[1], 2 * cfg.box_half[1], 2 * cfg.capsule_radius[1])
+    return reach + margin, top + margin
+
+
+MAX_OBSTACLE_REACH_M, MAX_OBSTACLE_TOP_M = _trained_obstacle_limits()  # 0.25 m, 0.41 m
+
+
+class PerceptionError(ValueError):
+    """The cloud cannot give a cube (and obstacles) to act on; nothing may move (exit status 2 in a CLI)."""
+
+
+@dataclass(frozen=True)
+class PerceptionSettings:
+    """Thresholds of ``detect_scene`` (metres unless named otherwise); the defaults fit the Mech-Eye at
+    the cell's 1.4 m and a consumer depth camera alike (noise-dependent ones scale with the table's σ)."""
+
+    plane_band_m: float = 0.03  # first table guess: |z| below this in the world frame
+    min_plane_fraction: float = 0.2  # of the valid points must lie on the table
+    max_plane_tilt_deg: float = 5.0  # the table's normal against world z
+    min_height_m: float = 0.008  # above the table: an object's point (at least 5 σ of the table's noise)
+    max_gap_m: float = 0.03  # neighbouring pixels this far apart in 3-D are not one surface
+    min_region_m2: float = 1.5e-4  # smaller regions (footprint area) are noise: 12 × 12 mm
+    min_top_side_m: float = 0.008  # a region whose top face is narrower is a fragment of a side (every trained
+    # obstacle's top is ≥ 40 mm across, a sphere's top 3 mm ≥ 26 mm, the cube's 20 mm)
+    top_tol_m: float = 0.003  # a top face's points lie this close to its height (at least 3 σ of the noise)
+    red_margin: float = 0.2  # a red pixel: r − max(g, b) ≥ this (colours in [0, 1])
+    red_fraction: float = 0.5  # a red region: this share of its pixels red
+    cube_height_tol_m: float = 0.008  # the cube's top above the table: cube height ± this
+    cube_side_tol: float = 0.35  # each side of its top face within ± this fraction of the cube's
+    robot_margin_m: float = 0.02  # points this near the arm's primitives are the arm
+    static_margin_m: float = 0.01  # ... and this near the cell's static parts
+    max_obstacle_radius_m: float = MAX_OBSTACLE_REACH_M  # a region reaching farther from its centre is no trained obstacle
+    max_obstacle_top_m: float = MAX_OBSTACLE_TOP_M  # ... and one whose top is higher above the table
+    kinds: tuple[str, ...] = shapes.NAMES  # obstacle kinds considered
+    use_colour: bool = True  # with RGB, the cube is the red region
+
+
+class Detection(NamedTuple):
+    """A 2-D detector's box (pixels, OpenCV convention): the YOLO option's output."""
+
+    label: str  # "target" or a shapes.SHAPES name
+    box: tuple[float, float, float, float]  # u0, v0, u1, v1
+    score: float = 1.0
+
+    @property
+    def centre(self) -> tuple[float, float]:
+        return ((self.box[0] + self.box[2]) / 2, (self.box[1] + self.box[3]) / 2)
+
+
+class SceneDetection(NamedTuple):
+    """What the deployment loop needs, in the world (URDF base) frame, metres and radians."""
+
+    target_centre: np.ndarray  # (3,) cube centre, for deploy.calibration.validate_target / run_episode
+    target_top: np.ndarray  # (3,) top-face centre as seen
+    target_yaw: float  # about world z, wrapped to [−π/4, π/4)
+    obstacles: list[Obstacle]
+    diagnostics: dict[str, Any]
+
+
+@dataclass
+class _Cloud:
+    """The valid points of one capture and what every step shares."""
+
+    shape: tuple[int, int]
+    valid: np.ndarray  # (H, W) bool
+    cam: np.ndarray  # (H, W, 3) camera frame, m (NaN where invalid)
+    world: np.ndarray  # (H, W, 3) world frame, m
+    fx: float
+    fy: float
+    height: Any = None  # (H, W) above the table plane, m (set once the table is fitted)
+    area: Any = None  # (H, W) footprint on a plane parallel to the table, m²
+    normal: Any = None  # table normal, world
+    sigma: float = 0.0  # table noise (robust σ), m
+
+
+# ---------------------------------------------------------------------------------------------- input checks
+
+
+def check_cloud(cloud_mm: Any) -> np.ndarray:
+    """The cloud as float64 (H, W, 3) millimetres, or ``PerceptionError`` naming what is wrong with it."""
+    try:
+        cloud = np.asarray(cloud_mm, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise PerceptionError(f"point cloud is not numeric: {exc}") from None
+    if cloud.ndim != 3 or cloud.shape[2] != 3 or min(cloud.shape[:2]) < 8:
+        raise PerceptionError(
+            f"point cloud must be organized, shape (H, W, 3) with H, W ≥ 8 (the camera's pixel grid), got {cloud.shape}")
+    finite = np.isfinite(cloud).all(axis=2)
+    n = int(finite.sum())
+    if n == 0:
+        raise PerceptionError(f"point cloud {cloud.shape} has no valid point (all NaN/inf): no return from the camera")
+    if n < 0.05 * finite.size:
+        raise PerceptionError(f"point cloud has only {n} valid points of {finite.size} (< 5 %): camera blocked or "
+                              "over/under-exposed")
+    depth = float(np.median(cloud[finite][:, 2]))
+    lo, hi = DEPTH_RANGE_MM
+    if not lo <= depth <= hi:
+        guess = next((name for name, f in (("metres", 1e-3), ("centimetres", 10.0), ("micrometres", 1e3))
+                      if lo <= depth / f <= hi), None)
+        hint = f"; it looks like {guess}: convert to millimetres" if guess else ""
+        raise PerceptionError(f"point cloud's median depth is {depth:.4g} (as mm), outside a depth camera's "
+                              f"[{lo:g}, {hi:g}] mm over the table{hint}")
+    return cloud
+
+
+def _check_rgb(rgb: Any, shape: tuple[int, int]) -> np.ndarray:
+    image = np.asarray(rgb)
+    if image.shape != (*shape, 3):
+        raise PerceptionError(f"RGB image must be (H, W, 3) = {(*shape, 3)} like the cloud, got {image.shape}")
+    if image.dtype == np.uint8:
+        return image.astype(np.float64) / 255.0
+    image = image.astype(np.float64)
+    if not np.isfinite(image).all() or image.min() < 0 or image.max() > 1.0 + 1e-9:
+        raise PerceptionError("RGB image must be uint8 or floats in [0, 1]")
+    return image
+
+
+def _intrinsics_from_cloud(cam: np.ndarray, valid: np.ndarray) -> tuple[float, float]:
+    """fx, fy (px) recovered from the organized cloud itself: x/z grows by 1/fx per column, y/z by 1/fy per row."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = cam[..., :2] / cam[..., 2:3]
+    out = []
+    for step in (ratio[:, 1:, 0] - ratio[:, :-1, 0], ratio[1:, :, 1] - ratio[:-1, :, 1]):
+        step = step[np.isfinite(step)]
+        if step.size < 10:
+            raise PerceptionError("cannot recover the camera's focal length from the cloud (too few neighbouring valid pixels)")
+        slope = float(np.median(step))
+        if not slope > 0:
+            raise PerceptionError("the cloud's x/y do not grow with the pixel column/row: not an organized camera cloud")
+        out.append(1.0 / slope)
+    return out[0], out[1]
+
+
+# ---------------------------------------------------------------------------------------------- table
+
+
+def fit_table(world: np.ndarray, valid: np.ndarray, settings: PerceptionSettings) -> tuple[np.ndarray, float, float, int]:
+    """Robust plane z = a·x + b·y + c through the table's points: (normal, offset d with n·p = d, σ, inliers)."""
+    pts = world[valid]
+    near = np.abs(pts[:, 2] - SCENE.table.top_z) < settings.plane_band_m
+    if near.sum() < max(50, settings.min_plane_fraction * len(pts)):
+        raise PerceptionError(
+            f"no table plane within {settings.plane_band_m * 1000:.0f} mm of z = {SCENE.table.top_z:g} m in the world frame "
+            f"({int(near.sum())} of {len(pts)} points): wrong calibration or base_z_offset?")
+    stride = max(1, len(pts) // PLANE_POINTS)
+    pts = pts[::stride]  # a plane needs no more than PLANE_POINTS; the fit is the pipeline's costliest step otherwise
+    sel = pts[np.abs(pts[:, 2] - SCENE.table.top_z) < settings.plane_band_m]
+    sigma = settings.plane_band_m
+    for _ in range(3):
+        a = np.c_[sel[:, 0], sel[:, 1], np.ones(len(sel))]
+        coef, *_ = np.linalg.lstsq(a, sel[:, 2], rcond=None)
+        res = pts[:, 2] - (coef[0] * pts[:, 0] + coef[1] * pts[:, 1] + coef[2])
+        in_band = np.abs(res) < max(3.0 * sigma, 0.0005)
+        r_in = res[in_band]
+        sigma = max(1.4826 * float(np.median(np.abs(r_in - np.median(r_in)))), 2e-5)
+        sel = pts[in_band]
+    inliers = int(len(sel)) * stride
+    if inliers < settings.min_plane_fraction * len(pts) * stride:
+        raise PerceptionError(f"the table plane holds only about {inliers} of {len(pts) * stride} points (< "
+                              f"{settings.min_plane_fraction:.0%}): is the camera looking at the table?")
+    normal = np.array([-coef[0], -coef[1], 1.0])
+    norm = float(np.linalg.norm(normal))
+    normal /= norm
+    tilt = math.degrees(math.acos(min(1.0, normal[2])))
+    if tilt > settings.max_plane_tilt_deg:
+        raise PerceptionError(f"the table plane is tilted {tilt:.1f}° from level in the world frame (> "
+                              f"{settings.max_plane_tilt_deg:g}°): wrong calibration?")
+    return normal, float(coef[2] / norm), sigma, inliers
+
+
+# ---------------------------------------------------------------------------------------------- masks and regions
+
+
+def _near_primitives(points: np.ndarray, kinds: np.ndarray, pos: np.ndarray, rot: np.ndarray, size: np.ndarray,
+                     margin: float) -> np.ndarray:
+    """(N,) bool: points within ``margin`` of any of the primitives (robot.py's size convention)."""
+    hit = np.zeros(len(points), bool)
+    for k, p, r, s in zip(kinds, pos, rot, size):
+        hit |= geometry.point_distance(np, int(k), points, p, r, s) < margin
+    return hit
+
+
+def _robot_primitives(model: RobotModel, q: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    q = np.asarray(q, dtype=float)
+    if q.shape != (6,) or not np.isfinite(q).all():
+        raise PerceptionError(f"robot joints must be 6 finite values, got {q!r}")
+    pos, rot = primitive_poses(np, model, forward_kinematics(np, model, q))
+    return model.prim_kind, pos, rot, model.prim_size
+
+
+def label_regions(mask: np.ndarray, points: np.ndarray, max_gap: float, valid: np.ndarray | None = None) -> np.ndarray:
+    """Connected regions of ``mask`` (H, W) on the image grid: 4-neighbours are joined when their points
+    (H, W, 3) are within ``max_gap``, and pixels two apart in a row or column when the one between them
+    has no return (``valid`` False: a pixel the camera dropped does not split a surface) and they are
+    within the same distance.  Labels (H, W), −1 outside, regions numbered 0.. in order of their smallest pixel
+    index.  Union-find by hooking roots and pointer jumping, all in NumPy array operations."""
+    h, w = mask.shape
+    index = np.full((h, w), -1, dtype=np.int64)
+    n = int(mask.sum())
+    index[mask] = np.arange(n)
+    dropped = ~valid if valid is not None else np.zeros((h, w), bool)
+    a_list, b_list = [], []
+    for dy, dx in ((0, 1), (1, 0), (0, 2), (2, 0)):
+        da, db = index[: h - dy, : w - dx], index[dy:, dx:]
+        ok = (da >= 0) & (db >= 0)
+        if dy + dx == 2:
+            ok &= dropped[dy // 2 : h - dy // 2, dx // 2 : w - dx // 2]
+        dist = np.linalg.norm(points[: h - dy, : w - dx][ok] - points[dy:, dx:][ok], axis=-1)
+        near = dist < max_gap
+        a_list.append(da[ok][near])
+        b_list.append(db[ok][near])
+    a, b = np.concatenate(a_list), np.concatenate(b_list)
+    parent = np.arange(n)
+    while True:
+        ra, rb = parent[a], parent[b]
+        differ = ra != rb
+        if not differ.any():
+            break
+        lo, hi = np.minimum(ra[differ], rb[differ]), np.maximum(ra[differ], rb[differ])
+        np.minimum.at(parent, hi, lo)
+        while True:
+            jumped = parent[parent]
+            if np.array_equal(jumped, parent):
+                break
+            parent = jumped
+    _, compact = np.unique(parent, return_inverse=True)
+    labels = np.full((h, w), -1, dtype=np.int64)
+    labels[mask] = compact
+    return labels
+
+
+# ---------------------------------------------------------------------------------------------- 2-D outline maths
+
+
+def convex_hull(xy: np.ndarray) -> np.ndarray:
+    """Convex hull (K, 2), counter-clockwise (Andrew's monotone chain)."""
+    pts = np.unique(np.asarray(xy, dtype=float), axis=0)
+    if len(pts) < 3:
+        return pts
+
+    def half(points: np.ndarray) -> list[np.ndarray]:
+        out: list[np.ndarray] = []
+        for p in points:
+            while len(out) >= 2:
+                o, a = out[-2], out[-1]
+                if (a[0] - o[0]) * (p[1] - o[1]) - (a[1] - o[1]) * (p[0] - o[0]) > 0:
+                    break
+                out.pop()
+            out.append(p)
+        return out
+
+    lower, upper = half(pts), half(pts[::-1])
+    return np.array(lower[:-1] + upper[:-1])
+
+
+def min_area_rect(xy: np.ndarray) -> tuple[np.ndarray, tuple[float, float], float]:
+    """Minimum-area rectangle around points (N, 2): centre (2,), side lengths (along the angle, across)
+    and the angle of its first side (rad, in [−π/2, π/2)); rotating calipers over the hull's edges."""
+    hull = convex_hull(xy)
+    if len(hull) < 3:
+        centre = hull.mean(axis=0) if len(hull) else np.zeros(2)
+        return centre, (0.0, 0.0), 0.0
+    edges = np.roll(hull, -1, axis=0) - hull
+    angles = np.unique(np.mod(np.arctan2(edges[:, 1], edges[:, 0]), math.pi / 2))
+    c, s = np.cos(angles), np.sin(angles)
+    u = hull[:, 0][None] * c[:, None] + hull[:, 1][None] * s[:, None]  # (A, K) along
+    v = -hull[:, 0][None] * s[:, None] + hull[:, 1][None] * c[:, None]  # across
+    area = np.ptp(u, axis=1) * np.ptp(v, axis=1)
+    i = int(np.argmin(area))
+    mu, mv = (u[i].max() + u[i].min()) / 2, (v[i].max() + v[i].min()) / 2
+    centre = np.array([mu * c[i] - mv * s[i], mu * s[i] + mv * c[i]])
+    angle = float((angles[i] + math.pi / 2) % math.pi - math.pi / 2)
+    return centre, (float(np.ptp(u[i])), float(np.ptp(v[i]))), angle
+
+
+def _grown_sides(sides: tuple[float, float], area: float) -> tuple[float, float]:
+    """Sides of a rectangle grown by the same δ on both so that its area is ``area``: a hull through pixel
+    centres falls about a pixel short of the true outline, the pixels' summed footprint does not."""
+    l1, l2 = sides
+    disc = (l1 + l2) ** 2 - 4.0 * (l1 * l2 - area)
+    delta = (-(l1 + l2) + math.sqrt(max(disc, 0.0))) / 2.0
+    return l1 + delta, l2 + delta
+
+
+def wrap(angle: float, period: float) -> float:
+    """``angle`` wrapped into [−period/2, period/2)."""
+    return float((angle + period / 2) % period - period / 2)
+
+
+# ---------------------------------------------------------------------------------------------- region features
+
+
+class _Region(NamedTuple):
+    label: int
+    pixels: np.ndarray  # (N, 2) row, col
+    world: np.ndarray  # (N, 3)
+    height: np.ndarray  # (N,)
+    area: np.ndarray  # (N,) footprint on a plane parallel to the table
+    top: float  # robust top height above the table
+    top_mask: np.ndarray  # (N,) bool: the points within the tolerance of the top
+    touches_border: bool
+    occluded: np.ndarray  # (N, 4) bool: an occluder next to the pixel in each of DIRECTIONS (occluder_dirs)
+
+
+DIRECTIONS = ((0, 1), (0, -1), (1, 0), (-1, 0))  # (dy, dx) of the 4-neighbours, in the order of occluder_dirs
+
+
+def occluder_dirs(cam_z: np.ndarray, labels: np.ndarray, valid: np.ndarray, jump: float) -> np.ndarray:
+    """(H, W, 4) bool: in each of ``DIRECTIONS``, the neighbouring pixel (or, when the camera dropped it,
+    the one beyond) sees something of another label (another region, the arm, a masked part) nearer by
+    more than ``jump``: an occluder hiding the rest of this pixel's object on that side."""
+    h, w = cam_z.shape
+    z = np.where(valid, cam_z, np.inf)
+    zp = np.pad(z, 2, constant_values=np.inf)
+    lp = np.pad(labels, 2, constant_values=-2)
+    vp = np.pad(valid, 2, constant_values=True)
+    out = np.zeros((h, w, 4), bool)
+    for k, (dy, dx) in enumerate(DIRECTIONS):
+        for step in (1, 2):
+            sl = (slice(2 + step * dy, 2 + step * dy + h), slice(2 + step * dx, 2 + step * dx + w))
+            hit = (lp[sl] != labels) & (zp[sl] < z - jump)
+            if step == 2:  # only across a dropped pixel
+                hit &= ~vp[2 + dy : 2 + dy + h, 2 + dx : 2 + dx + w]
+            out[..., k] |= hit
+    return out
+
+
+def _regions(cloud: _Cloud, labels: np.ndarray, min_area: float, top_tol: float) -> list[_Region]:
+    """The regions whose footprint area reaches ``min_area`` (smaller ones are noise), in label order."""
+    rows, cols = np.nonzero(labels >= 0)
+    lab = labels[rows, cols]
+    area = np.bincount(lab, weights=np.nan_to_num(cloud.area[rows, cols]), minlength=int(labels.max()) + 1)
+    keep = np.isin(lab, np.nonzero(area >= min_area)[0])
+    rows, cols, lab = rows[keep], cols[keep], lab[keep]
+    order = np.argsort(lab, kind="stable")
+    rows, cols, lab = rows[order], cols[order], lab[order]
+    starts = np.r_[0, np.nonzero(np.diff(lab))[0] + 1, len(lab)]
+    hidden = occluder_dirs(cloud.cam[..., 2], labels, cloud.valid, OCCLUDER_JUMP_M)
+    return [_region(cloud, int(lab[a]), rows[a:b], cols[a:b], top_tol, hidden[rows[a:b], cols[a:b]])
+            for a, b in zip(starts[:-1], starts[1:]) if b > a]
+
+
+def _region(cloud: _Cloud, label: int, rows: np.ndarray, cols: np.ndarray, top_tol: float,
+            occluded: np.ndarray) -> _Region:
+    world = cloud.world[rows, cols]
+    height = cloud.height[rows, cols]
+    top = _top_height(height, top_tol)
+    h, w = cloud.shape
+    border = bool(rows.min() == 0 or cols.min() == 0 or rows.max() == h - 1 or cols.max() == w - 1)
+    return _Region(label, np.c_[rows, cols], world, height, cloud.area[rows, cols], top,
+                   height >= top - top_tol, border, occluded)
+
+
+def _top_height(height: np.ndarray, tol: float) -> float:
+    """A region's top above the table, robust to noise: the median of the points within 4/3·tol below
+    its 98th height percentile (noise-free: the top face itself; with noise σ and tol = 3 σ, nearly all
+    of the top face's points and few of anything else, so the median is the face's height)."""
+    if len(height) < 20:
+        return float(height.max())
+    high = float(np.percentile(height, 98))
+    return float(np.median(height[height >= high - 4.0 / 3.0 * tol]))
+
+
+def _outside(pixels: np.ndarray) -> np.ndarray:
+    """(N, 4) bool: for pixels (N, 2) (row, col), whether the 4-neighbour in each of ``DIRECTIONS`` lies
+    outside the set; the set's outline is the pixels with any (the hull needs no others)."""
+    lo = pixels.min(axis=0)
+    grid = np.zeros(tuple(pixels.max(axis=0) - lo + 3), bool)
+    r, c = pixels[:, 0] - lo[0] + 1, pixels[:, 1] - lo[1] + 1
+    grid[r, c] = True
+    return np.stack([~grid[r + dy, c + dx] for dy, dx in DIRECTIONS], axis=1)
+
+
+class TopFace(NamedTuple):
+    """A region's flat top as seen (world frame, m)."""
+
+    centroid: np.ndarray  # (3,) area-weighted centroid of its points
+    area: float  # summed pixel footprints, m²
+    centre_xy: np.ndarray  # (2,) the rectangle's (unoccluded: the centroid's)
+    sides: tuple[float, float]  # the rectangle's sides, along ``angle`` and across
+    angle: float  # rad, of the first side
+    outline_xy: np.ndarray  # (K, 2) outline points
+    outline_hidden: np.ndarray  # (K,) bool: next to a nearer occluder on an outward side
+    outline_rim: np.ndarray  # (K,) bool: next to the face's true edge (its side, the table) on an outward side
+    pitch: float  # m, typical pixel footprint side on the face
+
+    @property
+    def occluded(self) -> bool:
+        return int(self.outline_hidden.sum()) >= 2
+
+    @property
+    def rim_xy(self) -> np.ndarray:
+        """The outline points on the face's true edge (all of them when too few are)."""
+        return self.outline_xy[self.outline_rim] if self.outline_rim.sum() >= 5 else self.outline_xy
+
+
+def _top_face(region: _Region) -> TopFace:
+    """The region's top face: centroid, area, outline and minimum-area rectangle.  Unoccluded, the
+    rectangle's sides are grown to the face's measured area (a hull through pixel centres falls a pixel
+    short) and its centre is the centroid; with part of the face hidden behind a nearer object the area
+    and centroid are short of it, so the rectangle is the visible outline's, grown by a pixel."""
+    top = region.top_mask
+    pts, wts = region.world[top], region.area[top]
+    centroid = (pts * wts[:, None]).sum(axis=0) / wts.sum()
+    area = float(wts.sum())
+    outside = _outside(region.pixels[top])
+    edge = outside.any(axis=1)
+    occluder = region.occluded[top][edge]
+    outline = pts[edge, :2]
+    hidden = (outside[edge] & occluder).any(axis=1)
+    rim = (outside[edge] & ~occluder).any(axis=1)
+    rect_centre, sides, angle = min_area_rect(outline)
+    pitch = math.sqrt(float(np.median(wts)))
+    face = TopFace(centroid, area, centroid[:2].copy(), _grown_sides(sides, area), angle, outline, hidden, rim, pitch)
+    if face.occluded:
+        face = face._replace(centre_xy=rect_centre, sides=(sides[0] + pitch, sides[1] + pitch))
+    return face
+
+
+def fit_circle(xy: np.ndarray) -> tuple[np.ndarray, float]:
+    """Least-squares circle (Kåsa's algebraic fit) through points (N, 2): centre, radius."""
+    a = np.c_[2 * xy, np.ones(len(xy))]
+    sol, *_ = np.linalg.lstsq(a, (xy**2).sum(axis=1), rcond=None)
+    return sol[:2], math.sqrt(max(float(sol[2] + sol[:2] @ sol[:2]), 0.0))
+
+
+def _red_count(rgb: np.ndarray, region: _Region, margin: float) -> int:
+    """The region's red pixels: r − max(g, b) ≥ ``margin``."""
+    colour = rgb[region.pixels[:, 0], region.pixels[:, 1]]
+    return int((colour[:, 0] - np.maximum(colour[:, 1], colour[:, 2]) >= margin).sum())
+
+
+# ---------------------------------------------------------------------------------------------- obstacle fits
+
+
+class ObstacleFit(NamedTuple):
+    kind: str
+    centre: np.ndarray  # (3,) world
+    size: np.ndarray  # (3,) MuJoCo convention
+    yaw: float
+    residual: float  # m: RMS distance of the region's points to the fitted surface (trimmed)
+
+
+def _fit_sphere(pts: np.ndarray) -> tuple[np.ndarray, float]:
+    """Least-squares sphere (algebraic, then a few Gauss-Newton steps on the geometric distance)."""
+    a = np.c_[2 * pts, np.ones(len(pts))]
+    sol, *_ = np.linalg.lstsq(a, (pts**2).sum(axis=1), rcond=None)
+    c = sol[:3]
+    r = math.sqrt(max(sol[3] + c @ c, 1e-12))
+    for _ in range(5):
+        d = pts - c
+        dist = np.linalg.norm(d, axis=1)
+        dist = np.maximum(dist, 1e-9)
+        jac = np.c_[-d / dist[:, None], -np.ones(len(pts))]
+        step, *_ = np.linalg.lstsq(jac, -(dist - r), rcond=None)
+        c, r = c + step[:3], r + step[3]
+    return c, abs(float(r))
+
+
+def _surface_residual(kind: str, centre: np.ndarray, size: np.ndarray, yaw: float, pts: np.ndarray) -> float:
+    """Trimmed RMS (best 90 %) of |signed distance| from the points to the fitted shape's surface."""
+    shape = shapes.BY_NAME[kind]
+    d = np.abs(shapes.sdf(np, shape.id, centre, np.asarray(yaw), size, pts))
+    d = np.sort(d)[: max(1, int(0.9 * len(d)))]
+    return float(np.sqrt(np.mean(d**2)))
+
+
+def fit_obstacle(region: _Region, plane_z: float, kinds: Sequence[str]) -> ObstacleFit:
+    """The best-fitting kind for a region (smallest surface residual) and its pose and size."""
+    pts = region.world
+    fits: list[ObstacleFit] = []
+    top = region.top
+    face = _top_face(region)
+    base_z = plane_z  # the table under the object, world z
+    for kind in kinds:
+        if kind == "sphere":
+            c, r = _fit_sphere(pts)
+            if not (0.005 < r < 0.3) or c[2] - r < base_z - 0.01:
+                continue  # a sphere reaching into the table is no sphere of the cell
+            size, yaw, centre = np.array([r, 0.0, 0.0]), 0.0, c
+        elif kind == "cylinder":
+            half = top / 2
+            if face.occluded:  # the rim's visible arc
+                xy, r = fit_circle(face.rim_xy)
+                r += face.pitch / 2  # outline pixel centres lie half a pixel inside the rim
+            else:
+                xy, r = face.centroid[:2], math.sqrt(face.area / math.pi)
+            centre = np.array([xy[0], xy[1], base_z + half])
+            size, yaw = np.array([r, half, 0.0]), 0.0
+        elif kind == "box":
+            half = top / 2
+            centre = np.array([face.centre_xy[0], face.centre_xy[1], base_z + half])
+            size, yaw = np.array([face.sides[0] / 2, face.sides[1] / 2, half]), wrap(face.angle, math.pi)
+        elif kind == "capsule":
+            r = top / 2
+            upper = region.height >= r
+            xy = pts[upper, :2]
+            wts = region.area[upper]
+            mean = (xy * wts[:, None]).sum(axis=0) / wts.sum()
+            cov = np.cov((xy - mean).T, aweights=wts)
+            evals, evecs = np.linalg.eigh(cov)
+            axis = evecs[:, 1]
+            along = (xy - mean) @ axis
+            across = (xy - mean) @ np.array([-axis[1], axis[0]])
+            lo, hi = float(along.min()), float(along.max())
+            mid_across = float(np.average(across, weights=wts))
+            length = hi - lo + math.sqrt(float(np.median(region.area)))  # end pixels' centres: half a pitch short each
+            half_axis = max(length / 2 - r, 0.0)
+            centre_xy = mean + axis * (lo + hi) / 2 + np.array([-axis[1], axis[0]]) * mid_across
+            centre = np.array([centre_xy[0], centre_xy[1], base_z + r])
+            size, yaw = np.array([r, half_axis, 0.0]), wrap(math.atan2(axis[1], axis[0]), math.pi)
+        else:
+            raise PerceptionError(f"unknown obstacle kind {kind!r}; known: {', '.join(shapes.NAMES)}")
+        fits.append(ObstacleFit(kind, centre, size, yaw, _surface_residual(kind, centre, size, yaw, pts)))
+    if not fits:
+        raise PerceptionError("no obstacle kind fits a region")
+    best = min(fits, key=lambda f: f.residual)
+    flat = {f.kind: f for f in fits if f.kind in ("box", "cylinder")}
+    if best.kind in flat and len(flat) == 2:
+        best = flat[outline_kind(face)]
+    return best
+
+
+def polygon_area(poly: np.ndarray) -> float:
+    """Area of a simple polygon (K, 2) (shoelace)."""
+    x, y = poly[:, 0], poly[:, 1]
+    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+
+
+def outline_kind(face: TopFace) -> str:
+    """"cylinder" or "box" from the top face's outline, whose horizontal positions barely move with depth
+    noise (it acts along the rays), where the 3-D residuals, noise-dominated, cannot tell the two
+    flat-topped kinds apart.  Whole: the convex hull fills π/4 of its minimum-area rectangle for a disc,
+    all of it for a rectangle (threshold ``BOX_FILL``; the hull shrugs off a ragged, partly dropped
+    outline).  Partly hidden: whether the visible outline points lie nearer a circle or the rectangle."""
+    if not face.occluded:
+        hull = convex_hull(face.outline_xy)
+        _, sides, _ = min_area_rect(face.outline_xy)
+        fill = polygon_area(hull) / max(sides[0] * sides[1], 1e-12) if len(hull) >= 3 else 1.0
+        return "box" if fill >= BOX_FILL else "cylinder"
+    xy = face.rim_xy
+    centre, r = fit_circle(xy)
+    circle = float(np.sqrt(np.mean((np.linalg.norm(xy - centre, axis=1) - r) ** 2)))
+    rect_centre, sides, angle = min_area_rect(face.outline_xy)
+    c, s = math.cos(angle), math.sin(angle)
+    d = xy - rect_centre
+    u, v = np.abs(d @ np.array([c, s])), np.abs(d @ np.array([-s, c]))
+    to_side = np.minimum(np.abs(sides[0] / 2 - u), np.abs(sides[1] / 2 - v))
+    rect = float(np.sqrt(np.mean(to_side**2)))
+    return "cylinder" if circle < rect else "box"
+
+
+# ---------------------------------------------------------------------------------------------- the pipeline
+
+
+def _prepare(cloud_mm: Any, calibration: CameraCalibration, settings: PerceptionSettings) -> _Cloud:
+    cloud = check_cloud(cloud_mm)
+    valid = np.isfinite(cloud).all(axis=2)
+    cam = np.where(valid[..., None], cloud / 1000.0, np.nan)
+    fx, fy = _intrinsics_from_cloud(cam, valid)
+    world = calibration.cam_to_base(np.where(valid[..., None], cam, 0.0))
+    world[~valid] = np.nan
+    data = _Cloud(valid.shape, valid, cam, world, fx, fy)
+    normal, offset, sigma, _ = fit_table(world, valid, settings)
+    data.normal, data.sigma = normal, sigma
+    data.height = world @ normal - offset
+    # each pixel's footprint on a plane parallel to the table: z²/(fx·fy·|n·r|), r the ray with z = 1
+    n_cam = calibration.matrix[:3, :3].T @ normal
+    z = cam[..., 2]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cos = np.abs((cam / z[..., None]) @ n_cam)
+        data.area = z**2 / (fx * fy * cos)
+    return data
+
+
+def _object_mask(data: _Cloud, settings: PerceptionSettings, robot_q: Any, model: RobotModel | None) -> np.ndarray:
+    with np.errstate(invalid="ignore"):
+        above = data.valid & (data.height > max(settings.min_height_m, 5.0 * data.sigma))
+    idx = np.nonzero(above)
+    pts = data.world[idx]
+    drop = _near_primitives(pts, *SCENE.static_arrays(), settings.static_margin_m)
+    if robot_q is not None:
+        drop |= _near_primitives(pts, *_robot_primitives(model or load_robot(), robot_q), settings.robot_margin_m)
+    above[idx[0][drop], idx[1][drop]] = False
+    return above
+
+
+def point_at_pixel(cloud_mm: Any, u: float, v: float, window: int = 2) -> np.ndarray:
+    """The paper's step: a pixel (YOLO's box centre) -> its camera-frame point (mm), the median of the
+    valid points in a (2·window + 1)² neighbourhood; ``PerceptionError`` if none is valid."""
+    cloud = check_cloud(cloud_mm)
+    h, w = cloud.shape[:2]
+    r, c = int(round(v)), int(round(u))
+    if not (0 <= r < h and 0 <= c < w):
+        raise PerceptionError(f"pixel ({u:.1f}, {v:.1f}) is outside the {w} × {h} image")
+    patch = cloud[max(0, r - window) : r + window + 1, max(0, c - window) : c + window + 1].reshape(-1, 3)
+    patch = patch[np.isfinite(patch).all(axis=1)]
+    if len(patch) == 0:
+        raise PerceptionError(f"no valid depth within {window} px of pixel ({u:.1f}, {v:.1f})")
+    return np.median(patch, axis=0)
+
+
+def _cube_candidates(regions: list[_Region], rgb: np.ndarray | None, detections: Sequence[Detection] | None,
+                     labels: np.ndarray, target_size: np.ndarray, settings: PerceptionSettings) -> tuple[list[int], str]:
+    """Indices (into ``regions``) of the cube candidates and how they were chosen."""
+    if detections is not None:
+        chosen = []
+        for det in detections:
+            if det.label != "target":
+                continue
+            u0, v0, u1, v1 = (int(round(x)) for x in det.box)
+            box = labels[max(0, v0) : v1 + 1, max(0, u0) : u1 + 1]
+            inside = box[box >= 0]
+            if inside.size:
+                label = int(np.bincount(inside).argmax())
+                chosen += [i for i, reg in enumerate(regions) if reg.label == label and i not in chosen]
+        return chosen, "detector"
+    if rgb is not None and settings.use_colour:
+        red = [_red_count(rgb, reg, settings.red_margin) for reg in regions]
+        alone = [i for i, reg in enumerate(regions) if red[i] >= settings.red_fraction * len(reg.world)]
+        merged = [i for i, reg in enumerate(regions) if i not in alone and red[i] >= MIN_RED_PIXELS]
+        if merged:  # red pixels on (or against) another object: a cube, but not on the table
+            reg = regions[merged[0]]
+            raise PerceptionError(
+                f"cube not standing on the table: {red[merged[0]]} red pixels are part of an object whose top is "
+                f"{reg.top * 1000:.0f} mm above the table at world ({reg.world[:, 0].mean():.3f}, "
+                f"{reg.world[:, 1].mean():.3f}) m (the cube on or against it?)")
+        return alone, "colour"
+    out = []
+    side, height = float(max(target_size[0], target_size[1])), float(target_size[2])
+    for i, reg in enumerate(regions):
+        if abs(reg.top - height) > settings.cube_height_tol_m or reg.top_mask.sum() < 3:
+            continue
+        if all(abs(s - side) <= settings.cube_side_tol * side for s in _top_face(reg).sides):
+            out.append(i)
+    return out, "size"
+
+
+def detect_scene(cloud_mm: Any, rgb: Any = None, calibration: CameraCalibration | None = None,
+                 target_size: Sequence[float] | None = None, *, robot_q: Any = None,
+                 detections: Sequence[Detection] | None = None, settings: PerceptionSettings | None = None,
+                 robot_model: RobotModel | None = None) -> SceneDetection:
+    """The cube and the obstacles in one capture (module docstring); ``PerceptionError`` when the
+    capture cannot give exactly one cube standing on the table.
+
+    ``cloud_mm``: (H, W, 3) camera frame, mm, NaN = no return.  ``rgb``: the registered image (H, W, 3),
+    uint8 or floats in [0, 1], or None.  ``calibration``: camera -> world (default the paper's).
+    ``target_size``: the cube's full extents, m (default ``env.sampling.target_size``).  ``robot_q``: the
+    arm's joints when it may be in view.  ``detections``: a 2-D detector's boxes (YOLO) choosing the cube."""
+    t0 = time.perf_counter()
+    settings = settings or PerceptionSettings()
+    calibration = calibration or CameraCalibration.default()
+    size = np.asarray(target_size if target_size is not None else SamplingConfig().target_size, dtype=float)
+    data = _prepare(cloud_mm, calibration, settings)
+    image = _check_rgb(rgb, data.shape) if rgb is not None else None
+    mask = _object_mask(data, settings, robot_q, robot_model)
+    labels = label_regions(mask, np.nan_to_num(data.world), settings.max_gap_m, data.valid)
+    top_tol = max(settings.top_tol_m, 3.0 * data.sigma)
+    regions, fragments = [], 0
+    for reg in _regions(data, labels, settings.min_region_m2, top_tol):
+        if min(_top_face(reg).sides) < settings.min_top_side_m:
+            fragments += 1  # a steep side cut off its top by dropped pixels, an edge's flying pixels
+            continue
+        regions.append(reg)
+    found, how = _cube_candidates(regions, image, detections, labels, size, settings)
+    if not found:
+        raise PerceptionError(f"no cube found ({how}; {len(regions)} object region(s) above the table): is the cube "
+                              "in view and not hidden by the arm?")
+    if len(found) > 1:
+        where = "; ".join(f"top {1000 * regions[i].top:.0f} mm at world ({regions[i].world[:, 0].mean():.3f}, "
+                          f"{regions[i].world[:, 1].mean():.3f}) m" for i in found)
+        raise PerceptionError(f"{len(found)} cube candidates ({how}): {where}; exactly one cube must be in the cell")
+    cube = regions[found[0]]
+    face = _top_face(cube)
+    sides = face.sides
+    side, height = float(max(size[0], size[1])), float(size[2])
+    problems = []
+    if abs(cube.top - height) > settings.cube_height_tol_m:
+        problems.append(f"its top is {cube.top * 1000:.1f} mm above the table (standing: {height * 1000:.0f} ± "
+                        f"{settings.cube_height_tol_m * 1000:.0f} mm)")
+    if not all(abs(s - side) <= settings.cube_side_tol * side for s in sides):
+        problems.append(f"its top face is {sides[0] * 1000:.0f} × {sides[1] * 1000:.0f} mm (standing: "
+                        f"{size[0] * 1000:.0f} × {size[1] * 1000:.0f} mm)")
+    if problems:
+        raise PerceptionError("cube not standing on the table: " + "; ".join(problems))
+    top_point = np.array([face.centre_xy[0], face.centre_xy[1], face.centroid[2]])
+    target = detected_top_to_cube_centre(top_point, height / 2)
+    yaw = wrap(face.angle, math.pi / 2)
+    obstacles, fits = [], []
+    for i, reg in enumerate(regions):
+        if i == found[0]:
+            continue
+        reach = float(np.max(np.linalg.norm(reg.world[:, :2] - reg.world[:, :2].mean(axis=0), axis=1)))
+        if reg.top > settings.max_obstacle_top_m:
+            raise PerceptionError(
+                f"an object {reg.top:.2f} m tall (world ({reg.world[:, 0].mean():.2f}, {reg.world[:, 1].mean():.2f}) m) "
+                f"is taller than any trained obstacle ({settings.max_obstacle_top_m:.2f} m): the arm in view without "
+                "robot_q, or something that does not belong in the cell")
+        if reach > settings.max_obstacle_radius_m:
+            raise PerceptionError(
+                f"an object reaching {reach:.2f} m from its centre (world ({reg.world[:, 0].mean():.2f}, "
+                f"{reg.world[:, 1].mean():.2f}) m) is larger than any trained obstacle: the arm in view without "
+                "robot_q, or something that does not belong in the cell")
+        fit = fit_obstacle(reg, _plane_height(data, reg), settings.kinds)
+        fits.append({"kind": fit.kind, "residual_mm": 1000 * fit.residual, "points": len(reg.world),
+                     "touches_border": reg.touches_border, "occluded_px": int(reg.occluded.any(axis=1).sum())})
+        obstacles.append(Obstacle(fit.kind, tuple(float(v) for v in fit.centre), tuple(float(v) for v in fit.size),
+                                  float(fit.yaw)))
+    diagnostics = {
+        "plane_normal": data.normal.tolist(), "plane_sigma_mm": 1000 * data.sigma, "valid_points": int(data.valid.sum()),
+        "regions": len(regions), "fragments": fragments, "cube_by": how, "cube_points": len(cube.world), "cube_top_points": int(cube.top_mask.sum()),
+        "cube_top_mm": 1000 * cube.top, "cube_face_mm": [1000 * sides[0], 1000 * sides[1]],
+        "cube_touches_border": cube.touches_border, "cube_outline_hidden_px": int(face.outline_hidden.sum()),
+        "obstacles": fits, "seconds": time.perf_counter() - t0,
+    }
+    return SceneDetection(target, top_point, yaw, obstacles, diagnostics)
+
+
+def _plane_height(data: _Cloud, region: _Region) -> float:
+    """World z of the table plane under a region's centroid."""
+    n = data.normal
+    xy = region.world[:, :2].mean(axis=0)
+    d = float((region.world @ n - region.height).mean())  # the plane offset (n·p = d)
+    return (d - n[0] * xy[0] - n[1] * xy[1]) / n[2]
