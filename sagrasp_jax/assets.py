@@ -1,4 +1,4 @@
-"""Data files shipped inside the package: the robot URDF and the MJCF generated from it.
+"""Data files shipped inside the package: the robot URDF, the MJCF generated from it, pretrained policies.
 
 They live in ``sagrasp_jax/urdf/`` and ``sagrasp_jax/mjcf/`` and are found through the package
 (``importlib.resources``), so a checkout, an editable install and an installed wheel all read
@@ -23,3 +23,4 @@ URDF = path("urdf", "aubo_i5_eg2.urdf")  # the robot: the only place robot facts
 MJCF_DIR = path("mjcf")
 MJCF_SCENE = path("mjcf", "scene.xml")  # robot + cell (the kinematic env, physical check, renderer)
 MJCF_ROBOT = path("mjcf", "aubo_i5_eg2.xml")  # the robot alone (the dynamic mode's model, servo constants)
+PRETRAINED_DIR = path("pretrained")  # exported policies shipped with the package, with their provenance (.json)

@@ -335,7 +335,10 @@ def format_table(results: dict[str, Any]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m sagrasp_jax.evaluate", description=__doc__.split("\n\n")[0])
-    p.add_argument("--run", required=True, help="run folder written by sagrasp_jax.train")
+    p.add_argument("--run", default=None, help="run folder written by sagrasp_jax.train (required but with "
+                   "--backend twin --policy)")
+    p.add_argument("--policy", default=None, help="--backend twin: an exported policy.npz or a pretrained policy's name "
+                   "(pretrained) instead of --run")
     p.add_argument("--episodes", type=int, default=1000)
     p.add_argument("--seed", type=int, default=None, help="evaluation seed (default eval.seed + 1)")
     p.add_argument("--max-steps", type=int, default=None, help="step cap per episode (default env.task.max_steps)")
@@ -363,6 +366,8 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.backend == "twin":
         return _twin_backend(args)
+    if args.run is None or args.policy is not None:
+        p.error("--run RUN is required (--policy only with --backend twin)")
     try:
         if args.config is not None:
             args.overrides = file_overrides(args.config) + list(args.overrides)
@@ -422,7 +427,10 @@ def _twin_backend(args: argparse.Namespace) -> int:
         return 2
     args.condition = args.condition or "robot"
     args.seed = 0 if args.seed is None else args.seed
-    return rehearse.run_cli(os.path.join(args.run, "policy.npz"), args)
+    if (args.run is None) == (args.policy is None):
+        print("error: --backend twin needs --run RUN (its policy.npz) or --policy FILE|NAME, not both", file=sys.stderr)
+        return 2
+    return rehearse.run_cli(args.policy or os.path.join(args.run, "policy.npz"), args)
 
 
 if __name__ == "__main__":

@@ -365,15 +365,45 @@ def _policy_from_arrays(arrays: Mapping[str, np.ndarray], path: str) -> NumpyPol
     )
 
 
-def load_policy(path: str | os.PathLike[str]) -> NumpyPolicy:
-    """Read and validate ``policy.npz``; raises PolicyFormatError naming the file and the problem."""
+# Policies shipped in the package (sagrasp_jax/pretrained/NAME.npz, provenance in NAME.json), by name: a robot PC
+# with the core install deploys one without training.  "pretrained" is the README command's seed-0 policy.
+PRETRAINED = {"cpu-quick-s0": "cpu_quick_s0", "pretrained": "cpu_quick_s0"}
+
+
+def pretrained_path(name: str) -> str:
+    """The packaged file of a pretrained policy's ``name`` (``PRETRAINED``)."""
+    from sagrasp_jax import assets
+
+    return os.path.join(assets.PRETRAINED_DIR, PRETRAINED[name] + ".npz")
+
+
+def pretrained_provenance(name: str) -> dict[str, Any]:
+    """What a pretrained policy is: its training command, config hash and measured figures."""
+    from sagrasp_jax import assets
+
+    with open(os.path.join(assets.PRETRAINED_DIR, PRETRAINED[name] + ".json"), encoding="utf-8") as fh:
+        return json.load(fh)
+
+
+def resolve_policy(path: str | os.PathLike[str]) -> str:
+    """A policy argument as a file path: a pretrained policy's name (``PRETRAINED``) unless a file of that name exists."""
     path = os.fspath(path)
+    if path in PRETRAINED and not os.path.exists(path):
+        return pretrained_path(path)
+    return path
+
+
+def load_policy(path: str | os.PathLike[str]) -> NumpyPolicy:
+    """Read and validate ``policy.npz`` (or a pretrained policy by name, ``PRETRAINED``); raises
+    PolicyFormatError naming the file and the problem."""
+    path = resolve_policy(path)
     try:
         fileio.check_regular(path)  # a FIFO or device is refused before it is opened
     except fileio.NotRegularFile as exc:
         raise PolicyFormatError(f"{path} is {exc.kind}, not a policy file") from None
     except OSError:
-        raise PolicyFormatError(f"{path}: policy file not found") from None
+        names = ", ".join(sorted(PRETRAINED))
+        raise PolicyFormatError(f"{path}: policy file not found (or a pretrained policy's name: {names})") from None
     try:
         arrays = _read_npz(path)
     except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, ValueError, EOFError, NotImplementedError,

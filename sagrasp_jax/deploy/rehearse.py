@@ -34,7 +34,7 @@ from sagrasp_jax.config import EVAL_CONDITIONS, Config, ConfigError, EnvConfig, 
 from sagrasp_jax.deploy import transfer
 from sagrasp_jax.deploy.calibration import ObstacleRejected, TargetRejected
 from sagrasp_jax.deploy.loop import DeployReport, obstacles_from_spec, run_episode
-from sagrasp_jax.runtime import NumpyPolicy, PolicyFormatError, load_policy
+from sagrasp_jax.runtime import NumpyPolicy, PolicyFormatError, load_policy, resolve_policy
 
 SCENE_SETS = ("mix", "blocking")
 MAX_EPISODES = 100_000
@@ -180,7 +180,7 @@ def rehearse(policy_path: str, episodes: int, condition: str, scenes: str = "mix
     groups["obstacle"] = [r for r in records if r["kind"] in ("obstacle", "blocking")]  # every obstacle scene
     return {
         "backend": "twin",
-        "policy": os.path.abspath(policy_path),
+        "policy": policy_path if policy_path != resolve_policy(policy_path) else os.path.abspath(policy_path),
         "condition": condition,
         "condition_overrides": list(EVAL_CONDITIONS[condition]),
         "scenes": scenes,
@@ -255,7 +255,7 @@ def run_cli(policy_path: str, args: argparse.Namespace) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m sagrasp_jax.deploy.rehearse", description=__doc__.split("\n\n")[0])
-    p.add_argument("--policy", required=True, help="exported policy.npz")
+    p.add_argument("--policy", required=True, help="exported policy.npz, or a pretrained policy's name (pretrained)")
     add_arguments(p)
     args = p.parse_args(argv)
     return run_cli(args.policy, args)

@@ -1,0 +1,52 @@
+"""The pretrained policy shipped in the package: found by name, the file its provenance names, usable by deploy."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from sagrasp_jax.runtime import PRETRAINED, PolicyFormatError, load_policy, pretrained_path, pretrained_provenance
+from tiny_run import REPO
+
+
+def test_pretrained_policy_by_name_is_the_file_its_provenance_names() -> None:
+    for name in PRETRAINED:
+        policy = load_policy(name)
+        prov = pretrained_provenance(name)
+        with open(pretrained_path(name), "rb") as fh:
+            assert hashlib.sha256(fh.read()).hexdigest() == prov["policy_sha256"]
+        assert policy.path == pretrained_path(name)
+        assert policy.env_config().task.obs_layout == "relative_lag"
+        assert "--seed 0" in prov["training_command"] and prov["config_identity"] == "e15bf1772faa0ce7"
+        measured = prov["measured"]
+        assert measured["mjx_robot_success"] >= 0.99 and measured["twin_robot_held"] >= 0.98, measured
+    action = load_policy("pretrained")(np.zeros(load_policy("pretrained").obs_size))
+    assert action.shape == (6,) and np.all(np.abs(action) <= 1)
+
+
+def test_a_file_of_that_name_wins_and_an_unknown_name_says_what_exists(tmp_path, monkeypatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(PolicyFormatError, match="pretrained policy's name: cpu-quick-s0, pretrained"):
+        load_policy("no-such-policy")
+    (tmp_path / "pretrained").write_bytes(b"not a zip")
+    with pytest.raises(PolicyFormatError, match="not a readable .npz"):
+        load_policy("pretrained")
+
+
+def test_deploy_runs_the_pretrained_policy_by_name() -> None:
+    from sagrasp_jax.deploy.calibration import CameraCalibration
+
+    pytest.importorskip("pybullet")
+    top = CameraCalibration.default().base_to_cam(np.array([0.10, -0.45, 0.05]), units="mm")
+    res = subprocess.run([sys.executable, "-m", "sagrasp_jax.deploy", "--policy", "pretrained", "--target-cam",
+                          *[f"{v:.4f}" for v in top], "--json"], capture_output=True, text=True, timeout=300,
+                         cwd=REPO)
+    report = json.loads(res.stdout)
+    assert res.returncode == 0 and report["held"] is True, res.stderr[-2000:]
+    assert report["outcome"] == "success" and report["steps"] < 60
