@@ -214,15 +214,18 @@ def evaluate_physical(run: str, episodes: int, seed: int, max_steps: int, lift: 
     The replay goes through ``policy_eval.evaluate_policy`` with the env wrapped to copy the final
     joints into the episode record, so it is the evaluation's own code path; the kinematic
     success count is reported next to the physical one so a mismatch would show.  As the
-    deployment loop does, the gripper closes where the episode ended (the pose the success test
-    judged) on the true cube, and lifts keeping its orientation (docs/design.md, "One grasp").
+    deployment loop does (docs/design.md, "One grasp"), the gripper first slides, its orientation
+    kept, over the cube the policy saw (the true cube plus the episode's horizontal detection error;
+    its height is known) in collision-checked steps (``physical_grasp_pose``), then closes on the true
+    cube and lifts keeping its orientation.
     """
     from sagrasp_jax import physical
 
     lift = physical.LIFT_HEIGHT if lift is None else lift
     replay = replay_final_poses(run, episodes, seed, max_steps, overrides, scenes)
     successes = np.nonzero(replay.episodes["success"] > 0)[0]
-    checks = [physical.physical_grasp_check(replay.q_final[i], replay.spec(i), lift=lift) for i in successes]
+    checks = [physical.physical_grasp_check(physical_grasp_pose(replay, i), replay.spec(i), lift=lift)
+              for i in successes]
     held = sum(c["success"] for c in checks)
     names = dict.fromkeys(name for c in checks for name in c["criteria"])
     failures = {name: sum(not c["criteria"].get(name, True) for c in checks) for name in names}
@@ -241,6 +244,31 @@ def evaluate_physical(run: str, episodes: int, seed: int, max_steps: int, lift: 
         "failed_criteria": failures,
         "lift": lift,
     }
+
+
+SLIDE_CHECKS = 8  # collision checks along the final slide (it moves a few mm)
+
+
+def physical_grasp_pose(replay: "FinalPoses", i: int) -> np.ndarray:
+    """Where the deploy loop closes after episode ``i``: its final pose slid over the detected cube
+    (``deploy.loop.centring_pose``), stopped before the first step that collides (the safety layer's
+    refusal), or the final pose itself when no slide is found."""
+    from sagrasp_jax import collision, robot
+    from sagrasp_jax.deploy.loop import centring_pose
+
+    model, cfg, spec, q = robot.load_robot(), replay.env_cfg, replay.spec(i), replay.q_final[i]
+    detected = np.asarray(spec.target_pos, float) + replay.target_error[i] * np.array([1.0, 1.0, 0.0])
+    try:
+        goal = centring_pose(model, cfg, q, detected)
+    except robot.IKError:
+        return q
+    last = q
+    for t in np.linspace(0.0, 1.0, SLIDE_CHECKS + 1)[1:]:
+        pose = q + t * (goal - q)
+        if bool(collision.check(np, model, robot.forward_kinematics(np, model, pose), spec, cfg).any_collision):
+            return last
+        last = pose
+    return last
 
 
 class FinalPoses(NamedTuple):

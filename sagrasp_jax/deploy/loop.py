@@ -17,18 +17,20 @@ training env runs, with NumPy:
   here also refuses a command whose pose would collide with the cell, the detected
   obstacles or the cube (``collision.check``), so the arm stops instead of touching them.
 
-After a success the arm holds the pose it reached (the measured joints, commanded for
-``SETTLE_STEPS`` periods while latency and servo lag die out), the gripper closes there and the arm
-lifts the gripper centre by ``lift_height`` (0.05 m) keeping the grasp's orientation
-(``robot.lift_pose``), in small steps, each passing the same safety layer.  That is the grasp training
-judges: the success pose is where the fingers close (the MJX physical check closes at an episode's
-final pose, ``physical.physical_grasp_check``), with no re-orientation that could swing the wrist into
-the obstacle the policy avoided (docs/design.md, "One grasp").  The cube's centre is taken on the
-table: a detected height off by up to ``calibration.TARGET_Z_TOLERANCE`` is replaced by the height of
-a cube standing there (``calibration.standing_cube_centre``), a larger one is refused.  Whether the cube
-is held is measured, not inferred from the pose: by the backend's cube position (simulators) or its
-finger opening (a gripper that reports it); a backend that also reports contacts during the approach
-(the twin, ``approach_faults``) fails a grasp whose approach knocked the cube or touched an obstacle.
+After a success the gripper slides, its orientation kept, over the cube's centre to the middle of
+the success band's heights (``reward.grasp_centre``, a few mm, ``robot.translated_pose``) in small
+safety-checked steps, holds there for ``SETTLE_STEPS`` periods while latency and servo lag die out,
+the gripper closes and the arm lifts the gripper centre by ``lift_height`` (0.05 m), still keeping the
+grasp's orientation (``robot.lift_pose``).  Nothing re-orients the wrist between the policy and the
+grasp, so nothing swings it into the obstacle the policy avoided; a slide step the safety layer
+refuses is not sent, and the gripper closes where the arm stands.  The MJX evaluation's physical
+check performs the same slide, collision-checked, before it closes (``evaluate.evaluate_physical``;
+docs/design.md, "One grasp").  The cube's centre is taken on the table: a detected height off by up
+to ``calibration.TARGET_Z_TOLERANCE`` is replaced by the height of a cube standing there
+(``calibration.standing_cube_centre``), a larger one is refused.  Whether the cube is held is
+measured, not inferred from the pose: by the backend's cube position (simulators) or its finger
+opening (a gripper that reports it); a backend that also reports contacts during the approach (the
+twin, ``approach_faults``) fails a grasp whose approach knocked the cube or touched an obstacle.
 Nothing here imports jax.
 """
 
@@ -48,12 +50,14 @@ from sagrasp_jax.deploy.calibration import standing_cube_centre, validate_obstac
 from sagrasp_jax.deploy.safety import (
     SafetyLayer, SafetyViolation, check_policy_constants, check_policy_scene, deployment_env,
 )
-from sagrasp_jax.robot import IKError, RobotModel, forward_kinematics, lift_pose, load_robot
+from sagrasp_jax.robot import IKError, RobotModel, forward_kinematics, lift_pose, load_robot, translated_pose
 from sagrasp_jax.runtime import NumpyPolicy
 from sagrasp_jax.sampling import ResetSpec
 
 LIFT_HEIGHT = 0.05  # m, docs/task.md §2/§5: lift after closing the gripper
 LIFT_MIN_STEPS = 10  # control periods the lift takes at least (0.5 s: ≤ 0.1 m/s)
+CENTRE_MIN_STEPS = 4  # control periods the final slide over the cube's centre takes at least (it moves a few mm)
+CENTRE_MAX_JOINT_MOVE = 0.1  # rad: a slide of a few mm moves no joint further; more means IK left the branch
 SETTLE_STEPS = 6  # control periods the grasp pose is held before closing (3 steps of latency, servo lag)
 HOLD_TOLERANCE = 0.01  # m the cube may lag behind the lift and still count as held (physical.HOLD_TOLERANCE)
 HELD_MIN_OPENING = 0.004  # m per finger: closed fingers stopped at least this far apart hold something (the cube: 0.01)
@@ -342,13 +346,35 @@ def _ramp(robot: RobotInterface, safety: SafetyLayer, q_goal: np.ndarray, q_targ
     return q_target
 
 
-def _settle(robot: RobotInterface, safety: SafetyLayer, q: np.ndarray, q_target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Stop where the grasp pose was reached: command the measured joints for ``SETTLE_STEPS`` periods (the
-    commands still queued by latency run out, the servos come to rest), each through the safety layer."""
-    q_target = send_checked(robot, safety, q, q_target)
-    for _ in range(SETTLE_STEPS - 1):
+def centring_pose(model: RobotModel, env_cfg: EnvConfig, q: Any, target: Any) -> np.ndarray:
+    """The joints of the final slide: the gripper centre at ``reward.grasp_centre`` of the cube centre ``target``
+    (over it, mid band), the gripper's orientation that of ``q`` (``robot.translated_pose``).  Shared by the
+    deploy loop and the MJX evaluation's physical check; IKError if no such pose lies near ``q``."""
+    goal = reward.grasp_centre(np, env_cfg.task, np.asarray(target, dtype=float))
+    start = forward_kinematics(np, model, np.asarray(q, dtype=float)).gripper_centre
+    return translated_pose(model, q, goal - start, max_joint_move=CENTRE_MAX_JOINT_MOVE, what="centring pose")
+
+
+def _centre(robot: RobotInterface, model: RobotModel, env_cfg: EnvConfig, spec: ResetSpec, q: np.ndarray,
+            q_target: np.ndarray, safety: SafetyLayer) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """Before closing: slide the gripper, its orientation kept, over the cube's centre to the middle of the
+    band's heights (``reward.grasp_centre``; ``robot.translated_pose``: a few mm, no wrist swing), in
+    safety-checked steps, then hold the command for ``SETTLE_STEPS`` periods (latency, servo lag).  A step
+    the safety layer refuses is not sent: the slide stops there and the gripper closes where the arm stands
+    (the success pose or a step nearer the centre).  Returns the measured joints, the commanded target and
+    what happened."""
+    goal = reward.grasp_centre(np, env_cfg.task, np.asarray(spec.target_pos, dtype=float))
+    start = forward_kinematics(np, model, q).gripper_centre
+    info: dict[str, Any] = {"centring_move_mm": float(1000 * np.linalg.norm(goal - start)), "centring": "done"}
+    try:
+        q_target = _ramp(robot, safety, centring_pose(model, env_cfg, q, spec.target_pos), q_target, CENTRE_MIN_STEPS)
+    except IKError as exc:
+        info["centring"] = f"skipped ({exc}); closing at the grasp pose"
+    except SafetyViolation as exc:
+        info["centring"] = f"stopped ({exc}); closing where the arm stands"
+    for _ in range(SETTLE_STEPS):  # the last command was accepted: holding it is safe
         q_target = send_checked(robot, safety, q_target, q_target)
-    return _read(robot), q_target
+    return _read(robot), q_target, info
 
 
 def _held(robot: RobotInterface, cube0: np.ndarray | None, height: float) -> tuple[bool | None, dict[str, Any]]:
@@ -366,14 +392,16 @@ def _held(robot: RobotInterface, cube0: np.ndarray | None, height: float) -> tup
 
 def _grasp_and_lift(robot: RobotInterface, model: RobotModel, env_cfg: EnvConfig, spec: ResetSpec,
                     q: np.ndarray, q_target: np.ndarray, height: float, safety: SafetyLayer) -> dict[str, Any]:
-    """Hold the grasp pose, close the gripper there, lift ``height`` m keeping the gripper's orientation, in
-    safety-checked steps, and judge whether the cube is held (``_held``; a faulty approach fails it)."""
+    """Slide over the cube's centre (``_centre``), close the gripper, lift ``height`` m keeping the gripper's
+    orientation, in safety-checked steps, and judge whether the cube is held (``_held``; a faulty approach
+    fails it)."""
     locate = getattr(robot, "object_position", None)
     cube0 = np.asarray(locate(), float) if locate is not None else None
     result: dict[str, Any] = {"closed": False, "lift_commanded": float(height), "lifted": False, "held": False,
                               "message": ""}
     try:
-        q, q_target = _settle(robot, safety, q, q_target)
+        q, q_target, centring = _centre(robot, model, env_cfg, spec, q, q_target, safety)
+        result.update(centring)
     except SafetyViolation as exc:
         result["message"] = f"holding the grasp pose stopped: {exc}; gripper not closed"
         return result
