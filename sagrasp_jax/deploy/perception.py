@@ -87,6 +87,7 @@ class PerceptionSettings:
     max_plane_tilt_deg: float = 5.0  # the table's normal against world z
     min_height_m: float = 0.008  # above the table: an object's point (at least 5 σ of the table's noise)
     max_gap_m: float = 0.03  # neighbouring pixels this far apart in 3-D are not one surface
+    max_slope: float = 5.0  # ... nor those whose depth steps more than this many pixel pitches (a 79° slope)
     min_region_m2: float = 1.5e-4  # smaller regions (footprint area) are noise: 12 × 12 mm
     min_top_side_m: float = 0.008  # a region whose top face is narrower is a fragment of a side (every trained
     # obstacle's top is ≥ 40 mm across, a sphere's top 3 mm ≥ 26 mm, the cube's 20 mm)
@@ -212,17 +213,17 @@ def fit_table(world: np.ndarray, valid: np.ndarray, settings: PerceptionSettings
             f"({int(near.sum())} of {len(pts)} points): wrong calibration or base_z_offset?")
     stride = max(1, len(pts) // PLANE_POINTS)
     pts = pts[::stride]  # a plane needs no more than PLANE_POINTS; the fit is the pipeline's costliest step otherwise
-    sel = pts[np.abs(pts[:, 2] - SCENE.table.top_z) < settings.plane_band_m]
-    sigma = settings.plane_band_m
-    for _ in range(3):
-        a = np.c_[sel[:, 0], sel[:, 1], np.ones(len(sel))]
-        coef, *_ = np.linalg.lstsq(a, sel[:, 2], rcond=None)
+    in_band = np.abs(pts[:, 2] - SCENE.table.top_z) < settings.plane_band_m
+    for _ in range(4):  # fit the band, σ from the fit's residuals there (MAD), the band narrowed to 3 σ
+        sel = pts[in_band]
+        coef, *_ = np.linalg.lstsq(np.c_[sel[:, 0], sel[:, 1], np.ones(len(sel))], sel[:, 2], rcond=None)
         res = pts[:, 2] - (coef[0] * pts[:, 0] + coef[1] * pts[:, 1] + coef[2])
-        in_band = np.abs(res) < max(3.0 * sigma, 0.0005)
         r_in = res[in_band]
         sigma = max(1.4826 * float(np.median(np.abs(r_in - np.median(r_in)))), 2e-5)
-        sel = pts[in_band]
-    inliers = int(len(sel)) * stride
+        in_band = np.abs(res) < max(3.0 * sigma, 0.001)
+        if in_band.sum() < 3:
+            break
+    inliers = int(in_band.sum()) * stride
     if inliers < settings.min_plane_fraction * len(pts) * stride:
         raise PerceptionError(f"the table plane holds only about {inliers} of {len(pts) * stride} points (< "
                               f"{settings.min_plane_fraction:.0%}): is the camera looking at the table?")
@@ -256,11 +257,16 @@ def _robot_primitives(model: RobotModel, q: Any) -> tuple[np.ndarray, np.ndarray
     return model.prim_kind, pos, rot, model.prim_size
 
 
-def label_regions(mask: np.ndarray, points: np.ndarray, max_gap: float, valid: np.ndarray | None = None) -> np.ndarray:
-    """Connected regions of ``mask`` (H, W) on the image grid: 4-neighbours are joined when their points
-    (H, W, 3) are within ``max_gap``, and pixels two apart in a row or column when the one between them
-    has no return (``valid`` False: a pixel the camera dropped does not split a surface) and they are
-    within the same distance.  Labels (H, W), −1 outside, regions numbered 0.. in order of their smallest pixel
+def label_regions(mask: np.ndarray, points: np.ndarray, max_gap: float, valid: np.ndarray | None = None,
+                  cam_z: np.ndarray | None = None, pitch: np.ndarray | None = None, max_slope: float = math.inf,
+                  noise: float = 0.0) -> np.ndarray:
+    """Connected regions of ``mask`` (H, W) on the image grid.  4-neighbours are joined when their points
+    (H, W, 3) are within ``max_gap`` and, given their camera depths ``cam_z`` and pixel pitches ``pitch``
+    (m per pixel at that depth), when the depth changes by at most ``max_slope`` pitches plus 4·√2 σ of
+    ``noise``: a steeper step is an occluding edge (a sphere over a box below) or a side seen edge-on,
+    whose strip then falls apart into fragments.  Pixels two apart in a row or column are joined the same
+    way when the one between them has no return (``valid`` False: a pixel the camera dropped does not
+    split a surface).  Labels (H, W), −1 outside, regions numbered 0.. in order of their smallest pixel
     index.  Union-find by hooking roots and pointer jumping, all in NumPy array operations."""
     h, w = mask.shape
     index = np.full((h, w), -1, dtype=np.int64)
@@ -273,8 +279,10 @@ def label_regions(mask: np.ndarray, points: np.ndarray, max_gap: float, valid: n
         ok = (da >= 0) & (db >= 0)
         if dy + dx == 2:
             ok &= dropped[dy // 2 : h - dy // 2, dx // 2 : w - dx // 2]
-        dist = np.linalg.norm(points[: h - dy, : w - dx][ok] - points[dy:, dx:][ok], axis=-1)
-        near = dist < max_gap
+        near = np.linalg.norm(points[: h - dy, : w - dx][ok] - points[dy:, dx:][ok], axis=-1) < max_gap
+        if cam_z is not None and pitch is not None and math.isfinite(max_slope):
+            step = np.abs(cam_z[: h - dy, : w - dx][ok] - cam_z[dy:, dx:][ok])
+            near &= step <= max_slope * (dy + dx) * pitch[: h - dy, : w - dx][ok] + 4.0 * math.sqrt(2.0) * noise
         a_list.append(da[ok][near])
         b_list.append(db[ok][near])
     a, b = np.concatenate(a_list), np.concatenate(b_list)
@@ -722,7 +730,9 @@ def detect_scene(cloud_mm: Any, rgb: Any = None, calibration: CameraCalibration 
     data = _prepare(cloud_mm, calibration, settings)
     image = _check_rgb(rgb, data.shape) if rgb is not None else None
     mask = _object_mask(data, settings, robot_q, robot_model)
-    labels = label_regions(mask, np.nan_to_num(data.world), settings.max_gap_m, data.valid)
+    cam_z = np.nan_to_num(data.cam[..., 2])
+    labels = label_regions(mask, np.nan_to_num(data.world), settings.max_gap_m, data.valid, cam_z,
+                           cam_z / data.fx, settings.max_slope, data.sigma)
     top_tol = max(settings.top_tol_m, 3.0 * data.sigma)
     regions, fragments = [], 0
     for reg in _regions(data, labels, settings.min_region_m2, top_tol):
