@@ -207,3 +207,26 @@ def test_deploy_cli_exit_1_on_a_timeout(run_dir: str) -> None:
     assert res.returncode == 1, res.stderr[-2000:]
     report = json.loads(res.stdout)
     assert report["outcome"] == "timeout" and report["held"] is None
+
+
+def test_slide_refused_near_an_obstacle_closes_where_the_arm_stands(policy) -> None:
+    """A grasp pose 8 mm off the cube's centre, 4.4 mm clear of an obstacle that the centred pose would overlap
+    by 2.9 mm: the slide stops at the first refused step (never sent) and the gripper closes where it stands."""
+    from sagrasp_jax.deploy.loop import centring_pose
+
+    q, start = HOME, forward_kinematics(np, MODEL, HOME).gripper_centre
+    goal = TARGET + [0.0, -0.008, 0.0125]
+    for s in np.linspace(0.1, 1.0, 10):
+        q = solve_home_pose(q, start + s * (goal - start))
+    q[3] += 0.12
+    q = translated_pose(MODEL, q, goal - forward_kinematics(np, MODEL, q).gripper_centre, max_joint_move=1.0)
+    ob = Obstacle("sphere", (0.1575, -0.3187, 0.2307), (0.0436, 0.0, 0.0))
+    spec = scene_spec(q, TARGET, 0.0, [ob], CFG)
+    check = collision_hook(MODEL, CFG, spec)
+    assert check(q) is None and "obstacle" in (check(centring_pose(MODEL, CFG, q, TARGET)) or "")
+    with PyBulletTwin(spec, CFG, q0=q) as twin:
+        report = run_episode(twin, policy, TARGET, 0.0, [ob])
+    g = report.grasp
+    assert report.success and g["centring"].startswith("stopped") and "obstacle" in g["centring"], g
+    assert g["closed"] and g["approach_faults"] == [], g
+    assert report.held is True, g  # 8 mm off along the pads' width: still caught
