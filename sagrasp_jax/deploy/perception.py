@@ -740,6 +740,7 @@ def detect_scene(cloud_mm: Any, rgb: Any = None, calibration: CameraCalibration 
             fragments += 1  # a steep side cut off its top by dropped pixels, an edge's flying pixels
             continue
         regions.append(reg)
+    regions = _merge_sides(data, regions, top_tol)
     found, how = _cube_candidates(regions, image, detections, labels, size, settings)
     if not found:
         raise PerceptionError(f"no cube found ({how}; {len(regions)} object region(s) above the table): is the cube "
@@ -765,9 +766,8 @@ def detect_scene(cloud_mm: Any, rgb: Any = None, calibration: CameraCalibration 
     target = detected_top_to_cube_centre(top_point, height / 2)
     yaw = wrap(face.angle, math.pi / 2)
     obstacles, fits = [], []
-    for i, reg in enumerate(regions):
-        if i == found[0]:
-            continue
+    parts = _merge_duplicates(data, [reg for i, reg in enumerate(regions) if i != found[0]], top_tol, settings.kinds)
+    for reg, fit in parts:
         reach = float(np.max(np.linalg.norm(reg.world[:, :2] - reg.world[:, :2].mean(axis=0), axis=1)))
         if reg.top > settings.max_obstacle_top_m:
             raise PerceptionError(
@@ -779,7 +779,6 @@ def detect_scene(cloud_mm: Any, rgb: Any = None, calibration: CameraCalibration 
                 f"an object reaching {reach:.2f} m from its centre (world ({reg.world[:, 0].mean():.2f}, "
                 f"{reg.world[:, 1].mean():.2f}) m) is larger than any trained obstacle: the arm in view without "
                 "robot_q, or something that does not belong in the cell")
-        fit = fit_obstacle(reg, _plane_height(data, reg), settings.kinds)
         fits.append({"kind": fit.kind, "residual_mm": 1000 * fit.residual, "points": len(reg.world),
                      "touches_border": reg.touches_border, "occluded_px": int(reg.occluded.any(axis=1).sum())})
         obstacles.append(Obstacle(fit.kind, tuple(float(v) for v in fit.centre), tuple(float(v) for v in fit.size),
@@ -792,6 +791,67 @@ def detect_scene(cloud_mm: Any, rgb: Any = None, calibration: CameraCalibration 
         "obstacles": fits, "seconds": time.perf_counter() - t0,
     }
     return SceneDetection(target, top_point, yaw, obstacles, diagnostics)
+
+
+def _merged(data: _Cloud, a: _Region, b: _Region, top_tol: float) -> _Region:
+    pixels = np.r_[a.pixels, b.pixels]
+    return _region(data, a.label, pixels[:, 0], pixels[:, 1], top_tol, np.r_[a.occluded, b.occluded])
+
+
+def _distance_to_outline(xy: np.ndarray, poly: np.ndarray) -> np.ndarray:
+    """(N,) distance from points (N, 2) to a closed polygon's edges (K, 2)."""
+    a, b = poly, np.roll(poly, -1, axis=0)
+    ab = b - a
+    t = np.clip(((xy[:, None] - a[None]) * ab[None]).sum(-1) / np.maximum((ab**2).sum(-1), 1e-18)[None], 0.0, 1.0)
+    return np.linalg.norm(xy[:, None] - (a[None] + t[..., None] * ab[None]), axis=-1).min(axis=1)
+
+
+def _merge_sides(data: _Cloud, regions: list[_Region], top_tol: float) -> list[_Region]:
+    """Regions that are the side of a higher one join it: a vertical face seen nearly edge-on breaks off its
+    top at the depth step (``max_slope``), and its points then lie, seen from above, on that top's outline
+    (≥ 90 % of them within two pixel pitches + 3 mm of the top face's hull).  A lower object merely under
+    or beside a higher one spreads over its own footprint instead."""
+    regions = list(regions)
+    merged = True
+    while merged:
+        merged = False
+        for i, low in enumerate(regions):
+            for j, high in enumerate(regions):
+                if i == j or not high.top > low.top + top_tol:
+                    continue
+                face = _top_face(high)
+                hull = convex_hull(face.outline_xy)
+                if len(hull) < 3:
+                    continue
+                near = _distance_to_outline(low.world[:, :2], hull) <= 2 * face.pitch + 0.003
+                if near.mean() >= 0.9:
+                    regions[j] = _merged(data, high, low, top_tol)
+                    del regions[i]
+                    merged = True
+                    break
+            if merged:
+                break
+    return regions
+
+
+def _merge_duplicates(data: _Cloud, regions: list[_Region], top_tol: float,
+                      kinds: Sequence[str]) -> list[tuple[_Region, ObstacleFit]]:
+    """Each obstacle region with its fit; two regions fitted as the same kind with centres within half their
+    smaller size are one object cut in two (a cylinder's top crossed by a sphere above it): joined and refitted."""
+    parts = [(reg, fit_obstacle(reg, _plane_height(data, reg), kinds)) for reg in regions]
+    merged = True
+    while merged:
+        merged = False
+        for i, j in ((i, j) for i in range(len(parts)) for j in range(i + 1, len(parts))):
+            (ra, fa), (rb, fb) = parts[i], parts[j]
+            scale = 0.5 * min(float(np.max(fa.size[:2])), float(np.max(fb.size[:2])))
+            if fa.kind == fb.kind and np.linalg.norm(fa.centre[:2] - fb.centre[:2]) < scale:
+                reg = _merged(data, ra, rb, top_tol)
+                parts[i] = (reg, fit_obstacle(reg, _plane_height(data, reg), kinds))
+                del parts[j]
+                merged = True
+                break
+    return parts
 
 
 def _plane_height(data: _Cloud, region: _Region) -> float:
