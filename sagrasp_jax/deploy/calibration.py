@@ -53,7 +53,7 @@ __all__ = [
 ORTHONORMAL_TOL = 1e-3  # max |RᵀR − I|: the printed matrix is at ≈ 9e-5; worse means a typo or wrong file
 CUBE_HALF_HEIGHT = SamplingConfig().target_size[2] / 2  # 0.025 m: detected top face -> cube centre
 TARGET_Z_TOLERANCE = 0.010  # m: a detected cube centre this far above/below a cube standing on the table is still one
-TARGET_Z_RANGE = (CUBE_HALF_HEIGHT - TARGET_Z_TOLERANCE, CUBE_HALF_HEIGHT + TARGET_Z_TOLERANCE)  # (0.015, 0.035) m
+TARGET_Z_RANGE = (round(CUBE_HALF_HEIGHT - TARGET_Z_TOLERANCE, 9), round(CUBE_HALF_HEIGHT + TARGET_Z_TOLERANCE, 9))  # (0.015, 0.035) m
 MAX_CAMERA_DISTANCE = 5.0  # m; a larger translation almost surely means mm read as m
 _UNIT_SCALE = {"mm": 1e-3, "m": 1.0}
 
