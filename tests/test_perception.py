@@ -162,6 +162,7 @@ def test_a_capsule_lying_on_the_table():
     ([cube(lying=True)], r"cube not standing on the table: its top is 20\.0 mm above the table"),
     ([("box", (0.05, -0.45, 0.03), (0.04, 0.04, 0.03), 0.0, WHITE), cube(z0=0.06)],
      "cube not standing on the table: .* red pixels are part of an object whose top is 110 mm"),
+    ([cube(), ("sphere", (0.038, -0.447, 0.2), 0.012, WHITE)], "the cube's top face is partly hidden"),
 ])
 def test_scenes_without_exactly_one_standing_cube_are_refused(objects, message):
     cloud, rgb = cast(objects)

@@ -753,6 +753,11 @@ def detect_scene(cloud_mm: Any, rgb: Any = None, calibration: CameraCalibration 
     face = _top_face(cube)
     sides = face.sides
     side, height = float(max(size[0], size[1])), float(size[2])
+    if face.occluded:
+        raise PerceptionError(
+            f"the cube's top face is partly hidden ({int(face.outline_hidden.sum())} of its outline pixels border a "
+            "nearer object: the arm or an obstacle between it and the camera), so its centre cannot be measured; "
+            "capture with the arm out of view")
     problems = []
     if abs(cube.top - height) > settings.cube_height_tol_m:
         problems.append(f"its top is {cube.top * 1000:.1f} mm above the table (standing: {height * 1000:.0f} ± "
