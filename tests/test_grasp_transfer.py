@@ -230,3 +230,19 @@ def test_slide_refused_near_an_obstacle_closes_where_the_arm_stands(policy) -> N
     assert report.success and g["centring"].startswith("stopped") and "obstacle" in g["centring"], g
     assert g["closed"] and g["approach_faults"] == [], g
     assert report.held is True, g  # 8 mm off along the pads' width: still caught
+
+
+def test_end_to_end_from_the_twin_camera(capsys) -> None:
+    """deploy --camera twin: the twin renders, perception finds the cube and the obstacles, the loop grasps;
+    the result carries perception's errors (and --scenes is checked like every input)."""
+    assert deploy_main(["--backend", "twin", "--camera", "twin", "--policy", "pretrained", "--scenes", "2",
+                        "--condition", "robot"]) == 0
+    out = capsys.readouterr().out
+    assert "from the camera (industrial depth noise)" in out and "perception: 0 of 2 captures refused" in out
+    one = rehearse("pretrained", 2, "kinematic", "mix", seed=0, workers=1, progress=False,
+                   camera=__import__("sagrasp_jax.deploy.rehearse", fromlist=["CameraSettings"]).CameraSettings())
+    p = one["perception"]
+    assert p["refused"] == 0 and p["target_horizontal_error_mm"]["p95"] < 5.0, p
+    assert one["summary"]["all"]["held_rate"] == 1.0, one["summary"]
+    assert deploy_main(["--camera", "twin", "--policy", "pretrained", "--scenes", "0"]) == 2
+    assert "--scenes must be in" in capsys.readouterr().err

@@ -331,6 +331,36 @@ def _dry_run_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _camera_scenes(tokens: list[str]) -> int:
+    """``--backend twin --camera twin --policy P --scenes N``: render, perceive, deploy, grasp and lift over N
+    random twin scenes (``deploy.rehearse`` with its camera): the held rate and perception's errors."""
+    from sagrasp_jax.deploy import rehearse
+
+    p = argparse.ArgumentParser(prog="python -m sagrasp_jax.deploy --camera twin",
+                                description=_camera_scenes.__doc__.split("\n")[0])
+    p.add_argument("--camera", choices=("twin",), required=True, help="the twin's rendered Mech-Eye capture")
+    p.add_argument("--backend", choices=("twin",), default="twin", help="only the twin (a real camera and arm "
+                   "run one scene at a time)")
+    p.add_argument("--policy", required=True, help="exported policy.npz or a pretrained policy's name")
+    p.add_argument("--scenes", type=int, default=100, help="random scenes (default 100)")
+    p.add_argument("--scene-set", dest="scenes_kind", choices=rehearse.SCENE_SETS, default="mix",
+                   help="mix (default) or blocking")
+    p.add_argument("--condition", choices=sorted(rehearse.EVAL_CONDITIONS), default="kinematic",
+                   help="the arm's transfer errors, a named evaluation condition (default kinematic: none; the "
+                        "detection error is the camera's own)")
+    p.add_argument("--depth-noise", default="industrial", help="none, industrial (default) or consumer")
+    p.add_argument("--camera-resolution", type=float, default=0.25, help="fraction of 1920 × 1200 (default 0.25)")
+    p.add_argument("--seed", type=int, default=0, help="scene draws (default 0)")
+    p.add_argument("--workers", type=int, default=1, help="processes (default 1)")
+    p.add_argument("--out", default=None, help="write the result as JSON here")
+    args = p.parse_args(tokens)
+    if not 1 <= args.scenes <= rehearse.MAX_EPISODES:
+        print(f"error: --scenes must be in [1, {rehearse.MAX_EPISODES}], got {args.scenes}", file=sys.stderr)
+        return 2
+    args.episodes, args.scenes = args.scenes, args.scenes_kind
+    return rehearse.run_cli(args.policy, args)
+
+
 def _aubo_dry_run(tokens: list[str]) -> int:
     parser = _dry_run_parser()
     if "--json" in tokens:
@@ -355,6 +385,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     tokens = list(sys.argv[1:] if argv is None else argv)
     if "--dry-run" in tokens:  # the AUBO's read-only check: no policy or detection needed
         return _aubo_dry_run(tokens)
+    if "--camera" in tokens:  # end to end from the twin's camera over many scenes: deploy.rehearse
+        return _camera_scenes(tokens)
     if "--json" in tokens:
         parser.json_argv = tokens
     args = parser.parse_args(tokens)

@@ -25,7 +25,7 @@ import os
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
-from typing import Any, Sequence
+from typing import Any, NamedTuple, Sequence
 
 import numpy as np
 
@@ -80,8 +80,48 @@ def _failure(report: DeployReport | None, refused: str) -> str:
     return "dropped" if not report.held else ""
 
 
-def run_scene(policy_path: str, env_cfg: EnvConfig, scene_cfg: EnvConfig, seed: int, index: int) -> dict[str, Any]:
-    """Scene ``index`` of ``seed`` through the deploy loop on a fresh twin; a JSON-safe record."""
+class CameraSettings(NamedTuple):
+    """End to end from the camera: the twin renders the Mech-Eye's view (``deploy.twin_camera``) and
+    ``deploy.perception`` gives the loop the cube and the obstacles instead of the sampler's."""
+
+    noise: str = "industrial"  # depth-noise model (twin_camera.noise_model)
+    resolution: float = 0.25  # fraction of the Mech-Eye's 1920 × 1200 (the field of view is kept)
+
+
+def _perceive(twin: Any, spec: sampling.ResetSpec, camera: CameraSettings, rng: np.random.Generator,
+              record: dict[str, Any]) -> tuple[np.ndarray, float, list[Any]] | None:
+    """Capture the twin (the arm out of view), perceive, and record perception's errors against the true scene;
+    None (and the record says why) when perception refuses the capture."""
+    from sagrasp_jax.deploy.calibration import CameraCalibration
+    from sagrasp_jax.deploy.perception import PerceptionError, detect_scene
+    from sagrasp_jax.deploy.twin_camera import TwinCamera
+
+    # The capture is taken with the arm out of view, as a cell captures before the arm moves in: from its home
+    # pose the AUBO hides some cubes from the gantry camera (perception refuses those, naming why).
+    frame = TwinCamera(camera.resolution).capture(twin, camera.noise, rng, hide_robot=True)
+    try:
+        seen = detect_scene(frame.cloud_mm, frame.rgb, CameraCalibration.default())
+    except PerceptionError as exc:
+        record["perception"] = {"refused": str(exc)}
+        return None
+    truth = obstacles_from_spec(spec)
+    errors = [min(float(np.linalg.norm(np.subtract(o.centre, t.centre))) for t in truth) for o in seen.obstacles] \
+        if truth else []
+    found = sum(any(np.linalg.norm(np.subtract(o.centre, t.centre)) <= 0.02 for o in seen.obstacles) for t in truth)
+    record["perception"] = {
+        "target_error_mm": [float(1000 * v) for v in seen.target_centre - np.asarray(spec.target_pos)],
+        "obstacles_true": len(truth), "obstacles_found": int(found),
+        "obstacles_invented": int(sum(e > 0.02 for e in errors)),
+        "obstacle_centre_error_mm": [1000 * e for e in errors if e <= 0.02],
+    }
+    return seen.target_centre, float(seen.target_yaw), list(seen.obstacles)
+
+
+def run_scene(policy_path: str, env_cfg: EnvConfig, scene_cfg: EnvConfig, seed: int, index: int,
+              camera: CameraSettings | None = None) -> dict[str, Any]:
+    """Scene ``index`` of ``seed`` through the deploy loop on a fresh twin; a JSON-safe record.  With
+    ``camera`` the loop is handed what perception finds in the twin's rendered capture (the condition's
+    detection error is not added: the camera's own error is the detection error)."""
     from sagrasp_jax.deploy.twin import PyBulletTwin
 
     policy = _policy(policy_path)
@@ -98,9 +138,16 @@ def run_scene(policy_path: str, env_cfg: EnvConfig, scene_cfg: EnvConfig, seed: 
                               "latency": errors.latency}
     report, refused = None, ""
     with PyBulletTwin(spec, env_cfg, q0=spec.q0, errors=errors, seed=index) as twin:
+        if camera is not None:
+            seen = _perceive(twin, spec, camera, rng, record)
+            scene = seen if seen is not None else None
+            refused = "perception refused" if seen is None else ""
+        else:
+            scene = (detected, float(spec.target_yaw), obstacles_from_spec(spec))
         try:
-            report = run_episode(twin, policy, detected, float(spec.target_yaw), obstacles_from_spec(spec))
-        except (TargetRejected, ObstacleRejected) as exc:
+            if scene is not None:
+                report = run_episode(twin, policy, scene[0], scene[1], scene[2])
+        except (TargetRejected, ObstacleRejected, ValueError) as exc:
             refused, record["message"] = "input refused", str(exc)
     record["failure"] = _failure(report, refused)
     record["held"] = bool(report is not None and report.held)
@@ -122,9 +169,9 @@ def _policy(path: str) -> NumpyPolicy:
     return _POLICIES[path]
 
 
-def _chunk(args: tuple[str, EnvConfig, EnvConfig, int, Sequence[int]]) -> list[dict[str, Any]]:
-    path, env_cfg, scene_cfg, seed, indices = args
-    return [run_scene(path, env_cfg, scene_cfg, seed, i) for i in indices]
+def _chunk(args: tuple[str, EnvConfig, EnvConfig, int, Sequence[int], CameraSettings | None]) -> list[dict[str, Any]]:
+    path, env_cfg, scene_cfg, seed, indices, camera = args
+    return [run_scene(path, env_cfg, scene_cfg, seed, i, camera) for i in indices]
 
 
 def wilson(k: int, n: int, z: float = 1.959964) -> tuple[float, float]:
@@ -157,7 +204,7 @@ def summarise(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
 
 
 def rehearse(policy_path: str, episodes: int, condition: str, scenes: str = "mix", seed: int = 0,
-             workers: int = 1, progress: bool = True) -> dict[str, Any]:
+             workers: int = 1, progress: bool = True, camera: CameraSettings | None = None) -> dict[str, Any]:
     """Run ``episodes`` twin scenes; the summary per episode kind and every episode's record."""
     policy = _policy(policy_path)
     env_cfg = condition_env(policy.env_config(), condition)
@@ -168,13 +215,13 @@ def rehearse(policy_path: str, episodes: int, condition: str, scenes: str = "mix
     if workers == 1:
         records = []
         for i in range(episodes):
-            records.append(run_scene(policy_path, env_cfg, scene_cfg, seed, i))
+            records.append(run_scene(policy_path, env_cfg, scene_cfg, seed, i, camera))
             if progress and (i + 1) % 50 == 0:
                 print(f"  {i + 1}/{episodes} scenes, held {sum(r['held'] for r in records) / len(records):.1%}",
                       file=sys.stderr, flush=True)
     else:
         with ProcessPoolExecutor(workers) as pool:
-            parts = list(pool.map(_chunk, [(policy_path, env_cfg, scene_cfg, seed, c) for c in chunks]))
+            parts = list(pool.map(_chunk, [(policy_path, env_cfg, scene_cfg, seed, c, camera) for c in chunks]))
         records = sorted((r for part in parts for r in part), key=lambda r: r["index"])
     groups = {"all": records} | {k: [r for r in records if r["kind"] == k] for k in ("obstacle", "blocking", "no obstacle")}
     groups["obstacle"] = [r for r in records if r["kind"] in ("obstacle", "blocking")]  # every obstacle scene
@@ -188,8 +235,28 @@ def rehearse(policy_path: str, episodes: int, condition: str, scenes: str = "mix
         "episodes": episodes,
         "wall_s": time.perf_counter() - t0,
         "workers": workers,
+        "camera": camera._asdict() if camera is not None else None,
         "summary": {name: summarise(rs) for name, rs in groups.items()},
+        "perception": perception_summary(records) if camera is not None else None,
         "records": records,
+    }
+
+
+def perception_summary(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """Perception's errors over the episodes: target centre error percentiles, obstacles found, missed and
+    invented, obstacle centre errors, refusals."""
+    seen = [r["perception"] for r in records if "perception" in r and "refused" not in r["perception"]]
+    horizontal = np.array([math.hypot(*p["target_error_mm"][:2]) for p in seen]) if seen else np.zeros(0)
+    centre = [e for p in seen for e in p["obstacle_centre_error_mm"]]
+    pct = lambda a, q: float(np.percentile(a, q)) if len(a) else None  # noqa: E731
+    true_n = sum(p["obstacles_true"] for p in seen)
+    return {
+        "captures": len(records), "refused": len(records) - len(seen),
+        "target_horizontal_error_mm": {"p50": pct(horizontal, 50), "p95": pct(horizontal, 95),
+                                       "max": float(horizontal.max()) if len(horizontal) else None},
+        "obstacles_true": true_n, "obstacles_found": sum(p["obstacles_found"] for p in seen),
+        "obstacles_invented": sum(p["obstacles_invented"] for p in seen),
+        "obstacle_centre_error_mm": {"p50": pct(centre, 50), "p95": pct(centre, 95)},
     }
 
 
@@ -205,9 +272,16 @@ def format_table(result: dict[str, Any]) -> str:
                                  for _, g in groups])]
     rows += [(f"  {k}", [str(g["failures"].get(k, 0)) for _, g in groups]) for k in kinds]
     width = max(len(r[0]) for r in rows) + 2
-    head = f"twin, {result['condition']}, {result['scenes']} scenes, seed {result['seed']}: {result['wall_s']:.0f} s"
+    camera = f", from the camera ({result['camera']['noise']} depth noise)" if result.get("camera") else ""
+    head = f"twin, {result['condition']}, {result['scenes']} scenes{camera}, seed {result['seed']}: {result['wall_s']:.0f} s"
     lines = [head, " " * width + "".join(f"{name:>14}" for name, _ in groups)]
     lines += [label.ljust(width) + "".join(f"{v:>14}" for v in values) for label, values in rows]
+    if result.get("perception"):
+        p = result["perception"]
+        t = p["target_horizontal_error_mm"]
+        lines.append(f"perception: {p['refused']} of {p['captures']} captures refused; cube centre error (horizontal) "
+                     f"p50 {t['p50'] or 0:.1f} / p95 {t['p95'] or 0:.1f} / max {t['max'] or 0:.1f} mm; obstacles "
+                     f"{p['obstacles_found']} of {p['obstacles_true']} found, {p['obstacles_invented']} invented")
     return "\n".join(lines)
 
 
@@ -220,6 +294,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="scene and error draws (default 0)")
     p.add_argument("--workers", type=int, default=1, help="processes (default 1; one per core)")
     p.add_argument("--out", default=None, help="write the result as JSON here")
+    p.add_argument("--camera", choices=("none", "twin"), default="none",
+                   help="twin: end to end from the twin's rendered camera through deploy.perception (default none: "
+                        "the sampler's scene with the condition's detection error)")
+    p.add_argument("--depth-noise", default="industrial", help="--camera twin: depth-noise model (none, industrial, "
+                   "consumer; default industrial)")
+    p.add_argument("--camera-resolution", type=float, default=0.25,
+                   help="--camera twin: fraction of the Mech-Eye's 1920 × 1200 (default 0.25)")
 
 
 def check_arguments(args: argparse.Namespace) -> None:
@@ -229,6 +310,12 @@ def check_arguments(args: argparse.Namespace) -> None:
         raise ValueError(f"--workers must be in [1, {MAX_WORKERS}], got {args.workers}")
     if not 0 <= args.seed < 2**31:
         raise ValueError(f"--seed must be in [0, 2^31), got {args.seed}")
+    if getattr(args, "camera", "none") == "twin":
+        from sagrasp_jax.deploy.twin_camera import noise_model
+
+        noise_model(args.depth_noise)  # ValueError naming the models
+        if not 0.05 <= args.camera_resolution <= 1.0:
+            raise ValueError(f"--camera-resolution must be in [0.05, 1], got {args.camera_resolution}")
 
 
 def run_cli(policy_path: str, args: argparse.Namespace) -> int:
@@ -245,7 +332,8 @@ def run_cli(policy_path: str, args: argparse.Namespace) -> int:
     except (ValueError, PolicyFormatError, ConfigError, extras.MissingExtra, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    result = rehearse(policy_path, args.episodes, args.condition, args.scenes, args.seed, args.workers)
+    camera = CameraSettings(args.depth_noise, args.camera_resolution) if getattr(args, "camera", "none") == "twin" else None
+    result = rehearse(policy_path, args.episodes, args.condition, args.scenes, args.seed, args.workers, camera=camera)
     print(format_table(result))
     if args.out:
         fileio.atomic_write_json(args.out, result, indent=1)
