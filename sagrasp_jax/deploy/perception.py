@@ -10,14 +10,18 @@ as a ``deploy.loop.Obstacle`` (kind, centre, MuJoCo size, yaw).  Steps (``detect
    valid point, too few valid points, depths that are not a depth camera's in millimetres (a cloud in
    metres read as millimetres lies 1.4 mm from the camera; the message says which unit it looks like).
 2. **Table plane.** Points within ``plane_band_m`` of the table top (z = 0 through the calibration) are
-   fitted by least squares, twice trimmed to 3 σ (robust MAD); the plane must hold a fair share of the
-   points and lie within ``max_plane_tilt_deg`` of level, else the calibration is wrong.
+   fitted by least squares, the band narrowed to 3 σ of the fit's residuals (robust MAD) and refitted;
+   the plane must hold a fair share of the points and lie within ``max_plane_tilt_deg`` of level, else
+   the calibration is wrong.
 3. **Above the table.** Points more than ``min_height_m`` (or 5 σ of the table's noise) above the plane,
    minus the cell's static parts (gantry posts, camera: ``scene.SCENE``) and, given the arm's joints,
    the arm itself (``robot.primitive_poses``, ``robot_margin_m``).
-4. **Regions.** Connected regions on the image grid (4-neighbours whose points are within
-   ``max_gap_m`` in 3-D: objects the sampler keeps ≥ 10 cm apart never merge, a steep side stays with
-   its top); regions smaller than ``min_region_m2`` are noise.
+4. **Regions.** Connected regions on the image grid (``label_regions``: 4-neighbours within
+   ``max_gap_m`` in 3-D whose depth steps by at most ``max_slope`` pixel pitches, joined across a
+   dropped pixel); regions smaller than ``min_region_m2`` are noise, those whose top is narrower than
+   ``min_top_side_m`` fragments; a side broken off its top at a depth step rejoins it
+   (``_merge_sides``).  Where a nearer object borders a region (``occluder_dirs``) its outline is hidden
+   there: fits use the outline's own edges.
 5. **The cube.** With RGB: the region whose pixels are mostly red (r − max(g, b) ≥ ``red_margin``).
    Without RGB (or ``use_colour=False``): the region whose flat top is the cube's top face (height and
    both sides within tolerance).  None → "no cube found"; two → "two cube candidates"; a red region
@@ -25,13 +29,16 @@ as a ``deploy.loop.Obstacle`` (kind, centre, MuJoCo size, yaw).  Steps (``detect
    top face (points within ``top_tol_m`` of the top) gives the top-face centre (area-weighted centroid,
    each point weighted by its pixel's footprint on the top's plane) and the yaw (minimum-area rectangle
    of the face's outline, wrapped to [−45°, 45°): a square looks the same turned by 90°); the centre is
-   the top-face centre 25 mm lower (``calibration.detected_top_to_cube_centre``).
+   the top-face centre 25 mm lower (``calibration.detected_top_to_cube_centre``).  A top face partly
+   hidden behind a nearer object (the arm, an obstacle) is refused: its centroid would be off.
 6. **Obstacles.** Every other region is fitted as each kind of ``shapes.SHAPES`` as it rests in the cell
    (sphere: least-squares sphere; cylinder: upright, top disc's area and centroid; box: top face's
    minimum-area rectangle with its area matched to the measured one; capsule: lying, radius half the
    height, axis along the outline's long side), and the kind whose exact surface (``shapes.sdf``) lies
-   nearest the region's points wins.  A region larger than any trained obstacle is refused (the arm in
-   view without its joints, or something that is not part of the task).
+   nearest the region's points wins, box against cylinder by the top's outline (``outline_kind``); two
+   regions fitted as one obstacle are joined (``_merge_duplicates``).  A region taller or wider than any
+   obstacle the sampler draws is refused (the arm in view without its joints, or something that is not
+   part of the task).
 
 A detector (the YOLO option, ``deploy.yolo``) may replace the colour test: its target boxes choose the
 cube region (``detections=``), and ``point_at_pixel`` is the paper's own pixel → camera point.
