@@ -426,3 +426,23 @@ def test_yolo_detector_needs_its_extra():
         pytest.skip("ultralytics is installed")
     with pytest.raises(extras.MissingExtra, match=r'pip install "sagrasp_jax\[yolo\]"'):
         yolo.YoloDetector("best.pt")
+
+
+def test_the_accuracy_study_runs_and_reports(tmp_path, capsys):
+    """experiments/perception_accuracy.py on two scenes of each mix: its table and JSON (the study's numbers
+    are in docs/design.md, "Perception")."""
+    import json
+
+    from experiments import perception_accuracy as study
+
+    out = tmp_path / "pa.json"
+    assert study.main(["--scenes", "2", "--blocking", "2", "--noise", "none,industrial", "--out", str(out)]) == 0
+    assert "| blocking | industrial | 2 | 0 |" in capsys.readouterr().out
+    result = json.loads(out.read_text())
+    for mix in ("paper", "blocking"):
+        for level in ("none", "industrial"):
+            summary = result["summary"][mix][level]
+            assert summary["scenes"] == 2 and summary["refused"] == 0
+            assert summary["target_err_mm"]["max"] < 2.5
+    blocking = result["summary"]["blocking"]["none"]["obstacles"]
+    assert blocking["true"] >= 2 and blocking["found_share"] == 1.0 and blocking["invented"] == 0
