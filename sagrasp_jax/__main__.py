@@ -28,6 +28,8 @@ COMMANDS: dict[str, Command] = {
     "plot": Command("plot", "plots", "plot a run's learning curves (success per episode kind, return, lr, SA) to PNG"),
     "export": Command("export", "train", "export a run's policy for the robot: policy.npz (NumPy) and ONNX"),
     "deploy": Command("deploy", "core; twin for --backend twin", "run a policy on one detected cube: robot or twin"),
+    "rehearse": Command("deploy.rehearse", "twin", "the deploy loop over N random twin scenes: the cube held, per kind"),
+    "calibrate": Command("calibrate", "core", "fit the hand-eye matrix T_cam_base from camera / TCP point pairs"),
     "sysid": Command("sysid", "core", "fit the servo model, latency and joint offsets from a robot log (CSV)"),
     "parity": Command("parity", "train, reference", "run the MJX env and the PyBullet reference side by side"),
 }
@@ -58,7 +60,7 @@ def _launcher(name: str) -> Callable[[], None]:
 
 # the console scripts' targets (pyproject.toml: sagrasp-train = "sagrasp_jax.__main__:train", ...)
 train, evaluate, render, plot, export = (_launcher(n) for n in ("train", "evaluate", "render", "plot", "export"))
-deploy, sysid, parity = (_launcher(n) for n in ("deploy", "sysid", "parity"))
+deploy, rehearse, calibrate, sysid, parity = (_launcher(n) for n in ("deploy", "rehearse", "calibrate", "sysid", "parity"))
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -165,8 +165,8 @@ def test_python_m_sagrasp_jax_lists_every_command_on_one_line():
     for name, cmd in cli.COMMANDS.items():
         (line,) = [ln for ln in res.stdout.splitlines() if ln.split()[:1] == [name]]
         assert cmd.summary in line and len(line) <= 120
-        assert os.path.exists(os.path.join(PACKAGE, cmd.module + ".py")) or \
-            os.path.exists(os.path.join(PACKAGE, cmd.module, "__main__.py"))
+        path = os.path.join(PACKAGE, *cmd.module.split("."))
+        assert os.path.exists(path + ".py") or os.path.exists(os.path.join(path, "__main__.py"))
     assert {"train", "evaluate", "render", "plot", "export", "deploy", "sysid"} <= set(cli.COMMANDS)
     bad = subprocess.run([sys.executable, "-m", "sagrasp_jax", "trian"], cwd=REPO, capture_output=True, text=True,
                          timeout=60)
