@@ -281,15 +281,16 @@ def _aubo_settings(args: argparse.Namespace) -> aubo.AuboSettings | None:
     tolerance = aubo.HOME_TOLERANCE if args.home_tolerance is None else args.home_tolerance
     if not (math.isfinite(tolerance) and 0 < tolerance <= 0.5):
         raise InputRefused(f"--home-tolerance {tolerance} rad must be in (0, 0.5]")
-    extras.require("aubo", what="--backend aubo (AUBO's SDK)")
     try:
-        return aubo.AuboSettings(
+        settings = aubo.AuboSettings(
             port=aubo.DEFAULT_PORT if args.port is None else args.port,
             user=os.environ.get("AUBO_USER", aubo.DEFAULT_USER),
             password=os.environ.get("AUBO_PASSWORD", aubo.DEFAULT_PASSWORD),
             gripper=aubo.GripperIO.parse(args.gripper_io) if args.gripper_io is not None else aubo.GripperIO())
     except ValueError as exc:
         raise InputRefused(f"--backend aubo: {exc}") from None
+    aubo.import_sdk()  # a missing SDK is refused here (exit 2, the install hint), before anything connects
+    return settings
 
 
 def _twin_flags(args: argparse.Namespace) -> list[str]:
@@ -426,7 +427,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.backend == "twin":
             extras.require("twin", what="--backend twin (the PyBullet digital twin)")
         aubo_settings = _aubo_settings(args)
-    except (InputRefused, TargetRejected, CalibrationError, PolicyFormatError, ValueError, extras.MissingExtra) as exc:
+    except (InputRefused, TargetRejected, CalibrationError, PolicyFormatError, ValueError, extras.MissingExtra,
+            DeployError) as exc:
         _emit(args, {"outcome": "input_refused", "message": str(exc), "input": given},
               f"error: refused before moving: {exc}", error=True)
         return 2
