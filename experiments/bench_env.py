@@ -27,10 +27,12 @@ import jax
 
 from jax.sharding import PartitionSpec
 
-from sagrasp_jax import config, sharding, train
-from sagrasp_jax.env import GraspEnv
-from sagrasp_jax.fileio import atomic_write_json
-from sagrasp_jax.wrappers import AutoReset
+from sagrasp_jax import train
+from sagrasp_jax.task import config
+from sagrasp_jax.training import sharding
+from sagrasp_jax.envs.grasp_env import GraspEnv
+from sagrasp_jax.base.fileio import atomic_write_json
+from sagrasp_jax.envs.auto_reset import AutoReset
 
 
 def bench_jax(mode: str, batch: int, steps: int, auto_reset: bool, overrides: list[str] | None = None,

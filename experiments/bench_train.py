@@ -25,7 +25,7 @@ Sections (``--sections``, default all; each prints as it goes, then one table an
   ratio (target <= 0.6), peak RSS and the largest group within 4 GB, the load beside them.
 * ``sb3``: when Stable-Baselines3 imports (this interpreter or ``--sb3-python``), SB3 PPO on
   the PyBullet reference env for ``--sb3-seconds`` (``bench_vs_paper_stack.py``'s worker,
-  the paper's Table 2 settings from ``sb3_baseline.py``) and the ratio of training rates; the
+  the paper's Table 2 settings from ``bench_vs_paper_stack``'s sb3-baseline) and the ratio of training rates; the
   raw stepping rate of the PyBullet env (no learning) is measured either way.
 
 The machine's load average is recorded beside every measurement: on a shared machine rates
@@ -81,9 +81,9 @@ def bench_env(cfg: Any, steps: int, reset_steps: int) -> dict[str, Any]:
     import jax
     from jax.sharding import PartitionSpec
 
-    from sagrasp_jax import sharding
-    from sagrasp_jax.env import GraspEnv
-    from sagrasp_jax.wrappers import AutoReset
+    from sagrasp_jax.training import sharding
+    from sagrasp_jax.envs.grasp_env import GraspEnv
+    from sagrasp_jax.envs.auto_reset import AutoReset
 
     n = cfg.ppo.num_envs
     out: dict[str, Any] = {"batch": n, "steps_per_call": steps}
@@ -129,10 +129,20 @@ def bench_profile(cfg: Any) -> dict[str, Any]:
     import jax.numpy as jnp
     import numpy as np
 
-    from sagrasp_jax import actor_critic, collision, control, losses, metrics_window, observation, ppo, robot, rollout, sharding, train
-    from sagrasp_jax.config import training_env_config
-    from sagrasp_jax.env import GraspEnv
-    from sagrasp_jax.wrappers import AutoReset
+    from sagrasp_jax import train
+    from sagrasp_jax.training import actor_critic
+    from sagrasp_jax.task import collision
+    from sagrasp_jax.task import control
+    from sagrasp_jax.training import losses
+    from sagrasp_jax.training import metrics_window
+    from sagrasp_jax.task import observation
+    from sagrasp_jax.training import ppo
+    from sagrasp_jax.task import robot
+    from sagrasp_jax.training import rollout
+    from sagrasp_jax.training import sharding
+    from sagrasp_jax.task.config import training_env_config
+    from sagrasp_jax.envs.grasp_env import GraspEnv
+    from sagrasp_jax.envs.auto_reset import AutoReset
 
     n, t_len = cfg.ppo.num_envs, cfg.ppo.unroll_length
     env = GraspEnv(training_env_config(cfg), privileged=cfg.ppo.privileged_critic)  # the training env
@@ -270,7 +280,7 @@ def train_run(args_extra: list[str], work: str, name: str, cache_dir: str, budge
               stop_level: float | None, env_extra: dict[str, str] | None = None, root: str = ROOT) -> dict[str, Any]:
     """Run ``python -m sagrasp_jax.train`` and watch its metrics; stop at ``stop_level`` or the budget."""
     from experiments.bench_vs_paper_stack import watch_trainer
-    from sagrasp_jax.run_dir import METRICS_FILE
+    from sagrasp_jax.training.run_dir import METRICS_FILE
 
     out = os.path.join(work, name)
     cmd = [sys.executable, "-m", "sagrasp_jax.train", "--out", out, "--no-progress", *args_extra]
@@ -375,7 +385,7 @@ def timed_train(args: list[str], cache_dir: str, root: str = ROOT) -> dict[str, 
 
 
 def last_eval_success(folder: str) -> float | None:
-    from sagrasp_jax.run_dir import METRICS_FILE, read_metrics
+    from sagrasp_jax.training.run_dir import METRICS_FILE, read_metrics
 
     return next((r["eval_success"] for r in reversed(read_metrics(os.path.join(folder, METRICS_FILE)))
                  if "eval_success" in r), None)
@@ -438,7 +448,8 @@ def bench_bare_pybullet(steps: int = 20_000) -> dict[str, Any] | None:
         return None
     import numpy as np
 
-    from sagrasp_jax import config, robot
+    from sagrasp_jax.task import config
+    from sagrasp_jax.task import robot
 
     cid = pb.connect(pb.DIRECT)
     try:
@@ -608,7 +619,7 @@ def main(argv: list[str] | None = None) -> int:
     import jax
 
     from sagrasp_jax import train
-    from sagrasp_jax.fileio import atomic_write_json
+    from sagrasp_jax.base.fileio import atomic_write_json
 
     cfg = train.build_config(args.preset, "sa-ppo", 0, None, args.overrides)
     if hasattr(train, "use_cpu_devices"):

@@ -5,7 +5,7 @@ start-up and compilation), one after the other so they never share the CPU:
 
 1. **the paper's stack**: Stable-Baselines3 PPO on the PyBullet reference env
    (``SAGrasp-PyBullet-v0``) with the paper's Table 2 settings, taken from
-   ``experiments.sb3_baseline`` (its ``PAPER_PPO``, ``HIDDEN``, ``OBS_CLIP``, ``UPDATE_STEPS``,
+   ``sb3-baseline`` below (its ``PAPER_PPO``, ``HIDDEN``, ``OBS_CLIP``, ``UPDATE_STEPS``,
    env wrappers as there: ``DummyVecEnv`` → ``VecMonitor`` → ``VecNormalize``).  It runs in a
    separate interpreter given by ``--sb3-python`` (SB3 and torch stay out of the main venv);
    without it, or when SB3 cannot be imported there, the stack is reported as skipped;
@@ -28,6 +28,8 @@ from __future__ import annotations
 
 import argparse
 import collections
+import dataclasses
+import importlib.metadata
 import json
 import os
 import platform
@@ -39,8 +41,10 @@ import tempfile
 import time
 from typing import Any, Callable
 
-from experiments.stats import first_reach
-from sagrasp_jax import fileio
+import numpy as np
+
+from sagrasp_jax.training.stats import first_reach
+from sagrasp_jax.base import fileio
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PAPER_STEPS_PER_S = 375.8  # paper, SB3 + PyBullet on an RTX 4070 machine (docs/task.md §4)
@@ -55,7 +59,7 @@ def watch_trainer(cmd: list[str], cwd: str, log_path: str, metrics_path: str, po
     seconds; ``stop_reason(rows, seconds since launch)`` returning a reason SIGTERMs it (it
     checkpoints and exits).  ``on_poll(pid)`` samples the process (e.g. its memory).  Returns the
     final metric rows, the stop reason (None: it exited by itself), its exit code and the wall time."""
-    from sagrasp_jax.run_dir import read_metrics
+    from sagrasp_jax.training.run_dir import read_metrics
 
     stopped: str | None = None
     t0 = time.perf_counter()
@@ -85,7 +89,7 @@ def watch_trainer(cmd: list[str], cwd: str, log_path: str, metrics_path: str, po
 def bench_ours(seconds: float, preset: str, overrides: list[str], levels: list[float], window: int,
                work: str, max_startup_s: float) -> dict[str, Any]:
     """Train our SA-PPO via the CLI until ``seconds`` of training time, then stop it and read its metrics."""
-    from sagrasp_jax.run_dir import METRICS_FILE
+    from sagrasp_jax.training.run_dir import METRICS_FILE
 
     out = os.path.join(work, "ours")
     cmd = [sys.executable, "-m", "sagrasp_jax.train", "--preset", preset, "--algo", "sa-ppo", "--seed", "0",
@@ -139,26 +143,194 @@ def bench_ours(seconds: float, preset: str, overrides: list[str], levels: list[f
     }
 
 
+# ---------------------------------------------------------------------- the paper's stack: SB3 PPO, Table 2
+
+SB3_BASELINE_DOC = """Stable-Baselines3 PPO on the PyBullet reference env with the paper's Table 2 settings.
+
+Why: the paper trained SB3 PPO on PyBullet at 375.8 env-steps/s; this is the same stack on
+our reference env (same task as the MJX env, checked by ``sagrasp_jax.reference.parity``), the anchor
+that the MJX/JAX trainer's throughput is compared with.  It reports env-steps/s and the
+training episodes' success rate; it is not meant to reproduce the paper's curves.
+
+    python -m experiments.bench_vs_paper_stack sb3-baseline --total-steps 200000 --out sb3_baseline.json
+
+Settings (docs/task.md §3 ``paper`` preset = Table 2 with SB3 defaults where it is silent): 2048 env
+steps per update as **16 envs × 128 steps** (default; ``--n-envs 1`` gives 1 env × 2048, the
+SB3 default layout), minibatch 256, 10 epochs, clip 0.2, γ 0.99, GAE λ 0.95, entropy coef 0,
+value coef 0.5, max grad norm 0.5, policy and value MLPs 64×64 tanh, constant lr 3e-4 (the
+paper's PPO baseline; SA-PPO's schedule lives in the JAX trainer).  The envs step in one
+process (``DummyVecEnv``: on 2 cores subprocesses only add IPC) and observations are
+normalised by ``VecNormalize`` (running mean/std, clipped to ±5, rewards untouched), as
+docs/task.md §2 asks.  SB3's policy is a state-independent-std Gaussian whose actions are clipped
+to [-1, 1] (our JAX PPO uses a tanh-Gaussian); the reward weights follow training
+progress p = steps / total, set on every env at each rollout start.
+
+Stable-Baselines3 (and torch) are in the ``baseline`` extra, not in the test or CI install:
+``pip install -e .[baseline]``.
+"""
+
+UPDATE_STEPS = 2048  # env steps per PPO update (Table 2)
+PAPER_PPO = {
+    "batch_size": 256,
+    "n_epochs": 10,
+    "clip_range": 0.2,
+    "gamma": 0.99,
+    "gae_lambda": 0.95,
+    "ent_coef": 0.0,
+    "vf_coef": 0.5,
+    "max_grad_norm": 0.5,
+    "learning_rate": 3e-4,
+}
+HIDDEN = [64, 64]
+OBS_CLIP = 5.0
+
+
+def _import_sb3() -> tuple[Any, Any]:
+    """Import SB3 and torch lazily, with an actionable message when the extra is missing."""
+    try:
+        import stable_baselines3
+        import torch
+    except ImportError as exc:
+        raise SystemExit(
+            f"error: this baseline needs Stable-Baselines3 and torch ({exc.name} is missing).\n"
+            "Install the baseline extra: pip install -e .[baseline]\n"
+            "(it pulls torch, gigabytes with CUDA wheels; keep it out of the training/CI environment)"
+        ) from None
+    return stable_baselines3, torch
+
+
+def with_mode(env_cfg: Any, mode: str) -> Any:
+    """The env config with the control mode set (kinematic = the paper's resetJointState stepping)."""
+    return dataclasses.replace(env_cfg, control=dataclasses.replace(env_cfg.control, mode=mode))
+
+
+def sb3_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m experiments.bench_vs_paper_stack sb3-baseline",
+                                     description=SB3_BASELINE_DOC.split("\n\n")[0])
+    parser.add_argument("--total-steps", type=int, default=200_000, help="env steps to train (paper: 20M)")
+    parser.add_argument("--out", default="sb3_baseline.json", help="JSON result path")
+    parser.add_argument("--mode", choices=("kinematic", "dynamic"), default="kinematic")
+    parser.add_argument("--n-envs", type=int, default=16, help="16 (16 × 128 steps) or 1 (1 × 2048)")
+    parser.add_argument("--seed", type=int, default=0)
+    return parser
+
+
+def with_task_metrics(env: Any) -> Any:
+    """Wrap a reference env so its timeouts count as terminal as in the
+    paper's setup (its episode metrics are ``info["task_episode"]``: SB3's VecMonitor owns ``info["episode"]``) (the −1 is the task's verdict, docs/task.md §2.7): the env reports them as
+    ``truncated`` (Gymnasium's convention), which SB3 would bootstrap."""
+    import gymnasium as gym
+
+    class TaskMetrics(gym.Wrapper):
+        def step(self, action: Any) -> Any:
+            obs, reward, terminated, truncated, info = self.env.step(action)
+            terminated, truncated = terminated or truncated, False
+            return obs, reward, terminated, truncated, info
+
+    return TaskMetrics(env)
+
+
+def sb3_baseline_main(argv: list[str] | None = None) -> int:
+    """``sb3-baseline``: SB3 PPO on the reference env with Table 2's settings for a number of env steps."""
+    args = sb3_parser().parse_args(argv)
+    if args.total_steps < 1 or args.n_envs < 1 or UPDATE_STEPS % args.n_envs:
+        print(f"error: --total-steps must be ≥ 1 and --n-envs must divide {UPDATE_STEPS}", file=sys.stderr)
+        return 2
+    sb3, torch = _import_sb3()
+    import gymnasium as gym
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.callbacks import BaseCallback
+    from stable_baselines3.common.logger import Logger
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecMonitor, VecNormalize
+
+    from sagrasp_jax.task.config import get_config
+    from sagrasp_jax.reference.pybullet_env import PyBulletGraspEnv
+
+    cfg = with_mode(get_config("paper").env, args.mode)
+    raw_envs: list[PyBulletGraspEnv] = []
+
+    def make(rank: int) -> Any:
+        def thunk() -> gym.Env:
+            env = PyBulletGraspEnv(cfg)
+            env.reset(seed=args.seed * 1000 + rank)
+            raw_envs.append(env)
+            return with_task_metrics(env)
+
+        return thunk
+
+    venv = VecNormalize(VecMonitor(DummyVecEnv([make(i) for i in range(args.n_envs)])),
+                        norm_obs=True, norm_reward=False, clip_obs=OBS_CLIP, gamma=PAPER_PPO["gamma"])
+    episodes: list[dict[str, float]] = []
+    total = args.total_steps
+
+    class Progress(BaseCallback):
+        """Sets the reward weights' training progress p on every env and collects episode metrics."""
+
+        def _on_rollout_start(self) -> None:
+            p = min(1.0, self.num_timesteps / total)
+            for env in raw_envs:
+                env.progress = p
+
+        def _on_step(self) -> bool:
+            for info in self.locals["infos"]:
+                if "task_episode" in info:
+                    episodes.append(info["task_episode"])
+            return True
+
+    model = PPO(
+        "MlpPolicy", venv, n_steps=UPDATE_STEPS // args.n_envs, seed=args.seed, device="cpu", verbose=0,
+        policy_kwargs={"net_arch": {"pi": HIDDEN, "vf": HIDDEN}, "activation_fn": torch.nn.Tanh},
+        **PAPER_PPO,
+    )
+    model.set_logger(Logger(folder=None, output_formats=[]))  # the default logger litters $TMPDIR with SB3-* folders
+    start = time.perf_counter()
+    model.learn(total_timesteps=total, callback=Progress())
+    wall = time.perf_counter() - start
+    steps = int(model.num_timesteps)
+    last = episodes[-100:]
+    result = {
+        "what": "Stable-Baselines3 PPO on SAGrasp-PyBullet-v0 (paper Table 2 settings)",
+        "mode": args.mode,
+        "total_steps": steps,
+        "wall_s": wall,
+        "env_steps_per_s": steps / wall,
+        "layout": f"{args.n_envs} envs x {UPDATE_STEPS // args.n_envs} steps (DummyVecEnv)",
+        "ppo": PAPER_PPO | {"n_steps": UPDATE_STEPS // args.n_envs, "n_envs": args.n_envs, "net": "64x64 tanh",
+                            "obs_normalisation": f"VecNormalize clip {OBS_CLIP}"},
+        "episodes": len(episodes),
+        "success_rate_last_100": float(np.mean([e["success"] for e in last])) if last else None,
+        "collision_rate_last_100": float(np.mean([e["collision"] for e in last])) if last else None,
+        "mean_return_last_100": float(np.mean([e["return"] for e in last])) if last else None,
+        "versions": {"stable_baselines3": sb3.__version__, "torch": torch.__version__,
+                     "pybullet": importlib.metadata.version("pybullet"), "python": platform.python_version()},
+        "machine": {"cpus": os.cpu_count(), "torch_threads": torch.get_num_threads(), "platform": platform.platform()},
+        "seed": args.seed,
+    }
+    venv.close()
+    fileio.atomic_write_json(args.out, result, default=float)
+    print(f"{steps} env steps in {wall:.1f} s: {steps / wall:.0f} env-steps/s; "
+          f"success (last 100 episodes) {result['success_rate_last_100']}; written to {args.out}")
+    return 0
+
+
 # ---------------------------------------------------------------------- the paper's stack (worker side)
 
 def sb3_worker(seconds: float, n_envs: int, seed: int, levels: list[float], window: int, out: str) -> int:
-    """Runs inside the SB3 interpreter: SB3 PPO with sb3_baseline's Table 2 settings for ``seconds``."""
+    """Runs inside the SB3 interpreter: SB3 PPO with the Table 2 settings below for ``seconds``."""
     t_launch = time.perf_counter()
-    from experiments import sb3_baseline as base  # the settings' single source
-
-    sb3, torch = base._import_sb3()
+    sb3, torch = _import_sb3()
     import numpy as np
     from stable_baselines3 import PPO
     from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.vec_env import DummyVecEnv, VecMonitor, VecNormalize
 
-    from sagrasp_jax.config import get_config
+    from sagrasp_jax.task.config import get_config
     from sagrasp_jax.reference.pybullet_env import PyBulletGraspEnv
 
-    if base.UPDATE_STEPS % n_envs:
-        raise SystemExit(f"error: --sb3-envs must divide {base.UPDATE_STEPS}")
+    if UPDATE_STEPS % n_envs:
+        raise SystemExit(f"error: --sb3-envs must divide {UPDATE_STEPS}")
 
-    cfg = base.with_mode(get_config("paper").env, "kinematic")
+    cfg = with_mode(get_config("paper").env, "kinematic")
     raw: list[Any] = []
 
     def make(rank: int) -> Any:
@@ -166,14 +338,14 @@ def sb3_worker(seconds: float, n_envs: int, seed: int, levels: list[float], wind
             env = PyBulletGraspEnv(cfg)
             env.reset(seed=seed * 1000 + rank)
             raw.append(env)
-            return base.with_task_metrics(env)
+            return with_task_metrics(env)
         return thunk
 
     venv = VecNormalize(VecMonitor(DummyVecEnv([make(i) for i in range(n_envs)])), norm_obs=True,
-                        norm_reward=False, clip_obs=base.OBS_CLIP, gamma=base.PAPER_PPO["gamma"])
-    model = PPO("MlpPolicy", venv, n_steps=base.UPDATE_STEPS // n_envs, seed=seed, device="cpu", verbose=0,
-                policy_kwargs={"net_arch": {"pi": base.HIDDEN, "vf": base.HIDDEN}, "activation_fn": torch.nn.Tanh},
-                **base.PAPER_PPO)
+                        norm_reward=False, clip_obs=OBS_CLIP, gamma=PAPER_PPO["gamma"])
+    model = PPO("MlpPolicy", venv, n_steps=UPDATE_STEPS // n_envs, seed=seed, device="cpu", verbose=0,
+                policy_kwargs={"net_arch": {"pi": HIDDEN, "vf": HIDDEN}, "activation_fn": torch.nn.Tanh},
+                **PAPER_PPO)
     recent: collections.deque[float] = collections.deque(maxlen=window)
     curve: list[tuple[float, int, float]] = []
     updates: list[tuple[float, int]] = []
@@ -211,10 +383,10 @@ def sb3_worker(seconds: float, n_envs: int, seed: int, levels: list[float], wind
     result = {
         "status": "ok",
         "what": "Stable-Baselines3 PPO on SAGrasp-PyBullet-v0 (kinematic), paper Table 2 settings from "
-                "experiments/sb3_baseline.py",
-        "layout": f"{n_envs} envs x {base.UPDATE_STEPS // n_envs} steps per update (DummyVecEnv)",
-        "ppo": {**base.PAPER_PPO, "n_steps": base.UPDATE_STEPS // n_envs, "n_envs": n_envs,
-                "net": "x".join(map(str, base.HIDDEN)) + " tanh"},
+                "experiments/bench_vs_paper_stack.py (sb3-baseline)",
+        "layout": f"{n_envs} envs x {UPDATE_STEPS // n_envs} steps per update (DummyVecEnv)",
+        "ppo": {**PAPER_PPO, "n_steps": UPDATE_STEPS // n_envs, "n_envs": n_envs,
+                "net": "x".join(map(str, HIDDEN)) + " tanh"},
         "env_steps": steps,
         "train_s": train_s,
         "startup_s": startup,
@@ -332,6 +504,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 
 def main(argv: list[str] | None = None) -> int:
+    if (sys.argv[1:] if argv is None else list(argv))[:1] == ["sb3-baseline"]:
+        return sb3_baseline_main((sys.argv[1:] if argv is None else list(argv))[1:])
     args = parse_args(argv)
     if args.sb3_worker:
         return sb3_worker(args.seconds, args.sb3_envs, 0, args.success, args.window, args.worker_out)

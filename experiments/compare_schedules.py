@@ -21,7 +21,7 @@ a paired comparison with ``sa`` (the same seeds): mean difference, its 95 % t-in
 paired t-test's two-sided p and the seeds won.  Prints Markdown tables, writes JSON to
 ``--out`` and, with matplotlib, learning curves (per-cycle evaluation success, mean and band
 across seeds) and lr traces next to it, and — when ``constant`` and ``sa`` both ran — the paper's
-Figures 11-15 and the SA trace for the two (``paper_figures.plot_all``) in ``<out>_figures/``.
+Figures 11-15 and the SA trace for the two (``reproduce_paper.plot_all``) in ``<out>_figures/``.
 With ``--reference-from FILE`` the reference's rows come from an earlier result file measured the same way
 (checked before anything trains) instead of being trained again.  Re-running skips evaluated runs and
 evaluates finished ones; with ``--resume`` it continues runs that stopped before they finished; a run
@@ -43,9 +43,12 @@ import sys
 import time
 from typing import Any, Mapping, Sequence
 
-from experiments import paper_figures, stats, study
-from sagrasp_jax import evaluate, extras, plot, run_dir, train
-from sagrasp_jax.config import LR_SCHEDULES
+from experiments import reproduce_paper, study
+from sagrasp_jax.training import stats
+from sagrasp_jax import evaluate, plot, train
+from sagrasp_jax.base import extras
+from sagrasp_jax.training import run_dir
+from sagrasp_jax.task.config import LR_SCHEDULES
 
 SCHEDULE_VARIANTS: dict[str, tuple[str, ...]] = {name: (f"lr.schedule={name}",) for name in LR_SCHEDULES}
 ABLATION_VARIANTS: dict[str, tuple[str, ...]] = {
@@ -144,7 +147,7 @@ def summarise(records: list[dict[str, Any]]) -> dict[str, Any]:
     for level in LEVELS:
         out[f"reached_{round(100 * level)}"] = sum(_reach(r, level, "env_steps") is not None for r in records)
     out["seeds"] = [r["seed"] for r in records]
-    out["pooled_mix"] = (paper_figures.summarise_algo([r["mix"] for r in records], out["seeds"])["pooled"]
+    out["pooled_mix"] = (reproduce_paper.summarise_algo([r["mix"] for r in records], out["seeds"])["pooled"]
                          if records else None)
     out["per_seed"] = per_seed
     return out
@@ -249,15 +252,15 @@ def figures(spec: study.Study, variants: list[str], stem: str) -> list[str]:
 
 def paper_figures_for(spec: study.Study, records: dict[str, list[dict[str, Any]]], eval_episodes: int,
                       stem: str) -> list[str]:
-    """The paper's Figures 11-15 and the SA trace (``paper_figures.plot_all``) for ``constant``
+    """The paper's Figures 11-15 and the SA trace (``reproduce_paper.plot_all``) for ``constant``
     (the paper's PPO) against ``sa``, from these runs, into ``<stem>_figures/``."""
     if not set(PAPER_PAIR.values()) <= set(records) or importlib.util.find_spec("matplotlib") is None:
         return []
     evals = {a: [r["mix"] for r in records[v]] for a, v in PAPER_PAIR.items()}
-    results, curves = paper_figures.build_results(spec, PAPER_PAIR, evals, "auto", 5, eval_episodes)
+    results, curves = reproduce_paper.build_results(spec, PAPER_PAIR, evals, "auto", 5, eval_episodes)
     out_dir = f"{stem}_figures"
     os.makedirs(out_dir, exist_ok=True)
-    return [os.path.join(out_dir, name) for name in paper_figures.plot_all(out_dir, curves, results, smooth_window=5)]
+    return [os.path.join(out_dir, name) for name in reproduce_paper.plot_all(out_dir, curves, results, smooth_window=5)]
 
 
 # ---------------------------------------------------------------------- main
@@ -450,7 +453,71 @@ def run_table(args: argparse.Namespace, table: study.Variants, default: Sequence
     return study.report(args.out, result, markdown(summary, versus, len(spec.seeds), reference), written)
 
 
+# ---------------------------------------------------------------------- failures: a result file read back
+
+FAILURES_DOC = """What the failed episodes of a study's runs were: per variant, summed over its seeds, the episodes of each kind
+(the ``robot`` condition's obstacle and no-obstacle episodes, the run's own blocking-only scenes) that hit the
+obstacle, the table, the cube, anything else, or timed out, from a ``compare_schedules`` / ``sooner`` result file."""
+
+_NAMED = ("obstacle", "table", "target")  # collision parts reported by name; the rest are "other"
+
+
+def failure_counts(group: dict[str, Any]) -> dict[str, int]:
+    """Episode counts of one evaluated group (``episodes``, rates of success, timeout and each collision part)."""
+    n = int(group["episodes"])
+    by = group.get("collision_by", {})
+    out = {"episodes": n, "failed": round(n * (1.0 - group["success_rate"])), "timeout": round(n * group["timeout_rate"])}
+    for part in _NAMED:
+        out[part] = round(n * by.get(part, 0.0))
+    out["other"] = max(0, round(n * group["collision_rate"]) - sum(out[p] for p in _NAMED))  # rounding: never < 0
+    return out
+
+
+def failures_table(result: dict[str, Any], condition: str | None) -> dict[str, dict[str, dict[str, int]]]:
+    """variant -> episode kind -> summed counts over the variant's recorded runs."""
+    out: dict[str, dict[str, dict[str, int]]] = {}
+    for variant, runs in result.get("runs", {}).items():
+        kinds: dict[str, dict[str, int]] = {}
+        for run in runs:
+            source = run["conditions"][condition] if condition else run["mix"]
+            groups = {"obstacle": source["obstacle_present"], "no obstacle": source["obstacle_absent"]}
+            if run.get("blocking_scenes"):
+                groups["blocking scenes (own env)"] = run["blocking_scenes"]["blocking"]
+            for kind, group in groups.items():
+                counts = failure_counts(group)
+                kinds[kind] = {k: kinds.get(kind, {}).get(k, 0) + v for k, v in counts.items()}
+        out[variant] = kinds
+    return out
+
+
+def failures_main(argv: Sequence[str] | None = None) -> int:
+    """``failures RESULT``: what the failed episodes of a study's runs were (see ``FAILURES_DOC``)."""
+    p = argparse.ArgumentParser(prog="python -m experiments.compare_schedules failures", description=FAILURES_DOC)
+    p.add_argument("result", help="a compare_schedules / sooner result JSON")
+    p.add_argument("--condition", default=None, help="the evaluation condition the mix rows come from (e.g. robot)")
+    args = p.parse_args(argv)
+    try:
+        with open(args.result, encoding="utf-8") as f:
+            result = json.load(f)
+        rows = failures_table(result, args.condition)
+    except (OSError, ValueError) as exc:
+        print(f"error: {args.result}: cannot read it ({exc})", file=sys.stderr)
+        return 2
+    except KeyError as exc:
+        print(f"error: {args.result}: no {exc} in its run records (is --condition one it evaluated?)", file=sys.stderr)
+        return 2
+    print("| variant | episodes | failed | obstacle | timeouts | cube | table | other |")
+    print("|---|---|---|---|---|---|---|---|")
+    for variant, kinds in rows.items():
+        for kind, c in kinds.items():
+            print(f"| {variant}, {kind} | {c['episodes']} | {c['failed']} | {c['obstacle']} | {c['timeout']} | "
+                  f"{c['target']} | {c['table']} | {c['other']} |")
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    if (sys.argv[1:] if argv is None else list(argv))[:1] == ["failures"]:
+        return failures_main((sys.argv[1:] if argv is None else list(argv))[1:])
     args = parse_args(argv)
     default = list(SCHEDULE_VARIANTS) + (list(ABLATION_VARIANTS) if args.ablation else [])
     return run_table(args, VARIANTS, default, args.reference or REFERENCE, argv)

@@ -70,8 +70,10 @@ import numpy as np
 
 from experiments import bench_env, study
 from experiments.bench_vs_paper_stack import watch_trainer
-from sagrasp_jax import config, evaluate, run_dir, train
-from sagrasp_jax.env import GraspEnv
+from sagrasp_jax import evaluate, train
+from sagrasp_jax.task import config
+from sagrasp_jax.training import run_dir
+from sagrasp_jax.envs.grasp_env import GraspEnv
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 EQUAL_ATOL = 1e-5  # |Δ joint position| (rad) between the jax and warp backends, as tests/test_dynamic.py

@@ -18,7 +18,7 @@ with the calibrated SA tolerance), each lever alone, ``all`` (= the cpu-quick pr
 of ``--preset`` into ``--runs-dir/<variant>/seed<S>/``, then is evaluated on ``--eval-episodes``
 fixed-seed episodes of the evaluation mix and of blocking-only scenes (``evaluate.evaluate_run``),
 and its exported policy is played seeing vs blind on ``--blind-episodes`` obstacle and blocking
-episodes (``obstacle_blind_eval.blind_study``).  Re-running skips finished runs (``--resume``
+episodes (``blind_study``, below: every obstacle entry replaced by its "no obstacle" value, ``observation.blind``).  Re-running skips finished runs (``--resume``
 continues stopped ones).  Prints a table and writes JSON with per-seed numbers, means and 95 %
 t-intervals across seeds, and every variant paired with ``all`` seed by seed.  Run from the
 repository root:
@@ -30,13 +30,25 @@ repository root:
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
 from typing import Any, Sequence
 
-from experiments import stats, study
-from experiments.obstacle_blind_eval import blind_study
-from sagrasp_jax import run_dir, runtime, train
+import numpy as np
+
+import sagrasp_jax  # noqa: F401  (XLA flags before jax)
+import jax
+import jax.numpy as jnp
+
+from experiments import study
+from sagrasp_jax.envs.grasp_env import GraspEnv
+from sagrasp_jax.task import observation
+from sagrasp_jax.task.config import blocking_sampling
+from sagrasp_jax.training import stats
+from sagrasp_jax import train
+from sagrasp_jax.training import run_dir
+from sagrasp_jax.task import policy_file as runtime
 
 LEVERS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {  # name -> (off, on) overrides
     "layout": (("env.task.obs_layout=paper",), ("env.task.obs_layout=relative",)),
@@ -52,6 +64,59 @@ LEARNED_KEYS = ("success_overall", "success_obstacle", "success_blocking_scenes"
 # metrics compared with the reference, seed by seed: (key, larger is better)
 PAIRED = (("success_overall", True), ("success_obstacle", True), ("success_blocking_scenes", True),
           ("steps_per_success", False))
+
+
+# ---------------------------------------------------------------------- seeing vs blind (a policy, no training)
+
+BLIND_SCENES = ("obstacle", "blocking")
+
+
+def blind_evaluate(policy: runtime.NumpyPolicy, episodes: int, seed: int, blind: bool, scenes: str = "obstacle") -> dict:
+    cfg = policy.env_config()
+    cfg = dataclasses.replace(
+        cfg,
+        sampling=blocking_sampling(cfg.sampling, 1.0, 1.0 if scenes == "blocking" else 0.0),
+        task=dataclasses.replace(cfg.task, obs_noise_std=0.0),
+    )
+    env = GraspEnv(cfg)
+    state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(seed), episodes))
+    state = state.replace(info=dict(state.info, progress=jnp.ones(episodes)))
+    step = jax.jit(jax.vmap(env.step))
+    alive = np.ones(episodes, bool)
+    record: dict[str, np.ndarray] = {}
+    for _ in range(cfg.task.max_steps):
+        obs = np.asarray(state.obs, dtype=float)
+        if blind:
+            obs = observation.blind(np, cfg, obs)
+        state = step(state, jnp.asarray(policy(obs), jnp.float32))
+        done = np.asarray(state.done) > 0
+        ended = alive & done
+        for key, value in state.info["episode"].items():
+            record[key] = np.where(ended, np.asarray(value), record.get(key, np.zeros(episodes)))
+        alive &= ~done
+        if not alive.any():
+            break
+    success = record["success"]
+    return {
+        "scenes": scenes,
+        "episodes": episodes,
+        "obstacle_episodes": int((record["obstacle_present"] > 0).sum()),
+        "success_rate": float(success.mean()),
+        "collision_rate": float(record["collision"].mean()),
+        "collision_by": {k[4:]: float(v.mean()) for k, v in record.items() if k.startswith("hit_")},
+        "mean_steps_per_success": float(record["steps"][success > 0].mean()) if success.any() else None,
+    }
+
+
+def blind_study(policy: runtime.NumpyPolicy, episodes: int, seed: int) -> dict:
+    """Seeing vs blind on obstacle-only scenes (disc placement, docs/task.md §1.5) and on blocking-only scenes."""
+    result: dict = {"seed": seed, "obs_layout": policy.env_config().task.obs_layout}
+    for scenes in BLIND_SCENES:
+        seeing = blind_evaluate(policy, episodes, seed, False, scenes)
+        blinded = blind_evaluate(policy, episodes, seed, True, scenes)
+        result[scenes] = {"seeing": seeing, "blind": blinded,
+                          "seeing_minus_blind": seeing["success_rate"] - blinded["success_rate"]}
+    return result
 
 
 def variants(leave_one_out: bool) -> dict[str, set[str]]:

@@ -38,13 +38,15 @@ from typing import Any
 import numpy as np
 import pybullet as pb
 
-from sagrasp_jax import robot, sampling, shapes
-from sagrasp_jax.config import EnvConfig, blocking_sampling
+from sagrasp_jax.task import robot
+from sagrasp_jax.task import sampling
+from sagrasp_jax.task import shapes
+from sagrasp_jax.task.config import EnvConfig, blocking_sampling
 from sagrasp_jax.deploy import perception
 from sagrasp_jax.deploy.calibration import CameraCalibration
 from sagrasp_jax.deploy.twin import PyBulletTwin
 from sagrasp_jax.deploy.twin_camera import NOISE_MODELS, TwinCamera, apply_depth_noise
-from sagrasp_jax.fileio import atomic_write_json
+from sagrasp_jax.base.fileio import atomic_write_json
 
 MATCH_M = 0.05  # a detected obstacle matches a true one whose centre is this near horizontally
 MIN_VISIBLE_PX = 30  # an obstacle with fewer visible pixels in the render is not "in view"

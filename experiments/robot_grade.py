@@ -8,22 +8,37 @@ the same with up to 2 steps of latency), optionally in the dynamic env with one 
 (``--blocking``), and through the physical grasp check with and without detection error (``--physical``).
 Prints a Markdown table and writes JSON.
 
+Two subcommands check the model the robot-grade preset trains in (their results: docs/results.md §7):
+``servo-fit`` fits the lagged mode's per-step servo model to the dynamic env's MJX servos (the
+``env.control.lag_gain`` / ``lag_momentum`` defaults) and measures its open-loop drift; ``sysid-check`` runs
+``sagrasp_jax.deploy.sysid`` on logs the dynamic env synthesises for arms with known gains, latency and offsets.
+
     python -m experiments.robot_grade --run s0=runs/robot_s0 --run s1=runs/robot_s1 --run s2=runs/robot_s2 \\
         --blocking --physical --out experiments/results/robot_grade_cpu.json
+    python -m experiments.robot_grade servo-fit --out experiments/results/fit_servo_lag.json
+    python -m experiments.robot_grade sysid-check --out experiments/results/sysid_check.json
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
 import os
 import sys
 from typing import Any
 
 import sagrasp_jax  # noqa: F401  (XLA flags)
+import jax
+import jax.numpy as jnp
+import numpy as np
 
-from sagrasp_jax import evaluate, run_dir
-from sagrasp_jax.config import EVAL_CONDITIONS, ROBOT_KNOBS
-from sagrasp_jax.fileio import atomic_write_json
+from sagrasp_jax import evaluate
+from sagrasp_jax.deploy import sysid
+from sagrasp_jax.envs.grasp_env import GraspEnv
+from sagrasp_jax.task import config, robot, scripted
+from sagrasp_jax.training import run_dir
+from sagrasp_jax.task.config import EVAL_CONDITIONS, ROBOT_KNOBS
+from sagrasp_jax.base.fileio import atomic_write_json
 
 CONDITIONS = ("kinematic", "dynamic", "robot", "robot-latency2")
 
@@ -94,6 +109,11 @@ def table(report: dict[str, Any]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["servo-fit"]:
+        return servo_fit_main(argv[1:])
+    if argv[:1] == ["sysid-check"]:
+        return sysid_check_main(argv[1:])
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--run", action="append", default=[], metavar="NAME=FOLDER", required=True)
     parser.add_argument("--episodes", type=int, default=1000)
@@ -119,6 +139,218 @@ def main(argv: list[str] | None = None) -> int:
                                 "eval": evaluate_conditions(folder, args.episodes, conditions, args.blocking, args.physical)}
         atomic_write_json(args.out, report)  # after every run: a long study keeps what it has
     print(table(report))
+    print(f"wrote {args.out}")
+    return 0
+
+
+# ---------------------------------------------------------------------- servo-fit (the lagged model)
+
+SERVO_FIT_DOC = """Fit the lagged mode's per-step servo model to the dynamic mode's MJX servos, and check it.
+
+The ``lagged`` control mode (env.control.mode=lagged) replaces MuJoCo's servo physics with one update per
+control step: q ← q + g·(c − q) + m·(q − q_prev) per joint (``control.servo_model_step``).  This script
+records control steps of the dynamic env (scripted reach-and-descend actions with uniform noise, every
+randomisation knob off), fits g (``env.control.lag_gain``) and m (``env.control.lag_momentum``) per joint by
+linear least squares of the step q⁺ − q on (c − q, q − q_prev), and then replays the same action sequences
+open-loop in the dynamic and lagged envs (with and without command latency) and reports how far their
+gripper centres drift apart: the cheap model is what the policy trains in, the dynamic env is the judge."""
+
+
+def _servo_env(mode: str, extra: list[str], gains: dict[str, tuple[float, ...]] | None = None) -> GraspEnv:
+    overrides = [*config.KNOBS_OFF,  # the preset trains with them on
+                 f"env.control.mode={mode}", "env.task.obs_noise_std=0", "env.task.obs_layout=relative_lag",
+                 *extra]
+    if gains:
+        overrides += [f"env.control.{k}={','.join(f'{v:.6f}' for v in vals)}" for k, vals in gains.items()]
+    return GraspEnv(config.apply_overrides(config.get_config("cpu-quick"), overrides).env)
+
+
+def record(env: GraspEnv, episodes: int, steps: int, seed: int, scripted_actions: bool) -> dict[str, np.ndarray]:
+    """Per control step: measured joints before, the command, measured joints after, gripper centre after."""
+    cfg = env.cfg
+
+    def run(keys: Any, noise: Any) -> Any:
+        state = jax.vmap(env.reset)(keys)
+
+        def body(st: Any, eps: Any) -> Any:
+            q = jax.vmap(env.measured_joints)(st)
+            act = eps
+            if scripted_actions:
+                act = jax.vmap(lambda qq, t: scripted.scripted_action(jnp, cfg, qq, t))(q, st.info["reset"].target_pos) + eps
+            nxt = jax.vmap(env.step)(st, jnp.clip(act, -1.0, 1.0))
+            q_next = jax.vmap(env.measured_joints)(nxt)
+            centre = jax.vmap(lambda qq: robot.forward_kinematics(jnp, env.robot, qq).gripper_centre)(q_next)
+            return nxt, (q, nxt.info["q_target"], q_next, centre)
+
+        return jax.lax.scan(body, state, noise)[1]
+
+    keys = jax.random.split(jax.random.PRNGKey(seed), episodes)
+    noise = 0.6 * jax.random.uniform(jax.random.PRNGKey(seed + 1), (steps, episodes, 6), minval=-1.0, maxval=1.0)
+    q, command, q_next, centre = (np.asarray(a) for a in jax.jit(run)(keys, noise))
+    return {"q": q, "command": command, "q_next": q_next, "centre": centre}
+
+
+def fit(data: dict[str, np.ndarray]) -> dict[str, list[float]]:
+    q, c, qn = data["q"], data["command"], data["q_next"]
+    q_prev = np.concatenate([q[:1], q[:-1]], axis=0)  # the first step of an episode starts at rest
+    gain, momentum, rms, rms_first_order, step_rms = [], [], [], [], []
+    for j in range(6):
+        x = np.stack([(c - q)[..., j].ravel(), (q - q_prev)[..., j].ravel()], axis=1)
+        y = (qn - q)[..., j].ravel()
+        coef, *_ = np.linalg.lstsq(x, y, rcond=None)
+        a1 = float(x[:, 0] @ y / (x[:, 0] @ x[:, 0]))
+        gain.append(float(coef[0]))
+        momentum.append(float(coef[1]))
+        rms.append(float(np.sqrt(np.mean((y - x @ coef) ** 2))))
+        rms_first_order.append(float(np.sqrt(np.mean((y - a1 * x[:, 0]) ** 2))))
+        step_rms.append(float(np.sqrt(np.mean(y**2))))
+    return {"lag_gain": gain, "lag_momentum": momentum, "residual_rms_rad": rms,
+            "residual_rms_first_order_rad": rms_first_order, "step_rms_rad": step_rms}
+
+
+def drift(episodes: int, steps: int, seed: int, latency: float, gains: dict[str, tuple[float, ...]]) -> dict[str, float]:
+    """The same random action sequences, open loop, in the dynamic and the lagged env: gripper-centre gap."""
+    extra = [f"env.randomize.latency={latency}"] if latency else []
+    dyn = record(_servo_env("dynamic", extra), episodes, steps, seed, scripted_actions=False)
+    lag = record(_servo_env("lagged", extra, gains), episodes, steps, seed, scripted_actions=False)
+    kin = record(_servo_env("kinematic", []), episodes, steps, seed, scripted_actions=False)
+    gap = np.linalg.norm(dyn["centre"] - lag["centre"], axis=-1)
+    gap_kin = np.linalg.norm(dyn["centre"] - kin["centre"], axis=-1)
+    return {"latency": latency, "lagged_vs_dynamic_mean_m": float(gap.mean()), "lagged_vs_dynamic_p95_m":
+            float(np.percentile(gap, 95)), "kinematic_vs_dynamic_mean_m": float(gap_kin.mean()),
+            "kinematic_vs_dynamic_p95_m": float(np.percentile(gap_kin, 95))}
+
+
+def servo_fit_main(argv: list[str] | None = None) -> int:
+    """``servo-fit``: the lagged model's g and m per joint, fitted to the dynamic env's servos, and its open-loop drift."""
+    parser = argparse.ArgumentParser(prog="python -m experiments.robot_grade servo-fit", description=SERVO_FIT_DOC)
+    parser.add_argument("--episodes", type=int, default=64)
+    parser.add_argument("--steps", type=int, default=60)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", default="experiments/results/fit_servo_lag.json")
+    args = parser.parse_args(argv)
+    data = record(_servo_env("dynamic", []), args.episodes, args.steps, args.seed, scripted_actions=True)
+    result = fit(data)
+    gains = {"lag_gain": tuple(result["lag_gain"]), "lag_momentum": tuple(result["lag_momentum"])}
+    print("env.control.lag_gain =", tuple(round(v, 3) for v in result["lag_gain"]))
+    print("env.control.lag_momentum =", tuple(round(v, 3) for v in result["lag_momentum"]))
+    print("residual rms per joint, mrad (2nd order | 1st order | step):")
+    for j in range(6):
+        print(f"  q{j + 1}: {1e3 * result['residual_rms_rad'][j]:.2f} | {1e3 * result['residual_rms_first_order_rad'][j]:.2f}"
+              f" | {1e3 * result['step_rms_rad'][j]:.1f}")
+    checks = [drift(args.episodes, 40, args.seed + 7, lat, gains) for lat in (0.0, 1.0, 2.0)]
+    print("open-loop gripper-centre gap to the dynamic env, 40 random steps (mean / p95, mm):")
+    print("| latency | lagged | kinematic |\n|---|---|---|")
+    for c in checks:
+        print(f"| 0-{c['latency']:g} | {1e3 * c['lagged_vs_dynamic_mean_m']:.1f} / {1e3 * c['lagged_vs_dynamic_p95_m']:.1f} | "
+              f"{1e3 * c['kinematic_vs_dynamic_mean_m']:.1f} / {1e3 * c['kinematic_vs_dynamic_p95_m']:.1f} |")
+    atomic_write_json(args.out, {"episodes": args.episodes, "steps": args.steps, "seed": args.seed, **result,
+                                 "open_loop_gap": checks})
+    print(f"wrote {args.out}")
+    return 0
+
+
+# ---------------------------------------------------------------------- sysid-check
+
+SYSID_CHECK_DOC = """Does ``sagrasp_jax.deploy.sysid`` recover known arm parameters?  Logs synthesised by the dynamic env.
+
+Each case sets one arm's servo gains (kp and kv scaled alike per joint), command latency and joint-reading
+offsets, drives the dynamic (MJX) env with scripted reach-and-descend actions plus noise, records the log
+the deploy loop would (time, commanded targets, readings with Gaussian noise), runs the identification
+and compares: latency (ms), offsets (mrad) and the servo gain.  The servo gain's truth for the lagged model is
+the per-step model fitted to a noise-free, latency-free log of the same arm (``truth_model``): what the
+lagged mode can represent of that arm.  Prints a table and writes JSON."""
+
+
+SYSID_CASES: dict[str, dict[str, Any]] = {
+    "nominal": {"kp_scale": [1.0] * 6, "latency": 0.0, "offset": [0.0] * 6},
+    "whole-step": {"kp_scale": [1.0] * 6, "latency": 1.0, "offset": [0.004, -0.003, 0.002, -0.005, 0.001, 0.003]},
+    "slow-late": {"kp_scale": [0.8, 0.85, 0.9, 0.8, 0.85, 0.9], "latency": 1.2,
+                  "offset": [0.004, -0.003, 0.002, -0.005, 0.001, 0.003]},
+    "stiff-later": {"kp_scale": [1.2, 1.15, 1.1, 1.2, 1.15, 1.1], "latency": 2.4,
+                    "offset": [-0.002, 0.005, -0.004, 0.003, -0.001, 0.0]},
+}
+
+
+def synthesize(kp_scale: Any, latency: float, offset: Any, noise: float = 0.0005, episodes: int = 1, steps: int = 400,
+               seed: int = 0) -> sysid.RobotLog:
+    """A log of ``episodes`` × ``steps`` control periods of the dynamic env with these arm parameters (several
+    episodes are logged one after another: each jump between them is a period the fit cannot explain)."""
+    overrides = ["env.control.mode=dynamic", "env.task.obs_noise_std=0", "env.randomize.latency=3",
+                 "env.randomize.servo_gain=0.2"]  # knobs on so the env keeps a command queue and a draw to overwrite
+    cfg = config.apply_overrides(config.get_config("cpu-quick"), overrides).env
+    env = GraspEnv(cfg)
+    kp = jnp.asarray(kp_scale, jnp.float32)
+    known = {"kp_scale": kp, "kv_scale": kp, "latency": jnp.asarray(latency, jnp.float32),
+             "joint_offset": jnp.zeros(6), "joint_noise": jnp.zeros(()), "target_error": jnp.zeros(3)}
+
+    def run(keys: Any, eps: Any) -> Any:
+        state = jax.vmap(env.reset)(keys)
+        info = dict(state.info, randomize={k: jnp.broadcast_to(v, (keys.shape[0], *v.shape)) for k, v in known.items()})
+        state = state.replace(info=info)
+
+        def body(st: Any, e: Any) -> Any:
+            q = jax.vmap(env.measured_joints)(st)
+            act = jax.vmap(lambda qq, t: scripted.scripted_action(jnp, cfg, qq, t))(q, st.info["reset"].target_pos)
+            nxt = jax.vmap(env.step)(st, jnp.clip(act + e, -1.0, 1.0))
+            nxt = nxt.replace(done=jnp.zeros_like(nxt.done))  # no auto-reset here: one long trajectory per episode
+            return nxt, (q, nxt.info["q_target"])
+
+        return jax.lax.scan(body, state, eps)[1]
+
+    keys = jax.random.split(jax.random.PRNGKey(seed), episodes)
+    eps = 0.5 * jax.random.uniform(jax.random.PRNGKey(seed + 1), (steps, episodes, 6), minval=-1.0, maxval=1.0)
+    q, command = (np.asarray(a, dtype=float) for a in jax.jit(run)(keys, eps))
+    rng = np.random.default_rng(seed)
+    # one log: the episodes one after another (each starts from rest at its own pose: a short pause in the log)
+    q = np.concatenate([q[:, e] for e in range(episodes)], axis=0)
+    command = np.concatenate([command[:, e] for e in range(episodes)], axis=0)
+    readings = q + np.asarray(offset) + noise * rng.standard_normal(q.shape)
+    time = np.arange(q.shape[0]) * cfg.control.control_dt
+    return sysid.RobotLog(time, command, readings)
+
+
+def write_csv(log: sysid.RobotLog, path: str) -> None:
+    with open(path, "w", newline="", encoding="utf-8") as f:
+        writer = csv.writer(f)
+        writer.writerow(sysid.COLUMNS)
+        for t, c, y in zip(log.time, log.command, log.measured):
+            writer.writerow([f"{t:.4f}", *(f"{v:.6f}" for v in c), *(f"{v:.6f}" for v in y)])
+
+
+def truth_model(kp_scale: Any) -> sysid.SysIdResult:
+    """The lagged model of an arm with these gains: fitted to its noise-free, latency-free log."""
+    return sysid.identify(synthesize(kp_scale, 0.0, [0.0] * 6, noise=0.0))
+
+
+def sysid_case(name: str, case: dict[str, Any]) -> dict[str, Any]:
+    log = synthesize(case["kp_scale"], case["latency"], case["offset"])
+    fit = sysid.identify(log)
+    truth = truth_model(case["kp_scale"])
+    dt = float(np.median(np.diff(log.time)))
+    return {
+        "case": name, **case,
+        "latency_error_ms": 1000 * abs(fit.latency_steps - case["latency"]) * dt,
+        "offset_error_mrad": (1000 * np.abs(fit.joint_offset - np.asarray(case["offset"]))).tolist(),
+        "lag_gain": fit.lag_gain.tolist(), "lag_gain_truth": truth.lag_gain.tolist(),
+        "lag_gain_error_rel": (np.abs(fit.lag_gain / truth.lag_gain - 1)).tolist(),
+        "lag_momentum": fit.lag_momentum.tolist(), "lag_momentum_truth": truth.lag_momentum.tolist(),
+        "residual_rms_mrad": (1000 * fit.residual_rms).tolist(),
+    }
+
+
+def sysid_check_main(argv: list[str] | None = None) -> int:
+    """``sysid-check``: does ``deploy.sysid`` recover known arm parameters from logs the dynamic env synthesises?"""
+    parser = argparse.ArgumentParser(prog="python -m experiments.robot_grade sysid-check", description=SYSID_CHECK_DOC)
+    parser.add_argument("--out", default="experiments/results/sysid_check.json")
+    args = parser.parse_args(argv)
+    rows = [sysid_case(name, case) for name, case in SYSID_CASES.items()]
+    print("| case | latency truth (steps) | latency error (ms) | max offset error (mrad) | max lag_gain error (%) |")
+    print("|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['case']} | {r['latency']:g} | {r['latency_error_ms']:.2f} | {max(r['offset_error_mrad']):.3f} | "
+              f"{100 * max(r['lag_gain_error_rel']):.1f} |")
+    atomic_write_json(args.out, {"cases": rows})
     print(f"wrote {args.out}")
     return 0
 

@@ -22,9 +22,9 @@ repository root as ``python -m experiments.NAME`` (``experiments`` is a package:
   ``config.EVAL_CONDITIONS`` condition (what ``python -m sagrasp_jax.evaluate --condition NAME`` plays),
   and ``--condition NAME`` adds such an evaluation to every study.  The record is saved in the run
   folder and re-used while its identity (episode counts, conditions) is unchanged.
-* **Summaries** (``experiments.stats``, SciPy's distributions): ``mean_ci`` (mean, 95 % Student-t interval
+* **Summaries** (``sagrasp_jax.training.stats``, SciPy's distributions): ``mean_ci`` (mean, 95 % Student-t interval
   across seeds), ``paired`` (paired t-test against a reference variant, seed by seed), curve bands.
-* **JSON** through ``sagrasp_jax.fileio`` (``write_json``: atomic, sorted keys, no NaN).
+* **JSON** through ``sagrasp_jax.base.fileio`` (``write_json``: atomic, sorted keys, no NaN).
 """
 
 from __future__ import annotations
@@ -43,10 +43,12 @@ import time
 from dataclasses import dataclass
 from typing import Any, Callable, Mapping, Sequence
 
-from sagrasp_jax import evaluate, fileio, run_dir, train
-from sagrasp_jax.checkpoint import CheckpointError
-from sagrasp_jax.config import EVAL_CONDITIONS, Config, ConfigError, config_from_dict, config_to_dict, get_config
-from sagrasp_jax.run_dir import RunDirError
+from sagrasp_jax import evaluate, train
+from sagrasp_jax.base import fileio
+from sagrasp_jax.training import run_dir
+from sagrasp_jax.training.checkpoint import CheckpointError
+from sagrasp_jax.task.config import EVAL_CONDITIONS, Config, ConfigError, config_from_dict, config_to_dict, get_config
+from sagrasp_jax.training.run_dir import RunDirError
 
 SEED_FOLDER = "seed{seed}"  # a seed's run folder inside its variant's, as `sagrasp_jax.train --seeds` names it
 Variants = Mapping[str, Sequence[str]]  # variant name -> its config overrides (`--set` strings)

@@ -23,9 +23,9 @@ from typing import Any
 import sagrasp_jax  # noqa: F401  (XLA flags)
 
 from sagrasp_jax import evaluate
-from sagrasp_jax.config import EVAL_CONDITIONS
+from sagrasp_jax.task.config import EVAL_CONDITIONS
 from sagrasp_jax.deploy import rehearse
-from sagrasp_jax.fileio import atomic_write_json
+from sagrasp_jax.base.fileio import atomic_write_json
 
 DEFAULT_CASES = ("kinematic:mix", "robot:mix", "kinematic:blocking", "robot:blocking", "robot-wide:mix")
 

@@ -80,6 +80,53 @@ if _WARP_MODULE not in sys.modules and not any(isinstance(f, _QuietWarpImport) f
 
 # A module of the package that meets an absent optional package raises extras.MissingExtra naming the
 # extra to install (``pip install "sagrasp_jax[train]"``), not a bare ModuleNotFoundError.
-from sagrasp_jax import extras as _extras  # noqa: E402  (stdlib only)
+from sagrasp_jax.base import extras as _extras  # noqa: E402  (stdlib only)
 
 _extras.install_import_hints()
+
+
+# Modules that moved into the layer folders (docs/architecture.md) still import at their old paths,
+# with a DeprecationWarning naming the new one: ``import sagrasp_jax.ppo`` is ``sagrasp_jax.training.ppo``.
+MOVED_MODULES = {
+    "fileio": "base.fileio", "assets": "base.assets", "extras": "base.extras", "run_files": "base.run_files",
+    "config": "task.config", "robot": "task.robot", "scene": "task.scene", "shapes": "task.shapes",
+    "geometry": "task.geometry", "collision": "task.collision", "control": "task.control",
+    "reward": "task.reward", "observation": "task.observation", "episode": "task.episode",
+    "sampling": "task.sampling", "scripted": "task.scripted", "runtime": "task.policy_file",
+    "env": "envs.grasp_env", "wrappers": "envs.auto_reset",
+    "actor_critic": "training.actor_critic", "losses": "training.losses", "rollout": "training.rollout",
+    "sharding": "training.sharding", "lr_schedule": "training.lr_schedule", "sa_schedule": "training.sa_schedule",
+    "metrics_window": "training.metrics_window", "ppo": "training.ppo", "checkpoint": "training.checkpoint",
+    "distributed": "training.distributed", "run_dir": "training.run_dir", "policy_eval": "training.fixed_seed_eval",
+    "physical": "reference.grasp_check",
+}
+
+
+class _MovedModuleLoader(importlib.abc.Loader):
+    """Gives the module at its new path for an old one (the same module object, so patches agree)."""
+
+    def __init__(self, new_name: str) -> None:
+        self.new_name = new_name
+
+    def create_module(self, spec: Any) -> Any:
+        import importlib
+        import warnings
+
+        warnings.warn(f"{spec.name} moved to {self.new_name}; import it from there",
+                      DeprecationWarning, stacklevel=3)
+        return importlib.import_module(self.new_name)
+
+    def exec_module(self, module: Any) -> None:
+        pass
+
+
+class _MovedModules(importlib.abc.MetaPathFinder):
+    def find_spec(self, fullname: str, path: Any, target: Any = None) -> Any:
+        head, _, tail = fullname.partition(".")
+        if head != "sagrasp_jax" or tail not in MOVED_MODULES:
+            return None
+        return importlib.util.spec_from_loader(fullname, _MovedModuleLoader(f"sagrasp_jax.{MOVED_MODULES[tail]}"))
+
+
+if not any(isinstance(f, _MovedModules) for f in sys.meta_path):
+    sys.meta_path.insert(0, _MovedModules())

@@ -31,7 +31,7 @@ import numpy as np
 
 from sagrasp_jax.deploy.calibration import CalibrationError, CameraCalibration
 from sagrasp_jax.deploy.handeye import DEFAULT_MAX_RMS_MM, UNIT_SCALE, HandEyeError, HandEyeFit, fit_hand_eye
-from sagrasp_jax.fileio import NotWritable, atomic_write_json, check_writable, read_regular
+from sagrasp_jax.base.fileio import NotWritable, atomic_write_json, check_writable, read_regular
 
 COLUMNS = ("cam_x", "cam_y", "cam_z", "tcp_x", "tcp_y", "tcp_z")
 MAX_PAIRS_BYTES = 10 * 1024 * 1024

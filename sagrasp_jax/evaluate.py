@@ -15,7 +15,7 @@ not), and its folder is checked to be writable, full disks included, before it s
 that still fails afterwards prints the result and exits 2.
 
 ``--physical`` also replays every kinematic success through the physical grasp check
-(``evaluate_physical``, ``sagrasp_jax.physical``).  ``--set env.KEY=VALUE`` evaluates the run's
+(``evaluate_physical``, ``sagrasp_jax.reference.grasp_check``).  ``--set env.KEY=VALUE`` evaluates the run's
 policy in another env than it was trained in (e.g. ``env.control.mode=dynamic`` for a kinematic
 policy, or ``env.randomize.*``); the result file's name then carries a short hash of those changes.
 """
@@ -32,7 +32,7 @@ import sys
 import time
 from typing import Any, Callable, NamedTuple
 
-from sagrasp_jax import extras
+from sagrasp_jax.base import extras
 
 if __name__ == "__main__":  # a missing extra ends in one line naming it (exit 2), not an import traceback
     extras.require_cli("train", prog="python -m sagrasp_jax.evaluate")
@@ -40,10 +40,14 @@ if __name__ == "__main__":  # a missing extra ends in one line naming it (exit 2
 import jax  # noqa: E402
 import numpy as np
 
-from sagrasp_jax import actor_critic, policy_eval, rollout, run_dir
-from sagrasp_jax.checkpoint import CheckpointError
-from sagrasp_jax.config import EVAL_CONDITIONS, SEED_RANGE, Config, ConfigError, blocking_sampling, check_range, file_overrides
-from sagrasp_jax.run_dir import RunDirError
+from sagrasp_jax.training import actor_critic
+from sagrasp_jax.training import fixed_seed_eval as policy_eval
+from sagrasp_jax.training import rollout
+from sagrasp_jax.training import run_dir
+from sagrasp_jax.training import restore
+from sagrasp_jax.training.checkpoint import CheckpointError
+from sagrasp_jax.task.config import EVAL_CONDITIONS, SEED_RANGE, Config, ConfigError, blocking_sampling, check_range, file_overrides
+from sagrasp_jax.training.run_dir import RunDirError
 
 EvalEnvFactory = Callable[[Config], rollout.Env]
 SCENE_SETS = ("mix", "blocking")
@@ -52,7 +56,7 @@ MAX_STEPS = 100_000
 
 
 def default_eval_env(cfg: Config) -> rollout.Env:
-    from sagrasp_jax.env import GraspEnv
+    from sagrasp_jax.envs.grasp_env import GraspEnv
 
     return GraspEnv(cfg.env)
 
@@ -105,8 +109,8 @@ def summarise(episodes: dict[str, np.ndarray], mask: np.ndarray) -> dict[str, An
 def env_overrides(cfg: Config, overrides: list[str] | None) -> Config:
     """``cfg`` with ``--set`` changes of the evaluated env (``env.*`` keys only; the policy's
     observation layout must stay the same)."""
-    from sagrasp_jax import observation
-    from sagrasp_jax.config import apply_overrides
+    from sagrasp_jax.task import observation
+    from sagrasp_jax.task.config import apply_overrides
 
     overrides = list(overrides or [])
     bad = [o for o in overrides if not o.strip().startswith("env.")]
@@ -152,7 +156,7 @@ def evaluate_run(run: str, episodes: int = 1000, seed: int | None = None, max_st
     counters = run_dir.checkpoint_counters(ckpt)
     trained = trained_identity(cfg, ckpt)
     env = (env_factory or default_eval_env)(scene_config(env_overrides(cfg, overrides), scenes))
-    params, normaliser = run_dir.restore_policy(cfg, ckpt, env.observation_size, env.action_size)
+    params, normaliser = restore.restore_policy(cfg, ckpt, env.observation_size, env.action_size)
     networks = actor_critic.make_networks(cfg.ppo.network, env.observation_size, env.action_size, cfg.ppo.obs_clip)
     seed, steps = resolve_options(cfg, seed, max_steps)
     t = time.perf_counter()
@@ -190,7 +194,7 @@ def config_identity(cfg: Config) -> str:
     import hashlib
     import json
 
-    from sagrasp_jax.config import identity_dict
+    from sagrasp_jax.task.config import identity_dict
 
     return hashlib.sha256(json.dumps(identity_dict(cfg), sort_keys=True).encode()).hexdigest()[:16]
 
@@ -219,7 +223,7 @@ def evaluate_physical(run: str, episodes: int, seed: int, max_steps: int, lift: 
     its height is known) in collision-checked steps (``physical_grasp_pose``), then closes on the true
     cube and lifts keeping its orientation.
     """
-    from sagrasp_jax import physical
+    from sagrasp_jax.reference import grasp_check as physical
 
     lift = physical.LIFT_HEIGHT if lift is None else lift
     replay = replay_final_poses(run, episodes, seed, max_steps, overrides, scenes)
@@ -253,7 +257,8 @@ def physical_grasp_pose(replay: "FinalPoses", i: int) -> np.ndarray:
     """Where the deploy loop closes after episode ``i``: its final pose slid over the detected cube
     (``deploy.loop.centring_pose``), stopped before the first step that collides (the safety layer's
     refusal), or the final pose itself when no slide is found."""
-    from sagrasp_jax import collision, robot
+    from sagrasp_jax.task import collision
+    from sagrasp_jax.task import robot
     from sagrasp_jax.deploy.loop import centring_pose
 
     model, cfg, spec, q = robot.load_robot(), replay.env_cfg, replay.spec(i), replay.q_final[i]
@@ -290,11 +295,11 @@ def replay_final_poses(run: str, episodes: int, seed: int, max_steps: int,
     """Replay ``evaluate_run``'s episodes (same keys, same jitted evaluator, the env wrapped to copy the final
     joints into the episode record) for what happens after them: the physical grasp check, the detection
     ceiling study."""
-    from sagrasp_jax.env import GraspEnv
+    from sagrasp_jax.envs.grasp_env import GraspEnv
 
     env_cfg = scene_config(env_overrides(run_dir.load_config(run), overrides), scenes).env
     env = _FinalPoseRecorder(GraspEnv(env_cfg))
-    cfg, params, normaliser, _ = run_dir.load_policy_state(run, env.observation_size, env.action_size)
+    cfg, params, normaliser, _ = restore.load_policy_state(run, env.observation_size, env.action_size)
     networks = actor_critic.make_networks(cfg.ppo.network, env.observation_size, env.action_size, cfg.ppo.obs_clip)
     keys = policy_eval.eval_keys(seed, episodes)
     result = jax.device_get(policy_eval.make_evaluator(networks, env, max_steps)(params, normaliser, keys))

@@ -2,10 +2,10 @@
 
 Writes, each atomically (temp file + rename), into ``--out``:
 
-* ``policy.npz`` — the ``sagrasp_jax.runtime`` format (weights, normaliser with its std floor
+* ``policy.npz`` — the ``sagrasp_jax.task.policy_file`` format (weights, normaliser with its std floor
   and clip, action scale, observation layout, training config and its hash, package
   version), from the run's latest checkpoint (its final params at the end of training), via
-  ``run_dir.export_policy``;
+  ``restore.export_policy``;
 * ``policy.onnx`` — the same deterministic policy as an ONNX graph (opset ≥ 17), built with
   ``onnx.helper`` from the npz weights: ``clip((obs − mean)/std, ±clip)``, the dense layers
   with their activation, the ``action_size`` loc outputs, ``tanh``.  Input ``obs`` float32
@@ -34,8 +34,11 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from sagrasp_jax import __version__, extras, fileio, runtime
-from sagrasp_jax.runtime import NumpyPolicy
+from sagrasp_jax import __version__
+from sagrasp_jax.base import extras
+from sagrasp_jax.base import fileio
+from sagrasp_jax.task import policy_file as runtime
+from sagrasp_jax.task.policy_file import NumpyPolicy
 
 NPZ_FILE = "policy.npz"
 ONNX_FILE = "policy.onnx"
@@ -137,7 +140,7 @@ def onnx_model(policy: NumpyPolicy, opset: int = DEFAULT_OPSET) -> Any:
 
 def write_onnx(policy: NumpyPolicy, path: str, opset: int = DEFAULT_OPSET) -> str:
     """Build, check and atomically write ``policy.onnx``."""
-    from sagrasp_jax.checkpoint import atomic_write_bytes
+    from sagrasp_jax.training.checkpoint import atomic_write_bytes
 
     atomic_write_bytes(path, onnx_model(policy, opset).SerializeToString())
     return path
@@ -174,22 +177,22 @@ def check_opset(opset: int) -> int:
 
 def load_run(run: str) -> tuple[Any, Any, Any, dict[str, Any]]:
     """Config, final params, normaliser and counters of a run folder, with clear errors."""
-    from sagrasp_jax import run_dir
-    from sagrasp_jax.checkpoint import CheckpointError
+    from sagrasp_jax.training import restore, run_dir
+    from sagrasp_jax.training.checkpoint import CheckpointError
 
     if not os.path.exists(run):
         raise ExportError(f"{run}: run folder not found")
     if not os.path.isdir(run):
         raise ExportError(f"{run}: not a folder (pass the run folder written by sagrasp_jax.train)")
     try:
-        return run_dir.load_policy_state(run)
+        return restore.load_policy_state(run)
     except (CheckpointError, run_dir.RunDirError) as exc:
         raise ExportError(f"cannot export {run}: {exc}") from None
 
 
 def export_run(run: str, out_dir: str, *, onnx: bool = True, opset: int = DEFAULT_OPSET) -> dict[str, Any]:
     """Export a run folder's policy into ``out_dir``; returns the manifest (also written there)."""
-    from sagrasp_jax import run_dir
+    from sagrasp_jax.training import run_dir
 
     if onnx:
         check_opset(opset)
@@ -210,10 +213,10 @@ def export_run(run: str, out_dir: str, *, onnx: bool = True, opset: int = DEFAUL
 
 def _export(run: str, out_dir: str, cfg: Any, params: Any, normaliser: Any, counters: dict[str, Any], onnx: bool,
             opset: int) -> dict[str, Any]:
-    from sagrasp_jax import ppo, run_dir
-    from sagrasp_jax.checkpoint import atomic_write_bytes
+    from sagrasp_jax.training import ppo, restore
+    from sagrasp_jax.training.checkpoint import atomic_write_bytes
 
-    npz_path = run_dir.export_policy(os.path.join(out_dir, NPZ_FILE), cfg, params, normaliser, int(normaliser.mean.shape[-1]))
+    npz_path = restore.export_policy(os.path.join(out_dir, NPZ_FILE), cfg, params, normaliser, int(normaliser.mean.shape[-1]))
     policy = runtime.load_policy(npz_path)
     planned = ppo.num_iterations(cfg.train.total_steps, cfg.ppo)
     manifest: dict[str, Any] = {

@@ -13,7 +13,7 @@ Four panels from the run's ``metrics.jsonl`` against env steps (the ``plots`` ex
 ``--run`` may be repeated (runs overlaid, one colour each); a seed group (``train --seeds``) plots
 each of its seeds.  ``--smooth N`` averages the training curves over N logged rows.  The PNG is
 written atomically.  jax-free: the file is read with ``run_files``.  ``smooth`` and ``pyplot`` serve
-the studies' figures too (``experiments/paper_figures.py``, ``experiments/compare_schedules.py``).
+the studies' figures too (``experiments/reproduce_paper.py``, ``experiments/compare_schedules.py``).
 """
 
 from __future__ import annotations
@@ -25,7 +25,9 @@ from typing import Any, NamedTuple, Sequence
 
 import numpy as np
 
-from sagrasp_jax import extras, fileio, run_files
+from sagrasp_jax.base import extras
+from sagrasp_jax.base import fileio
+from sagrasp_jax.base import run_files
 
 # success keys of a metrics row: (key, label, line style); training-window means, then the evaluation's
 KIND_CURVES = (("success_no_obstacle", "no obstacle", "-"), ("success_obstacle", "obstacle", "--"),

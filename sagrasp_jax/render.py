@@ -29,10 +29,12 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from sagrasp_jax import extras, fileio, run_files
-from sagrasp_jax.config import SEED_RANGE, ConfigError, check_range
+from sagrasp_jax.base import extras
+from sagrasp_jax.base import fileio
+from sagrasp_jax.base import run_files
+from sagrasp_jax.task.config import SEED_RANGE, ConfigError, check_range
 from sagrasp_jax.deploy.safety import PolicyMismatch
-from sagrasp_jax.runtime import PolicyFormatError, load_policy
+from sagrasp_jax.task.policy_file import PolicyFormatError, load_policy
 
 CAMERAS = ("overview", "depth_camera")
 GL_PACKAGES = "libegl1 libegl-mesa0 libopengl0 libgl1-mesa-dri"
@@ -98,10 +100,10 @@ def render_episodes(policy_path: str, episodes: int = 3, camera: str = "overview
                     height: int = 480, max_steps: int | None = None) -> tuple[list[np.ndarray], list[dict[str, Any]], int]:
     """Run and render ``episodes`` sampled scenes; returns (frames, per-episode reports, index of the still)."""
     mujoco = _mujoco()
-    from sagrasp_jax import sampling
+    from sagrasp_jax.task import sampling
     from sagrasp_jax.deploy.loop import obstacles_from_spec, run_episode
-    from sagrasp_jax.physical import GraspScene, MujocoRobot
-    from sagrasp_jax.robot import load_robot
+    from sagrasp_jax.reference.grasp_check import GraspScene, MujocoRobot
+    from sagrasp_jax.task.robot import load_robot
 
     if episodes < 1:
         raise RenderError(f"--episodes must be >= 1, got {episodes}")

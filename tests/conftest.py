@@ -7,9 +7,15 @@ once per session (cpu-quick, a few minutes on 2 cores) for tests that need a wor
 
 from __future__ import annotations
 
-import sagrasp_jax  # noqa: F401  (sets XLA_FLAGS before jax is imported)
-
 import os
+
+# Cache every compilation, not only those over 1 s (the package's default): the suite compiles
+# hundreds of small programs, many of them again in subprocesses (CLI tests), which inherit this;
+# measured on a 2-core VM with a cold cache, the fault and deploy tests ran 9 % faster (266 -> 243 s).
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
+
+import sagrasp_jax  # noqa: E402,F401  (sets XLA_FLAGS before jax is imported)
+
 import sys
 from typing import Any
 
@@ -20,7 +26,7 @@ sys.path.insert(0, os.path.dirname(__file__))
 from toy_env import AutoReset, PointReach  # noqa: E402
 
 from sagrasp_jax import train  # noqa: E402
-from sagrasp_jax.config import KNOBS_OFF, Config  # noqa: E402
+from sagrasp_jax.task.config import KNOBS_OFF, Config  # noqa: E402
 
 TOY_ITER_STEPS = 32 * 16  # num_envs × unroll_length
 
@@ -82,7 +88,11 @@ def first_gradients(env: Any, cfg: Config, mesh: Any) -> list[Any]:
     import numpy as np
     import optax
 
-    from sagrasp_jax import actor_critic, metrics_window, ppo, rollout, sharding
+    from sagrasp_jax.training import actor_critic
+    from sagrasp_jax.training import metrics_window
+    from sagrasp_jax.training import ppo
+    from sagrasp_jax.training import rollout
+    from sagrasp_jax.training import sharding
 
     assert (cfg.ppo.num_minibatches, cfg.ppo.num_epochs, cfg.ppo.entropy_coef) == (1, 1, 0.0)
     nets = actor_critic.make_networks(cfg.ppo.network, env.observation_size, env.action_size, cfg.ppo.obs_clip)
@@ -104,7 +114,7 @@ def first_gradients(env: Any, cfg: Config, mesh: Any) -> list[Any]:
 def toy_factory(nan_progress: tuple[float, float] | None = None) -> Any:
     """The toy envs; the training env reports privileged critic inputs when the config has a privileged
     critic (as many as ``observation.critic_extra_size`` asks for)."""
-    from sagrasp_jax import observation
+    from sagrasp_jax.task import observation
 
     def factory(cfg: Config) -> tuple[Any, Any]:
         extra = observation.critic_extra_size(cfg)

@@ -1,6 +1,6 @@
 """Exact signed distances between every pair of collision primitives: the test oracle.
 
-Production code needs only the few queries in ``sagrasp_jax.geometry`` (point SDFs, capsule vs
+Production code needs only the few queries in ``sagrasp_jax.task.geometry`` (point SDFs, capsule vs
 box, the table plane); the per-step rules approximate the robot by spheres against exact
 obstacle shapes (``collision``, ``shapes``).  This module holds the rest, the exact
 primitive-pair distances that ``tests/`` (``test_geometry``, ``test_collision``, ``test_env``,
@@ -40,7 +40,7 @@ from typing import Any
 
 import numpy as np
 
-from sagrasp_jax.geometry import (  # noqa: F401  (re-exported: the full set in one module)
+from sagrasp_jax.task.geometry import (  # noqa: F401  (re-exported: the full set in one module)
     _BIG,
     _add,
     _capsule_segment,
@@ -72,8 +72,8 @@ from sagrasp_jax.geometry import (  # noqa: F401  (re-exported: the full set in 
     segment_box_distance,
     support_radius,
 )
-from sagrasp_jax.geometry import __all__ as geometry_all
-from sagrasp_jax.robot import BOX, CAPSULE, CYLINDER, SPHERE
+from sagrasp_jax.task.geometry import __all__ as geometry_all
+from sagrasp_jax.task.robot import BOX, CAPSULE, CYLINDER, SPHERE
 
 Array = Any
 Vec = tuple[Any, Any, Any]

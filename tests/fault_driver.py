@@ -32,7 +32,9 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 from conftest import toy_config, toy_factory  # noqa: E402
 
-from sagrasp_jax import fileio, run_dir, train  # noqa: E402
+from sagrasp_jax import train  # noqa: E402
+from sagrasp_jax.base import fileio  # noqa: E402
+from sagrasp_jax.training import run_dir  # noqa: E402
 
 
 def dynamic_config():  # type: ignore[no-untyped-def]
@@ -125,7 +127,9 @@ def main() -> None:
 
         train.Trainer.run_calls = run_calls
     if args.cli:
-        train.default_envs = toy_factory()
+        from sagrasp_jax.training import trainer as trainer_mod
+
+        trainer_mod.default_envs = toy_factory()  # what the CLI builds the envs with
         code = train.main(["--out", args.out, "--resume", "--no-progress"])
         print(f"EXIT {code}", flush=True)
         sys.exit(code)

@@ -5,8 +5,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from sagrasp_jax import scripted
-from sagrasp_jax.config import EnvConfig
+from sagrasp_jax.task import scripted
+from sagrasp_jax.task.config import EnvConfig
 
 
 def scripted_action(cfg: EnvConfig, q: jax.Array, target: jax.Array) -> jax.Array:

@@ -1,4 +1,4 @@
-"""The layer rules of docs/architecture.md hold for the package's real import graph.
+"""The layer rules of docs/architecture.md (by folder) hold for the package's real import graph.
 
 The table in the doc is the source of truth: this test parses it, derives every import of every
 package module with ``ast`` (imports inside functions too: a lazy import is still a dependency)
@@ -21,10 +21,10 @@ JAX_ROOTS = ("jax", "jaxlib", "flax", "optax", "brax", "mujoco.mjx")
 
 
 def _expand(token: str) -> list[str]:
-    """`deploy/{a,b}` -> ['deploy.a', 'deploy.b']; `deploy/__init__` -> 'deploy'."""
-    m = re.fullmatch(r"(.*)\{(.*)\}(.*)", token)
-    names = [m.group(1) + part + m.group(3) for part in m.group(2).split(",")] if m else [token]
-    return [re.sub(r"\.__init__$", "", n.replace("/", ".")) for n in names]
+    """`reference/parity` -> 'reference.parity'; `deploy/` -> 'deploy'; `sagrasp_jax/*.py` -> '' (the commands)."""
+    if token == "sagrasp_jax/*.py":
+        return [""]
+    return [token.rstrip("/").replace("/", ".")]
 
 
 def _names(cell: str) -> list[str]:
@@ -32,26 +32,43 @@ def _names(cell: str) -> list[str]:
 
 
 def doc_layers() -> tuple[list[str], dict[str, int], set[str]]:
-    """(layer titles top to bottom, module -> layer index, jax-free modules) from the doc's table."""
+    """(layer titles top to bottom, folder -> layer index, jax-free module names: a folder's name stands for
+    all its modules) from the doc's table."""
     with open(DOC, encoding="utf-8") as f:
         text = f.read()
     rows = re.findall(r"^\|(.+)\|(.+)\|(.+)\|$", text.split("## Layers", 1)[1].split("\n## ", 1)[0], re.M)
     rows = [r for r in rows if not set(r[0].strip()) <= {"-"} and r[0].strip() != "layer"]
     titles, layer_of, jax_free = [], {}, set()
-    for index, (title, modules, free) in enumerate(rows):
+    for index, (title, folders, free) in enumerate(rows):
         titles.append(title.strip())
-        names = _names(modules)
-        for name in names:
-            assert name not in layer_of, f"{name} is listed twice in {DOC}"
-            layer_of[name] = index
+        (folder,) = _names(folders)
+        assert folder not in layer_of, f"{folder or 'the commands'} are listed twice in {DOC}"
+        layer_of[folder] = index
         free = free.strip()
         if free == "all":
-            jax_free |= set(names)
+            jax_free.add(folder)
         elif free.startswith("all but"):
-            jax_free |= set(names) - set(_names(free))
-        else:
+            jax_free.add(folder)
+            jax_free |= {"!" + n for n in _names(free)}
+        elif free.startswith("none but"):
             jax_free |= set(_names(free))
+        elif free != "none":
+            jax_free |= {n if "." in n or not folder else f"{folder}.{n}" for n in _names(free)}
     return titles, layer_of, jax_free
+
+
+def is_jax_free(module: str, jax_free: set[str]) -> bool:
+    if "!" + module in jax_free:
+        return False
+    return module in jax_free or _folder(module) in jax_free and _folder(module) != ""
+
+
+def _folder(module: str) -> str:
+    """The module's folder ('' for the commands at the top; a subpackage's own __init__ is in its folder)."""
+    return module.split(".")[0] if module.split(".")[0] in SUBPACKAGES else ""
+
+
+SUBPACKAGES = {n for n in os.listdir(PACKAGE) if os.path.isfile(os.path.join(PACKAGE, n, "__init__.py"))}
 
 
 def package_modules() -> dict[str, str]:
@@ -112,23 +129,24 @@ def graph() -> dict[str, tuple[set[str], set[str]]]:
     return {m: imports(f, m, set(mods)) for m, f in mods.items()}
 
 
-def test_every_module_is_in_exactly_one_layer(graph):
+def test_every_folder_is_in_exactly_one_layer(graph):
     _, layer_of, _ = doc_layers()
-    assert sorted(set(graph) - set(layer_of)) == [], f"modules missing from the table in {DOC}"
-    assert sorted(set(layer_of) - set(graph)) == [], f"{DOC} lists modules that do not exist"
+    folders = {_folder(m) for m in graph}
+    assert sorted(folders - set(layer_of)) == [], f"folders missing from the table in {DOC}"
+    assert sorted(set(layer_of) - folders) == [], f"{DOC} lists folders that do not exist"
 
 
-def test_no_module_imports_a_layer_above_its_own(graph):
+def test_no_module_imports_a_folder_above_its_own(graph):
     titles, layer_of, _ = doc_layers()
-    upward = [f"{m} ({titles[layer_of[m]]}) imports {d} ({titles[layer_of[d]]})"
-              for m, (deps, _) in sorted(graph.items()) for d in sorted(deps) if layer_of[d] < layer_of[m]]
+    upward = [f"{m} ({titles[layer_of[_folder(m)]]}) imports {d} ({titles[layer_of[_folder(d)]]})"
+              for m, (deps, _) in sorted(graph.items()) for d in sorted(deps)
+              if layer_of[_folder(d)] < layer_of[_folder(m)]]
     assert upward == []
 
 
-def test_entry_points_do_not_import_each_other(graph):
-    _, layer_of, _ = doc_layers()
-    sideways = [f"{m} imports {d}" for m, (deps, _) in sorted(graph.items()) if layer_of[m] == 0
-                for d in sorted(deps) if layer_of[d] == 0]
+def test_commands_do_not_import_each_other(graph):
+    sideways = [f"{m} imports {d}" for m, (deps, _) in sorted(graph.items()) if _folder(m) == ""
+                for d in sorted(deps) if _folder(d) == ""]
     assert sideways == []
 
 
@@ -153,12 +171,29 @@ def test_no_import_cycle(graph):
 
 def test_jax_free_modules_stay_jax_free(graph):
     _, _, jax_free = doc_layers()
+    free = {m for m in graph if is_jax_free(m, jax_free)}
+    assert {"task.config", "deploy.loop", "reference.pybullet_env", "training.sa_schedule", "plot"} <= free
+    assert not {"reference.parity", "training.ppo", "envs.grasp_env", "train"} & free
     bad = []
-    for m in sorted(jax_free):
+    for m in sorted(free):
         deps, external = graph[m]
         bad += [f"{m} imports {e}" for e in sorted(external) if e.split(".")[0] in JAX_ROOTS[:-1] or e == "mujoco.mjx"]
-        bad += [f"{m} imports {d}, which is not jax-free" for d in sorted(deps - jax_free)]
+        bad += [f"{m} imports {d}, which is not jax-free" for d in sorted(deps - free)]
     assert bad == []
+
+
+def test_the_robot_side_imports_no_jax_mujoco_or_brax(graph):
+    """Everything deploy/ imports, directly or through other package modules, runs without jax, brax and mujoco."""
+    seen: set[str] = set()
+    todo = [m for m in graph if _folder(m) == "deploy"]
+    while todo:
+        m = todo.pop()
+        if m not in seen:
+            seen.add(m)
+            todo.extend(graph[m][0])
+    bad = sorted(f"{m} imports {e}" for m in seen for e in graph[m][1]
+                 if e.split(".")[0] in ("jax", "jaxlib", "flax", "optax", "brax", "mujoco"))
+    assert len(seen) > 20 and bad == []
 
 
 def test_the_exact_geometry_oracle_stays_outside_the_package():
@@ -180,7 +215,7 @@ def test_the_checker_sees_lazy_and_relative_imports(tmp_path):
     file = tmp_path / "mod.py"
     file.write_text("import os\ndef f():\n    from sagrasp_jax.train import run\n    from sagrasp_jax import ppo\n"
                     "    from mujoco import mjx\n")
-    inner, outer = imports(str(file), "physical", {"train", "ppo", "physical"})
+    inner, outer = imports(str(file), "reference.grasp_check", {"train", "ppo", "reference.grasp_check"})
     assert inner == {"train", "ppo"} and {"os", "mujoco.mjx"} <= outer
 
 
@@ -193,7 +228,7 @@ def _import_output(tmp_path, extra_path: str | None = None) -> str:
     env = dict(os.environ)
     if extra_path:
         env["PYTHONPATH"] = extra_path + os.pathsep + env.get("PYTHONPATH", "")
-    code = "import sagrasp_jax.env, sagrasp_jax.train, sagrasp_jax.evaluate, sagrasp_jax.physical; print('imported')"
+    code = "import sagrasp_jax.envs.grasp_env, sagrasp_jax.train, sagrasp_jax.evaluate, sagrasp_jax.reference.grasp_check; print('imported')"
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, env=env, timeout=300)
     assert res.returncode == 0, res.stderr[-2000:]
     return res.stdout + res.stderr
@@ -217,3 +252,26 @@ def test_a_broken_warp_install_still_shows(tmp_path):
     text = ("Failed to import warp: No module named 'warp'\nFailed to import mujoco_warp: No module named 'warp'\n"
             "Failed to import warp: CUDA 12.4 required\nsomething else\n")
     assert sagrasp_jax.filter_warp_noise(text) == "Failed to import warp: CUDA 12.4 required\nsomething else\n"
+
+
+def test_old_flat_module_paths_import_with_a_message_naming_the_new_one():
+    """Modules moved into the layer folders still import at the paths the docs and users had, as the same
+    module object (a patch on one is a patch on the other), with a DeprecationWarning naming the new path."""
+    import importlib
+    import subprocess
+    import sys
+
+    import sagrasp_jax
+
+    assert sagrasp_jax.MOVED_MODULES["runtime"] == "task.policy_file"
+    for old, new in sagrasp_jax.MOVED_MODULES.items():  # every target exists in the tree
+        assert os.path.isfile(os.path.join(PACKAGE, *new.split(".")) + ".py"), new
+    code = ("import warnings, importlib\nwarnings.simplefilter('error')\n"
+            "try:\n    import sagrasp_jax.runtime\nexcept DeprecationWarning as w:\n    print(w)\n"
+            "warnings.simplefilter('ignore')\nimport sagrasp_jax.runtime as old, sagrasp_jax.task.policy_file as new\n"
+            "from sagrasp_jax import config\nprint(old is new, config.__name__)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.splitlines() == ["sagrasp_jax.runtime moved to sagrasp_jax.task.policy_file; import it from there",
+                                       "True sagrasp_jax.task.config"]
+    assert importlib.import_module("sagrasp_jax.envs").load.__module__ == "sagrasp_jax.envs.brax_adapter"

@@ -18,8 +18,8 @@ from brax.envs.wrappers import training
 from brax.training import acting
 
 from sagrasp_jax import envs
-from sagrasp_jax.config import get_config
-from sagrasp_jax.episode import EPISODE_KEYS
+from sagrasp_jax.task.config import get_config
+from sagrasp_jax.task.episode import EPISODE_KEYS
 
 MAX_STEPS = 5  # the task's own timeout: zero actions time out every 5 steps
 N_ENVS = 3

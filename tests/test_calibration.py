@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from sagrasp_jax.config import SamplingConfig
+from sagrasp_jax.task.config import SamplingConfig
 from sagrasp_jax.deploy.calibration import (
     T_CAM_BASE_MM,
     CalibrationError,

@@ -13,9 +13,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sagrasp_jax import checkpoint
-from sagrasp_jax.checkpoint import CheckpointError
-from sagrasp_jax.config import apply_overrides, get_config
+from sagrasp_jax.training import checkpoint
+from sagrasp_jax.training.checkpoint import CheckpointError
+from sagrasp_jax.task.config import apply_overrides, get_config
 
 
 def _trees():
@@ -108,3 +108,37 @@ def test_missing_file_and_incompatible_contents(tmp_path):
     extra_leaf = dict(_trees()["state"], more=jnp.zeros(1))
     with pytest.raises(CheckpointError, match="different structure"):
         checkpoint.restore_tree(extra_leaf, ck.trees["state"], "state", path)
+
+
+def test_a_checkpoint_of_the_trainer_before_its_split_resumes_bit_for_bit(tmp_path):
+    """``tests/data/pre_split_run`` is a toy run folder stopped after 2 of its 4 cycles by the trainer as it was
+    before it was split into parts (one ``train.Trainer`` class, commit 3e79d11), with that trainer's finished
+    run beside it (``expected_finished.json``: a digest of the final policy's arrays and every metrics row
+    without its wall-clock fields).  Today's trainer resumes the folder and must finish with the same numbers."""
+    import hashlib
+    import json
+    import shutil
+
+    import numpy as np
+
+    from conftest import toy_factory
+    from sagrasp_jax import train
+    from sagrasp_jax.training import run_dir
+
+    data = os.path.join(os.path.dirname(__file__), "data", "pre_split_run")
+    folder = str(tmp_path / "run")
+    shutil.copytree(data, folder, ignore=shutil.ignore_patterns("expected_finished.json"))
+    with open(os.path.join(data, "expected_finished.json"), encoding="utf-8") as f:
+        expected = json.load(f)
+    train.run(run_dir.load_config(folder), folder, resume=True, env_factory=toy_factory(), progress=False)
+    policy = np.load(os.path.join(folder, "policy.npz"))
+    digest = hashlib.sha256()
+    for name in sorted(policy.files):
+        if policy[name].dtype.kind in "fiub":
+            digest.update(name.encode())
+            digest.update(np.ascontiguousarray(policy[name]).tobytes())
+    with open(os.path.join(folder, "metrics.jsonl"), encoding="utf-8") as f:
+        rows = [{k: v for k, v in json.loads(line).items() if k not in train.TIME_FIELDS} for line in f]
+    assert len(rows) == len(expected["metrics_rows"]) == 8
+    assert rows == expected["metrics_rows"]
+    assert digest.hexdigest() == expected["policy_arrays_sha256"]

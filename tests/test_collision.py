@@ -16,7 +16,11 @@ import numpy as np
 import pytest
 
 import sagrasp_jax  # noqa: F401
-from sagrasp_jax import collision, config, robot, sampling, shapes
+from sagrasp_jax.task import collision
+from sagrasp_jax.task import config
+from sagrasp_jax.task import robot
+from sagrasp_jax.task import sampling
+from sagrasp_jax.task import shapes
 import exact_geometry as geometry
 
 ROBOT = robot.load_robot()

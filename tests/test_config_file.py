@@ -11,8 +11,9 @@ import sys
 
 import pytest
 
-from sagrasp_jax import config, evaluate, train
-from sagrasp_jax.config import ConfigError, get_config
+from sagrasp_jax import evaluate, train
+from sagrasp_jax.task import config
+from sagrasp_jax.task.config import ConfigError, get_config
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 LEGACY_RUN = os.path.join(REPO, "tests", "data", "legacy_v0_1")

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from sagrasp_jax import config, train
+from sagrasp_jax import train
+from sagrasp_jax.task import config
 
 
 def test_every_key_has_a_description():
@@ -12,7 +13,7 @@ def test_every_key_has_a_description():
     docs = config.key_descriptions()
     assert list(docs) == config.valid_keys()
     bare = [key for key, text in docs.items() if len(text.split()) < 3]  # a unit alone is not a meaning
-    assert bare == [], f"config keys without a description in sagrasp_jax/config.py: {bare}"
+    assert bare == [], f"config keys without a description in sagrasp_jax/task/config.py: {bare}"
 
 
 def test_list_keys_shows_meaning_value_and_valid_values(capsys):

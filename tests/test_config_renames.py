@@ -13,7 +13,9 @@ import os
 
 import pytest
 
-from sagrasp_jax import config, evaluate, run_dir
+from sagrasp_jax import evaluate
+from sagrasp_jax.task import config
+from sagrasp_jax.training import run_dir
 
 DATA = os.path.join(os.path.dirname(__file__), "data")
 LEGACY_RUN = os.path.join(DATA, "legacy_v0_1")
@@ -85,7 +87,10 @@ def test_max_obstacles_declares_the_one_value_the_scene_has():
 
 
 def test_choices_are_declared_once_and_used_by_the_modules_that_act_on_them():
-    from sagrasp_jax import actor_critic, lr_schedule, observation, reward
+    from sagrasp_jax.training import actor_critic
+    from sagrasp_jax.training import lr_schedule
+    from sagrasp_jax.task import observation
+    from sagrasp_jax.task import reward
 
     assert observation.LAYOUT_NAMES is config.OBS_LAYOUTS and lr_schedule.SCHEDULES is config.LR_SCHEDULES
     assert reward.RC_MODES is config.RC_MODES and reward.NEAR_MISS_MODES is config.NEAR_MISS_MODES
@@ -96,7 +101,7 @@ def test_choices_are_declared_once_and_used_by_the_modules_that_act_on_them():
 def test_an_env_config_built_in_code_is_checked_against_the_same_declarations():
     import dataclasses
 
-    from sagrasp_jax.env import GraspEnv
+    from sagrasp_jax.envs.grasp_env import GraspEnv
 
     env = config.EnvConfig()
     bad = dataclasses.replace(env, control=dataclasses.replace(env.control, mode="fast"))

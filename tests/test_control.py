@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 import sagrasp_jax  # noqa: F401  (sets XLA flags before jax is imported)
-from sagrasp_jax.config import HOME_Q, ControlConfig
-from sagrasp_jax.control import alignment_correction, control_step, gripper_state
-from sagrasp_jax.robot import forward_kinematics, load_robot
+from sagrasp_jax.task.config import HOME_Q, ControlConfig
+from sagrasp_jax.task.control import alignment_correction, control_step, gripper_state
+from sagrasp_jax.task.robot import forward_kinematics, load_robot
 
 CFG = ControlConfig()
 ROBOT = load_robot()
@@ -206,5 +206,5 @@ def test_shared_maths_does_not_import_jax() -> None:
     import subprocess
     import sys
 
-    code = "import sys, sagrasp_jax.control, sagrasp_jax.reward; assert 'jax' not in sys.modules, 'jax imported'"
+    code = "import sys, sagrasp_jax.task.control, sagrasp_jax.task.reward; assert 'jax' not in sys.modules, 'jax imported'"
     subprocess.run([sys.executable, "-c", code], check=True)

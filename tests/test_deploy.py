@@ -14,8 +14,8 @@ import pytest
 
 pytest.importorskip("pybullet")
 
-from sagrasp_jax import sampling  # noqa: E402
-from sagrasp_jax.config import HOME_Q, RandomizeConfig, get_config  # noqa: E402
+from sagrasp_jax.task import sampling  # noqa: E402
+from sagrasp_jax.task.config import HOME_Q, RandomizeConfig, get_config  # noqa: E402
 from sagrasp_jax.deploy import (  # noqa: E402
     CameraCalibration,
     Obstacle,
@@ -31,8 +31,8 @@ from sagrasp_jax.deploy import (  # noqa: E402
 from sagrasp_jax.deploy.__main__ import camera_yaw_to_world  # noqa: E402
 from sagrasp_jax.deploy.loop import collision_hook  # noqa: E402
 from sagrasp_jax.deploy.twin import PyBulletTwin  # noqa: E402
-from sagrasp_jax.robot import forward_kinematics, load_robot, solve_home_pose  # noqa: E402
-from sagrasp_jax.runtime import load_policy, save_policy_npz  # noqa: E402
+from sagrasp_jax.task.robot import forward_kinematics, load_robot, solve_home_pose  # noqa: E402
+from sagrasp_jax.task.policy_file import load_policy, save_policy_npz  # noqa: E402
 from tiny_run import REPO, tiny_run  # noqa: E402
 
 HOME = np.array(HOME_Q)
@@ -92,7 +92,7 @@ def test_observation_is_the_training_envs() -> None:
     """Same numbers as GraspEnv (noise and transfer errors off) for sampled scenes, obstacles included."""
     import jax
 
-    from sagrasp_jax.env import GraspEnv
+    from sagrasp_jax.envs.grasp_env import GraspEnv
 
     cfg = get_config("cpu-quick").env
     cfg = dataclasses.replace(cfg, task=dataclasses.replace(cfg.task, obs_noise_std=0.0),
@@ -253,5 +253,5 @@ def test_cli_refuses_bad_input_before_moving(run_dir: str, args: list[str], mess
 
 def test_deploy_modules_do_not_import_jax() -> None:
     code = ("import sys; import sagrasp_jax.deploy.loop, sagrasp_jax.deploy.twin, sagrasp_jax.deploy.__main__, "
-            "sagrasp_jax.physical; sys.exit(any(m == 'jax' or m.startswith('jax.') for m in sys.modules))")
+            "sagrasp_jax.reference.grasp_check; sys.exit(any(m == 'jax' or m.startswith('jax.') for m in sys.modules))")
     assert subprocess.run([sys.executable, "-c", code], cwd=REPO, timeout=120).returncode == 0

@@ -12,7 +12,8 @@ import numpy as np
 
 from conftest import toy_config, toy_factory
 
-from sagrasp_jax import run_dir, train
+from sagrasp_jax import train
+from sagrasp_jax.training import run_dir
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 WORKER = os.path.join(HERE, "two_process_worker.py")

@@ -12,8 +12,13 @@ import numpy as np
 import pytest
 
 from conftest import toy_config, toy_factory
-from sagrasp_jax import config, observation, robot, run_dir, train
-from sagrasp_jax.env import GraspEnv
+from sagrasp_jax import train
+from sagrasp_jax.task import config
+from sagrasp_jax.task import observation
+from sagrasp_jax.task import robot
+from sagrasp_jax.training import run_dir
+from sagrasp_jax.training import restore
+from sagrasp_jax.envs.grasp_env import GraspEnv
 
 N, T = 8, 4  # envs, steps
 
@@ -155,7 +160,7 @@ def test_lean_dynamic_model_is_the_six_joint_arm():
 def test_init_from_continues_policy_and_normaliser_with_a_fresh_optimizer(toy_run, tmp_path):
     cfg = toy_config(cycles=2, extra=[f"train.init_from={toy_run}", "env.control.mode=dynamic"])
     trainer = train.Trainer(cfg, str(tmp_path / "ft"), env_factory=toy_factory(), progress=False)
-    _, params, normaliser, _ = run_dir.load_policy_state(toy_run, trainer.obs_size, trainer.action_size)
+    _, params, normaliser, _ = restore.load_policy_state(toy_run, trainer.obs_size, trainer.action_size)
     ts = jax.device_get(trainer.train_state)
     for got, want in zip(jax.tree_util.tree_leaves((ts.params, ts.normaliser)),
                          jax.tree_util.tree_leaves((params, normaliser))):
@@ -176,7 +181,7 @@ def test_init_from_carries_a_privileged_critic(tmp_path):
     cfg = toy_config(cycles=2, extra=[*sets, f"train.init_from={source}", "env.control.mode=dynamic"])
     trainer = train.Trainer(cfg, str(tmp_path / "ft"), env_factory=toy_factory(), progress=False)
     assert trainer.critic_extra == observation.critic_extra_size(cfg) > 0
-    _, params, normaliser, _ = run_dir.load_policy_state(source, trainer.obs_size, trainer.action_size)
+    _, params, normaliser, _ = restore.load_policy_state(source, trainer.obs_size, trainer.action_size)
     ts = jax.device_get(trainer.train_state)
     widths = {leaf.shape[0] for leaf in jax.tree_util.tree_leaves(ts.params.value) if leaf.ndim == 2}
     assert trainer.obs_size + trainer.critic_extra in widths  # the critic's input layer
@@ -210,9 +215,9 @@ def test_init_from_refuses_other_privileged_inputs(monkeypatch):
     source = with_kinds("sphere,cylinder,box")
     monkeypatch.setattr(run_dir, "load_config", lambda run: source)
     monkeypatch.setattr(run_dir, "load_checkpoint", lambda run, cfg=None: None)
-    run_dir.check_init_from(with_kinds("sphere,cylinder,box"))  # the same: accepted
+    restore.check_init_from(with_kinds("sphere,cylinder,box"))  # the same: accepted
     with pytest.raises(run_dir.RunDirError, match="privileged critic inputs"):
-        run_dir.check_init_from(with_kinds("sphere,capsule,box"))
+        restore.check_init_from(with_kinds("sphere,capsule,box"))
 
 
 # --------------------------------------------------------------------------------------- physics backend
@@ -234,7 +239,7 @@ def test_warp_backend_matches_jax_over_a_few_steps():
 # --------------------------------------------------------------------------------------- nearest obstacle
 
 def test_nearest_slot_tie_break_is_the_lower_slot_in_numpy_and_jax():
-    from sagrasp_jax import collision
+    from sagrasp_jax.task import collision
 
     rows = np.array([[0.3, 0.3], [0.2, 0.5], [0.5, 0.2], [np.inf, np.inf], [0.1, np.inf], [-0.01, -0.01]])
     for row in rows:
@@ -281,7 +286,7 @@ def test_reference_servo_is_the_mjx_servo_on_pybullet_dynamics(x64):
 def test_parity_compares_the_plain_simulators_for_a_randomised_policy(mode):
     """A policy trained with randomisation (its config has the knobs on) is compared with every knob off:
     the reference env does not randomise (and the kinematic mode refuses the servo knobs)."""
-    from sagrasp_jax import parity
+    from sagrasp_jax.reference import parity
 
     trained = _cfg("dynamic", "env.randomize.servo_gain=0.2", "env.randomize.latency=1",
                    "env.randomize.target_error=0.005")

@@ -12,11 +12,15 @@ import sagrasp_jax  # noqa: F401
 import jax
 import jax.numpy as jnp
 
-from sagrasp_jax import collision, config, robot, sampling, shapes
+from sagrasp_jax.task import collision
+from sagrasp_jax.task import config
+from sagrasp_jax.task import robot
+from sagrasp_jax.task import sampling
+from sagrasp_jax.task import shapes
 import exact_geometry as geometry
-from sagrasp_jax.env import GraspEnv, OBS_SIZE
-from sagrasp_jax.scene import SCENE
-from sagrasp_jax.wrappers import AutoReset
+from sagrasp_jax.envs.grasp_env import GraspEnv, OBS_SIZE
+from sagrasp_jax.task.scene import SCENE
+from sagrasp_jax.envs.auto_reset import AutoReset
 from scripted import scripted_action
 
 ROBOT = robot.load_robot()
@@ -421,7 +425,7 @@ def test_hovering_inside_the_grab_zone_does_not_pay_by_default(rc_mode, hovering
 def test_learnability_scores_sometimes_solved_scenes_highest():
     """p̂(1 − p̂) with p̂ = (s + ½)/(n + 1): one success in two is the most learnable, a scene failed once scores
     FAILED_ONCE, and scenes always solved or never solved fall towards 0 the more they are tried."""
-    from sagrasp_jax.wrappers import FAILED_ONCE, learnability
+    from sagrasp_jax.envs.auto_reset import FAILED_ONCE, learnability
 
     assert learnability(1.0, 0.0) == pytest.approx(FAILED_ONCE) == pytest.approx(0.1875)
     assert learnability(2.0, 1.0) == pytest.approx(0.25)

@@ -20,7 +20,8 @@ import pytest
 from experiments import bench_vs_paper_stack as bench
 from experiments import compare_schedules as compare
 from experiments import obstacle_ablation as ab
-from experiments import paper_figures, stats, study
+from experiments import study
+from sagrasp_jax.training import stats
 from experiments import reproduce_paper as repro
 
 from conftest import SUITE_PPO
@@ -80,7 +81,7 @@ def test_summarise_algo_pools_episodes() -> None:
         return {"overall": group, "obstacle_present": dict(group, episodes=20),
                 "obstacle_absent": dict(group, episodes=80)}
 
-    s = paper_figures.summarise_algo([ev(0.8, 30.0), ev(0.4, 60.0)], [0, 1])
+    s = repro.summarise_algo([ev(0.8, 30.0), ev(0.4, 60.0)], [0, 1])
     assert s["pooled"]["episodes"] == 200 and s["pooled"]["success_pct"] == pytest.approx(60.0)
     assert s["pooled"]["steps_per_success"] == pytest.approx((80 * 30 + 40 * 60) / 120)
     lo, hi = s["pooled"]["success_ci95_wilson_pct"]
@@ -148,7 +149,8 @@ def test_training_time_adds_up_sessions() -> None:
 
 
 def test_variant_tables_are_valid_configs() -> None:
-    from sagrasp_jax import run_dir, train
+    from sagrasp_jax import train
+    from sagrasp_jax.training import run_dir
 
     assert list(compare.SCHEDULE_VARIANTS) == ["constant", "sa", "kl-adaptive", "cosine", "linear"]
     assert compare.ABLATION_VARIANTS["sa-no-plateau-decay"] == ("lr.schedule=sa", "sa.plateau_decay=false")
@@ -175,7 +177,7 @@ def test_seeds_and_variant_choice() -> None:
     assert spec.folder("+layout", 1) == os.path.join("runs", "+layout", "seed1")  # the layout of train --seeds
     record = {"conditions": {"robot": {"overall": {"episodes": 10, "success_rate": 0.7}}}}
     assert study.condition_rates(record) == {"success_condition_robot": 70.0} and study.condition_rates({}) == {}
-    from sagrasp_jax.config import ConfigError
+    from sagrasp_jax.task.config import ConfigError
 
     with pytest.raises(ConfigError, match="unknown evaluation condition"):
         study.Evaluation(10, condition="moon")
@@ -196,8 +198,9 @@ def test_ensure_trained_rule_for_every_folder_state(tmp_path: pytest.TempPathFac
                                                     monkeypatch: pytest.MonkeyPatch) -> None:
     """The folder rule of every study: refuse another config before deleting anything, skip finished
     runs, continue unfinished ones only with --resume (from the checkpoint, or afresh without one)."""
-    from sagrasp_jax import run_dir, train
-    from sagrasp_jax.config import config_to_dict
+    from sagrasp_jax import train
+    from sagrasp_jax.training import run_dir
+    from sagrasp_jax.task.config import config_to_dict
 
     calls: list[tuple[str, bool]] = []
     def fake_run(cfg: object, out: str, resume: bool, progress: bool, stop_after_cycles: int | None) -> None:
@@ -241,8 +244,9 @@ def test_run_study_trains_evaluates_skips_and_refuses_before_training(tmp_path: 
                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
     """variants × seeds into <runs>/<variant>/seed<S>/, one record each; a second call skips them all;
     an unfinished folder anywhere stops the study (without --resume) before anything trains."""
-    from sagrasp_jax import run_dir, train
-    from sagrasp_jax.config import config_to_dict
+    from sagrasp_jax import train
+    from sagrasp_jax.training import run_dir
+    from sagrasp_jax.task.config import config_to_dict
 
     trained: list[str] = []
     programs: list[list[int] | None] = []  # the seeds of each training call (None: a single run)
@@ -293,7 +297,7 @@ def test_reproduce_paper_smoke(tmp_path: pytest.TempPathFactory) -> None:
             "--eval-episodes", "16", "--out-dir", out, "--runs-dir", runs, "--no-progress", *_sets(TINY_SETS)]
     res = _run(args)
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
-    for name in ["results.json", "results.md", "sa_schedule.png", "fig15_summary.png"] + [c[0] for c in paper_figures.CURVES]:
+    for name in ["results.json", "results.md", "sa_schedule.png", "fig15_summary.png"] + [c[0] for c in repro.CURVES]:
         assert os.path.getsize(os.path.join(out, name)) > 0, name
     for algo in repro.VARIANTS:
         for seed in (0, 1):
@@ -325,6 +329,7 @@ def test_reproduce_paper_smoke(tmp_path: pytest.TempPathFactory) -> None:
     assert clash.returncode == 2 and "another config" in clash.stderr
 
 
+@pytest.mark.bench
 def test_bench_train_run_section_smoke(tmp_path: pytest.TempPathFactory) -> None:
     """The README-command section: a cold-cache run watched to its end, then the warm-cache restart."""
     out = str(tmp_path / "bench.json")
@@ -354,6 +359,7 @@ def test_bench_train_group_reads_the_last_evaluation_of_a_run_folder(tmp_path: p
     assert bench_train.last_eval_success(str(tmp_path)) is None
 
 
+@pytest.mark.bench
 def test_bench_vs_paper_stack_smoke_without_sb3(tmp_path: pytest.TempPathFactory) -> None:
     out = str(tmp_path / "bench.json")
     args = ["experiments.bench_vs_paper_stack", "--seconds", "2", "--window", "16", "--success", "0.5",
@@ -401,7 +407,7 @@ def test_compare_schedules_smoke(tmp_path: pytest.TempPathFactory) -> None:
     assert "| constant |" in res.stdout and "Paired with `sa`" in res.stdout
     if importlib.util.find_spec("matplotlib") is not None:
         assert os.path.getsize(out[:-5] + "_curves.png") > 0 and os.path.getsize(out[:-5] + "_lr.png") > 0
-        for name in ["fig15_summary.png", "sa_schedule.png"] + [c[0] for c in paper_figures.CURVES]:  # Figures 11-15
+        for name in ["fig15_summary.png", "sa_schedule.png"] + [c[0] for c in repro.CURVES]:  # Figures 11-15
             assert os.path.getsize(os.path.join(out[:-5] + "_figures", name)) > 0, name
     again = _run(args)
     assert again.returncode == 0, again.stderr[-3000:]
@@ -415,7 +421,7 @@ def test_sooner_levers_each_change_what_they_name_and_nothing_else(capsys: pytes
     bad options exit 2."""
     from experiments import sooner, study
     from sagrasp_jax import evaluate
-    from sagrasp_jax.config import config_to_dict
+    from sagrasp_jax.task.config import config_to_dict
 
     spec = study.Study("cpu-quick", 3_000_000, (0,), "unused")
     def flat(cfg: object, prefix: str = "") -> dict:
@@ -499,8 +505,6 @@ def test_a_screen_trains_into_the_full_schedule_and_resume_finishes_the_group(
 
 def test_failures_counts_each_kind_of_failed_episode_over_seeds(tmp_path: pytest.TempPathFactory,
                                                                    capsys: pytest.CaptureFixture) -> None:
-    from experiments import failures
-
     def group(n: int, success: float, timeout: float, **parts: float) -> dict:
         return {"episodes": n, "success_rate": success, "timeout_rate": timeout,
                 "collision_rate": sum(parts.values()), "collision_by": parts}
@@ -508,15 +512,15 @@ def test_failures_counts_each_kind_of_failed_episode_over_seeds(tmp_path: pytest
     run = {"conditions": {"robot": {"obstacle_present": group(200, 0.95, 0.02, obstacle=0.02, target=0.01),
                                     "obstacle_absent": group(800, 0.99, 0.01)}},
            "blocking_scenes": {"blocking": group(1000, 0.97, 0.005, obstacle=0.02, table=0.005)}}
-    rows = failures.table({"runs": {"v": [run, run]}}, "robot")["v"]
+    rows = compare.failures_table({"runs": {"v": [run, run]}}, "robot")["v"]
     assert rows["obstacle"] == {"episodes": 400, "failed": 20, "timeout": 8, "obstacle": 8, "table": 0, "target": 4,
                                 "other": 0}
     assert rows["no obstacle"]["failed"] == 16 and rows["no obstacle"]["timeout"] == 16
     assert rows["blocking scenes (own env)"]["obstacle"] == 40 and rows["blocking scenes (own env)"]["table"] == 10
     path = tmp_path / "r.json"
     path.write_text(json.dumps({"runs": {"v": [run]}}))
-    assert failures.main([str(path), "--condition", "dynamic"]) == 2 and "no 'dynamic'" in capsys.readouterr().err
-    assert failures.main([str(path), "--condition", "robot"]) == 0
+    assert compare.main(["failures", str(path), "--condition", "dynamic"]) == 2 and "no 'dynamic'" in capsys.readouterr().err
+    assert compare.main(["failures", str(path), "--condition", "robot"]) == 0
     assert "| v, obstacle | 200 | 10 | 4 | 4 | 2 | 0 | 0 |" in capsys.readouterr().out
 
 

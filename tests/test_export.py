@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 from sagrasp_jax import export
-from sagrasp_jax.config import config_from_dict, config_hash, get_config
-from sagrasp_jax import observation
-from sagrasp_jax.runtime import load_policy, save_policy_npz
+from sagrasp_jax.task.config import config_from_dict, config_hash, get_config
+from sagrasp_jax.task import observation
+from sagrasp_jax.task.policy_file import load_policy, save_policy_npz
 from tiny_run import REPO, tiny_run
 
 onnx = pytest.importorskip("onnx")
@@ -80,7 +80,7 @@ def test_npz_onnx_and_jax_actions_agree(exported: str, run_dir: str) -> None:
     normaliser, from the run's checkpoint) agree within 1e-5."""
     import jax.numpy as jnp
 
-    from sagrasp_jax import actor_critic
+    from sagrasp_jax.training import actor_critic
 
     policy = load_policy(os.path.join(exported, "policy.npz"))
     obs = export.check_observations(policy, 1000, seed=7)

@@ -17,7 +17,7 @@ import tomllib
 import pytest
 
 from sagrasp_jax import __main__ as cli
-from sagrasp_jax import extras
+from sagrasp_jax.base import extras
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PACKAGE = os.path.join(REPO, "sagrasp_jax")
@@ -95,7 +95,7 @@ def test_missing_extra_is_named_per_package():
 
 CORE_IMPORTS = r'''
 import importlib, json
-from sagrasp_jax import extras
+from sagrasp_jax.base import extras
 out = {}
 for name in sys.argv[1:]:
     try:
@@ -105,7 +105,7 @@ for name in sys.argv[1:]:
         out[name] = "hint: " + str(exc)
     except BaseException as exc:
         out[name] = f"bare {type(exc).__name__}: {exc}"
-    for mod in [m for m in sys.modules if m.startswith("sagrasp_jax.") and m != "sagrasp_jax.extras"]:
+    for mod in [m for m in sys.modules if m.startswith("sagrasp_jax.") and m != "sagrasp_jax.base.extras"]:
         del sys.modules[mod]  # the next import runs its dependencies afresh
 print(json.dumps(out))
 '''
@@ -119,18 +119,20 @@ def test_every_module_in_a_core_install_imports_or_names_its_extra():
     out = json.loads(res.stdout.splitlines()[-1])
     bare = {m: v for m, v in out.items() if v.startswith("bare")}
     assert bare == {}
-    for name in ("sagrasp_jax.runtime", "sagrasp_jax.deploy.loop", "sagrasp_jax.deploy.safety", "sagrasp_jax.render",
-                 "sagrasp_jax.plot", "sagrasp_jax.sysid", "sagrasp_jax.__main__", "sagrasp_jax.deploy.__main__"):
+    for name in ("sagrasp_jax.task.policy_file", "sagrasp_jax.deploy.loop", "sagrasp_jax.deploy.safety", "sagrasp_jax.render",
+                 "sagrasp_jax.plot", "sagrasp_jax.deploy.sysid", "sagrasp_jax.__main__", "sagrasp_jax.deploy.__main__"):
         assert out[name] == "ok", (name, out[name])
-    assert out["sagrasp_jax.envs"] == ("hint: sagrasp_jax.envs needs jax, mujoco, brax, flax, optax, tensorboardX and "
-                                       'tqdm, which are not installed: pip install "sagrasp_jax[train]"')
+    assert out["sagrasp_jax.envs"] == "ok"  # the folder's names load on first use (``envs.load``: see LIBRARY_CASES)
+    assert out["sagrasp_jax.envs.brax_adapter"] == (
+        "hint: sagrasp_jax.envs.brax_adapter needs jax, mujoco, brax, flax, optax, tensorboardX and "
+        'tqdm, which are not installed: pip install "sagrasp_jax[train]"')
     assert out["sagrasp_jax.deploy.twin"].endswith('pip install "sagrasp_jax[twin]"')
     hinted = [m for m, v in out.items() if v.startswith("hint")]
     assert len(hinted) >= 15 and all('pip install "sagrasp_jax[' in out[m] for m in hinted)
 
 
 LIBRARY_CASES = {  # absent package: (code that needs it, the extra the hint names)
-    "jax": ("import sagrasp_jax.envs", "train"),
+    "jax": ("from sagrasp_jax import envs\nenvs.load('grasp-kinematic')", "train"),
     "gymnasium": ("from sagrasp_jax.reference.pybullet_env import PyBulletGraspEnv\nPyBulletGraspEnv()", "reference"),
     "pybullet": ("import sagrasp_jax.deploy.twin", "twin"),
     "matplotlib": ("from sagrasp_jax import plot\nplot.require_matplotlib()", "plots"),
@@ -142,7 +144,7 @@ def test_library_use_names_the_extra(package):
     """With one package absent, the library call that needs it raises MissingExtra naming its extra."""
     code, extra = LIBRARY_CASES[package]
     indented = "\n".join("    " + line for line in code.splitlines())
-    res = _python(f"from sagrasp_jax import extras\ntry:\n{indented}\nexcept extras.MissingExtra as exc:\n    print(exc)\n",
+    res = _python(f"from sagrasp_jax.base import extras\ntry:\n{indented}\nexcept extras.MissingExtra as exc:\n    print(exc)\n",
                   blocked=(package,))
     assert res.returncode == 0, res.stderr[-3000:]
     assert f"needs {package}, which is not installed" in res.stdout, res.stdout

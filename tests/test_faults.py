@@ -32,16 +32,21 @@ import pytest
 
 from conftest import toy_config, toy_factory
 
-from sagrasp_jax import config as config_mod
-from sagrasp_jax import evaluate, export, fileio, run_dir, runtime, train
-from sagrasp_jax.config import HOME_Q, get_config
+from sagrasp_jax.task import config as config_mod
+from sagrasp_jax import evaluate, export, train
+from sagrasp_jax.base import fileio
+from sagrasp_jax.training import launch, run_dir
+from sagrasp_jax.training import trainer as trainer_mod
+from sagrasp_jax.task import policy_file as runtime
+from sagrasp_jax.task.config import HOME_Q, get_config
 from sagrasp_jax.deploy import __main__ as deploy_cli
 from sagrasp_jax.deploy.calibration import CameraCalibration, ObstacleRejected
 from sagrasp_jax.deploy.loop import Obstacle, run_episode
 from sagrasp_jax.deploy.safety import PolicyMismatch
 
 _GL = os.environ.get("MUJOCO_GL")
-from sagrasp_jax import parity, render  # noqa: E402  (render picks MUJOCO_GL on import: keep the session's)
+from sagrasp_jax import render  # noqa: E402  (render picks MUJOCO_GL on import: keep the session's)
+from sagrasp_jax import parity as parity_command  # noqa: E402
 
 if _GL is None:
     os.environ.pop("MUJOCO_GL", None)
@@ -361,7 +366,7 @@ def _cli_cases(policy: str, run: str, tmp: str) -> list[tuple[str, Callable[[lis
     cases += [("deploy", deploy_cli.main, deploy_base, "--max-steps", BAD_INTS)]
     cases += [("render", render.main, ["--policy", policy, "--out", os.path.join(out, "v.mp4")], flag, BAD_INTS)
               for flag in ("--episodes", "--seed", "--width", "--height", "--fps", "--max-steps")]
-    cases += [("parity", parity.main, ["--out", os.path.join(out, "p.json"), "--quiet"], flag, BAD_INTS)
+    cases += [("parity", parity_command.main, ["--out", os.path.join(out, "p.json"), "--quiet"], flag, BAD_INTS)
               for flag in ("--episodes", "--seed", "--max-steps", "--batch")]
     return cases
 
@@ -421,7 +426,7 @@ def test_6_a_run_killed_before_its_first_checkpoint_restarts_with_resume(toy_run
 
 def test_7_read_only_outputs_are_refused_before_any_work(policy_file, run_copy, tmp_path, capsys, monkeypatch):
     readonly = readonly_location(tmp_path)
-    monkeypatch.setattr(train, "Trainer", lambda *a, **k: pytest.fail("the env was built before refusing"))
+    monkeypatch.setattr(launch, "Trainer", lambda *a, **k: pytest.fail("the env was built before refusing"))
     monkeypatch.setattr(evaluate, "evaluate_run", lambda *a, **k: pytest.fail("evaluated before refusing"))
     before = snapshot(run_copy)
     target = os.path.join(readonly, "sagrasp-fault-test")
@@ -433,7 +438,7 @@ def test_7_read_only_outputs_are_refused_before_any_work(policy_file, run_copy, 
     assert code == 2 and "cannot create output folder" in err
     code, _, err = call(render.main, ["--policy", policy_file, "--out", target + ".mp4"], capsys)
     assert code == 2 and "cannot write into output folder" in err
-    code, _, err = call(parity.main, ["--out", target + ".json", "--quiet"], capsys)
+    code, _, err = call(parity_command.main, ["--out", target + ".json", "--quiet"], capsys)
     assert code == 2 and "cannot write into output folder" in err
     assert snapshot(run_copy) == before
 
@@ -654,9 +659,9 @@ def _free_port() -> int:
 def test_27_3_multi_process_options_are_checked_and_the_start_is_time_boxed(tmp_path, capsys, monkeypatch):
     import threading
 
-    from sagrasp_jax import distributed
+    from sagrasp_jax.training import distributed
 
-    monkeypatch.setattr(train, "Trainer", lambda *a, **k: pytest.fail("the env was built before refusing"))
+    monkeypatch.setattr(launch, "Trainer", lambda *a, **k: pytest.fail("the env was built before refusing"))
     out = str(tmp_path / "run")
     port = _free_port()
     for argv, message in [
@@ -730,7 +735,7 @@ def _enospc(*args: Any) -> typing.NoReturn:
 
 
 def test_27_4_a_full_disk_is_refused_before_any_work(run_copy, tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr(train, "Trainer", lambda *a, **k: pytest.fail("the env was built before refusing"))
+    monkeypatch.setattr(launch, "Trainer", lambda *a, **k: pytest.fail("the env was built before refusing"))
     monkeypatch.setattr(evaluate, "evaluate_run", lambda *a, **k: pytest.fail("evaluated before refusing"))
     before_run = snapshot(run_copy)
     with _full_file_system(tmp_path) as full:
@@ -773,7 +778,7 @@ def test_27_4_b_out_of_space_during_training_exits_2_and_the_run_resumes(toy_run
     out = str(tmp_path / "run")
     os.makedirs(out)
     run_dir.write_config(out, toy_config())
-    monkeypatch.setattr(train, "default_envs", toy_factory())
+    monkeypatch.setattr(trainer_mod, "default_envs", toy_factory())
     _atomic_write_failing(monkeypatch, run_dir.CHECKPOINT_FILE, nth=2)
     code, _, err = call(train.main, ["--out", out, "--resume", "--no-progress"], capsys)
     ckpt = run_dir.path(out, run_dir.CHECKPOINT_FILE)
@@ -801,7 +806,7 @@ def _retrained(run: str, seed: int) -> None:
     """The run as if trained again with ``--seed``: another config, other weights, the same counters."""
     from flax import serialization
 
-    from sagrasp_jax import checkpoint
+    from sagrasp_jax.training import checkpoint
 
     cfg = config_mod.apply_overrides(run_dir.load_config(run), [f"train.seed={seed}"])
     ckpt = run_dir.load_checkpoint(run)
@@ -846,7 +851,7 @@ def test_27_6_resume_reads_nan_and_infinity_in_the_metrics_log(toy_run, run_copy
     assert "NaN" in lines[1] and "Infinity" in lines[2]
     with open(path, "w") as f:
         f.write("\n".join(lines) + "\n")
-    monkeypatch.setattr(train, "default_envs", toy_factory())
+    monkeypatch.setattr(trainer_mod, "default_envs", toy_factory())
     code, _, err = call(train.main, ["--out", out, "--resume", "--no-progress"], capsys)
     assert code == 0 and "Traceback" not in err, err
     assert rows(out) == expected  # kept, as null: what this trainer's logger writes for a non-finite value
@@ -951,7 +956,7 @@ def test_27_10_evaluations_of_different_runs_write_into_one_results_folder_at_on
 
 
 def test_27_11_an_empty_hidden_layer_list_is_refused(tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr(train, "Trainer", lambda *a, **k: pytest.fail("a linear network was about to be trained"))
+    monkeypatch.setattr(launch, "Trainer", lambda *a, **k: pytest.fail("a linear network was about to be trained"))
     out = str(tmp_path / "run")
     for key in ("ppo.network.policy_hidden", "ppo.network.value_hidden"):
         code, _, err = call(train.main, ["--out", out, "--no-progress", "--set", f"{key}="], capsys)
@@ -1023,7 +1028,7 @@ def test_40_1_2_3_4_config_files_beyond_their_bounds_are_refused(name, content, 
                                                                     monkeypatch):
     if name.endswith(".yaml"):
         pytest.importorskip("yaml")
-    monkeypatch.setattr(train, "Trainer", lambda *a, **k: pytest.fail("the env was built before refusing"))
+    monkeypatch.setattr(launch, "Trainer", lambda *a, **k: pytest.fail("the env was built before refusing"))
     path = str(tmp_path / name)
     with contextlib.ExitStack() as stack:
         if content == "FIFO":
@@ -1059,7 +1064,7 @@ def test_40_4_dev_zero_and_a_billion_laughs_are_refused_in_bounded_memory(tmp_pa
     os.symlink("/dev/zero", zero)
     with open(laughs, "w") as f:
         f.write(_billion_laughs())
-    probe = ("import time\nfrom sagrasp_jax import config\n"
+    probe = ("import time\nfrom sagrasp_jax.task import config\n"
              "for path in {paths!r}:\n"
              "    t = time.monotonic()\n"
              "    try:\n        config.file_overrides(path)\n    except config.ConfigError as exc:\n"
@@ -1081,7 +1086,7 @@ def test_40_4_dev_zero_and_a_billion_laughs_are_refused_in_bounded_memory(tmp_pa
     ("0-4,3", "--seeds: seed 3 given twice"),
 ])
 def test_40_5_seed_lists_are_bounded_and_refused_before_any_folder(seeds, message, tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr(train, "Trainer", lambda *a, **k: pytest.fail("the env was built before refusing"))
+    monkeypatch.setattr(launch, "Trainer", lambda *a, **k: pytest.fail("the env was built before refusing"))
     out = str(tmp_path / "group")
     t = time.monotonic()
     code, _, err = call(train.main, ["--out", out, "--no-progress", "--seeds", seeds], capsys)
@@ -1094,8 +1099,9 @@ def test_40_5_seed_lists_are_bounded_and_refused_before_any_folder(seeds, messag
 
 def _servo_log(latency: float = 1.0, steps: int = 300, offset: float = 0.0, seed: int = 0) -> Any:
     """A log of the lagged servo model itself (random-walk commands), any latency, no noise."""
-    from sagrasp_jax import control, sysid
-    from sagrasp_jax.config import ControlConfig
+    from sagrasp_jax.task import control
+    from sagrasp_jax.deploy import sysid
+    from sagrasp_jax.task.config import ControlConfig
 
     cfg = ControlConfig()
     rng = np.random.default_rng(seed)
@@ -1114,7 +1120,7 @@ def _servo_log(latency: float = 1.0, steps: int = 300, offset: float = 0.0, seed
 
 
 def _write_log(path: str, log: Any) -> str:
-    from sagrasp_jax import sysid
+    from sagrasp_jax.deploy import sysid
 
     with open(path, "w") as f:
         f.write(",".join(sysid.COLUMNS) + "\n")
@@ -1124,7 +1130,7 @@ def _write_log(path: str, log: Any) -> str:
 
 
 def test_40_6_8_outputs_that_are_devices_or_fifos_are_refused(run_copy, tmp_path, capsys, monkeypatch):
-    from sagrasp_jax import sysid
+    from sagrasp_jax.deploy import sysid
 
     monkeypatch.setattr(evaluate, "evaluate_run", lambda *a, **k: pytest.fail("evaluated before refusing"))
     log = _write_log(str(tmp_path / "log.csv"), _servo_log())
@@ -1154,7 +1160,7 @@ def test_40_6_8_outputs_that_are_devices_or_fifos_are_refused(run_copy, tmp_path
 
 
 def _sysid_refuses(log: Any, message: str, tmp_path, capsys) -> str:
-    from sagrasp_jax import sysid
+    from sagrasp_jax.deploy import sysid
 
     out = str(tmp_path / "sysid.json")
     code, stdout, err = call(sysid.main, ["--log", _write_log(str(tmp_path / "log.csv"), log), "--out", out], capsys)
@@ -1164,7 +1170,7 @@ def _sysid_refuses(log: Any, message: str, tmp_path, capsys) -> str:
 
 
 def test_40_7_sysid_refuses_a_log_it_cannot_fit_and_says_what_it_could_not_identify(tmp_path, capsys):
-    from sagrasp_jax import sysid
+    from sagrasp_jax.deploy import sysid
 
     good = _servo_log(latency=1.0)
     fit = sysid.identify(good)
@@ -1235,7 +1241,7 @@ def test_40_a_coordinator_that_is_never_reached_is_named_as_such(tmp_path, capsy
     import socket
     import threading
 
-    monkeypatch.setattr(train, "Trainer", lambda *a, **k: pytest.fail("the env was built before refusing"))
+    monkeypatch.setattr(launch, "Trainer", lambda *a, **k: pytest.fail("the env was built before refusing"))
     out = str(tmp_path / "run")
     for answer, said in [(None, ""), (b"HTTP/1.1 400 Bad Request\r\n\r\n", " (it answered b'HTTP/1.1 400 Bad Request')")]:
         server = socket.create_server(("localhost", 0))

@@ -20,9 +20,9 @@ import pytest
 
 import sagrasp_jax  # noqa: F401  (sets XLA flags before jax is imported)
 import exact_geometry as geo  # the oracle; re-exports geometry's functions
-from sagrasp_jax.config import HOME_Q
-from sagrasp_jax.robot import BOX, CAPSULE, CYLINDER, SPHERE, forward_kinematics, load_robot, primitive_poses
-from sagrasp_jax.scene import SCENE
+from sagrasp_jax.task.config import HOME_Q
+from sagrasp_jax.task.robot import BOX, CAPSULE, CYLINDER, SPHERE, forward_kinematics, load_robot, primitive_poses
+from sagrasp_jax.task.scene import SCENE
 
 I3 = np.eye(3)
 KINDS = (SPHERE, CAPSULE, BOX, CYLINDER)

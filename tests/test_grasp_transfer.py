@@ -16,18 +16,19 @@ pytest.importorskip("pybullet")
 
 import pybullet as pb  # noqa: E402
 
-from sagrasp_jax import collision, reward  # noqa: E402
-from sagrasp_jax.config import HOME_Q, get_config  # noqa: E402
+from sagrasp_jax.task import collision  # noqa: E402
+from sagrasp_jax.task import reward  # noqa: E402
+from sagrasp_jax.task.config import HOME_Q, get_config  # noqa: E402
 from sagrasp_jax.deploy import transfer  # noqa: E402
 from sagrasp_jax.deploy.__main__ import main as deploy_main  # noqa: E402
 from sagrasp_jax.deploy.calibration import standing_cube_centre  # noqa: E402
 from sagrasp_jax.deploy.loop import Obstacle, collision_hook, run_episode, scene_spec  # noqa: E402
 from sagrasp_jax.deploy.rehearse import rehearse  # noqa: E402
 from sagrasp_jax.deploy.twin import PyBulletTwin  # noqa: E402
-from sagrasp_jax.robot import (  # noqa: E402
+from sagrasp_jax.task.robot import (  # noqa: E402
     approach_pose, forward_kinematics, lift_pose, load_robot, solve_home_pose, tilt, translated_pose,
 )
-from sagrasp_jax.runtime import load_policy  # noqa: E402
+from sagrasp_jax.task.policy_file import load_policy  # noqa: E402
 from tiny_run import REPO, tiny_run  # noqa: E402
 
 MODEL = load_robot()

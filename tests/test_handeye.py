@@ -14,7 +14,7 @@ import pytest
 from sagrasp_jax import calibrate
 from sagrasp_jax.deploy.calibration import CameraCalibration
 from sagrasp_jax.deploy.handeye import HandEyeError, fit_hand_eye, kabsch, rotation_angle_deg
-from sagrasp_jax.scene import T_CAM_BASE_MM, orthonormalise
+from sagrasp_jax.task.scene import T_CAM_BASE_MM, orthonormalise
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 R_TRUE = orthonormalise(T_CAM_BASE_MM[:3, :3])

@@ -20,8 +20,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from sagrasp_jax import extras
-from sagrasp_jax.config import HOME_Q, get_config
+from sagrasp_jax.base import extras
+from sagrasp_jax.task.config import HOME_Q, get_config
 from sagrasp_jax.deploy import aubo, cameras
 from sagrasp_jax.deploy.__main__ import main as deploy_main
 from sagrasp_jax.deploy.aubo import (
@@ -30,7 +30,7 @@ from sagrasp_jax.deploy.aubo import (
 )
 from sagrasp_jax.deploy.calibration import CameraCalibration
 from sagrasp_jax.deploy.safety import DeploySettings, SafetyLayer, SafetyViolation
-from sagrasp_jax.runtime import save_policy_npz
+from sagrasp_jax.task.policy_file import save_policy_npz
 
 HOME = np.array(HOME_Q)
 

@@ -21,8 +21,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sagrasp_jax import config, control, reward, robot, sampling
-from sagrasp_jax.env import GraspEnv
+from sagrasp_jax.task import config
+from sagrasp_jax.task import control
+from sagrasp_jax.task import reward
+from sagrasp_jax.task import robot
+from sagrasp_jax.task import sampling
+from sagrasp_jax.envs.grasp_env import GraspEnv
 
 HOVER_POSES = os.path.join(os.path.dirname(__file__), "data", "hover_poses.json")
 

@@ -144,7 +144,7 @@ SCRIPTED_DEPLOY = r'''
 import sys
 import numpy as np
 from sagrasp_jax.deploy import run_episode
-from sagrasp_jax.runtime import load_policy
+from sagrasp_jax.task.policy_file import load_policy
 
 class ScriptedRobot:
     """A RobotInterface that tracks every joint target exactly (the AUBO's precise tracking)."""
@@ -186,7 +186,7 @@ def test_core_install_is_numpy_only_and_deploys(wheel, tmp_path_factory):
 
     res = run([python, "-m", "sagrasp_jax"], cwd=work)  # the command list, in a core install too
     assert res.returncode == 0 and "sagrasp_jax[" in res.stdout and "  plot " in res.stdout, res.stdout + res.stderr
-    res = run([python, "-c", "from sagrasp_jax import envs"], cwd=work)
+    res = run([python, "-c", "from sagrasp_jax import envs; envs.load('grasp-kinematic')"], cwd=work)
     assert res.returncode == 1 and "ModuleNotFoundError" not in res.stderr, res.stderr
     assert res.stderr.strip().splitlines()[-1].endswith('which are not installed: pip install "sagrasp_jax[train]"')
 

@@ -17,8 +17,9 @@ import numpy as np
 import pytest
 
 import sagrasp_jax  # noqa: F401
-from sagrasp_jax import config, observation
-from sagrasp_jax.runtime import load_policy
+from sagrasp_jax.task import config
+from sagrasp_jax.task import observation
+from sagrasp_jax.task.policy_file import load_policy
 
 DATA = os.path.join(os.path.dirname(__file__), "data", "legacy_v0_1")
 POLICY = os.path.join(DATA, "policy_cpu_quick_3M.npz")

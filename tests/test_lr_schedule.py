@@ -1,4 +1,4 @@
-"""The learning-rate schedules (sagrasp_jax/lr_schedule.py) on hand-made inputs."""
+"""The learning-rate schedules (sagrasp_jax/training/lr_schedule.py) on hand-made inputs."""
 
 from __future__ import annotations
 
@@ -8,8 +8,9 @@ import math
 import numpy as np
 import pytest
 
-from sagrasp_jax import config, lr_schedule as L
-from sagrasp_jax.config import SAConfig
+from sagrasp_jax.task import config
+from sagrasp_jax.training import lr_schedule as L
+from sagrasp_jax.task.config import SAConfig
 
 LR0 = 3e-4
 SA = SAConfig(tol=0.05)
@@ -165,7 +166,7 @@ def test_progress_schedules_state_tracks_the_next_iteration(name: str) -> None:
 
 
 def test_sa_end_cycle_is_the_sa_state_machine() -> None:
-    from sagrasp_jax import sa_schedule
+    from sagrasp_jax.training import sa_schedule
 
     rule = _rule("sa")
     state = L.init(rule)
@@ -211,7 +212,7 @@ def test_state_round_trips_through_json(name: str) -> None:
 
 
 def test_legacy_sa_state_becomes_a_schedule_state() -> None:
-    from sagrasp_jax import sa_schedule
+    from sagrasp_jax.training import sa_schedule
 
     sa = sa_schedule.SAState(lr=2e-4, decays=3, n_accept=7, n_reject=2, cycle=9)
     state = L.from_legacy(sa.to_dict(), "sa")

@@ -9,7 +9,10 @@ import numpy as np
 import pytest
 
 import sagrasp_jax  # noqa: F401
-from sagrasp_jax import assets, config, robot, scene
+from sagrasp_jax.base import assets
+from sagrasp_jax.task import config
+from sagrasp_jax.task import robot
+from sagrasp_jax.task import scene
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 TOOL = os.path.join(ROOT, "tools", "urdf_to_mjcf.py")

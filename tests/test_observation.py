@@ -10,7 +10,11 @@ import numpy as np
 import pytest
 
 import sagrasp_jax  # noqa: F401
-from sagrasp_jax import collision, config, observation, robot, sampling
+from sagrasp_jax.task import collision
+from sagrasp_jax.task import config
+from sagrasp_jax.task import observation
+from sagrasp_jax.task import robot
+from sagrasp_jax.task import sampling
 import exact_geometry as geometry
 
 ROBOT = robot.load_robot()
@@ -158,7 +162,7 @@ def test_normaliser_leaves_hand_scaled_entries_alone():
     import jax.numpy as jnp
     from brax.training.acme import running_statistics
 
-    from sagrasp_jax import ppo
+    from sagrasp_jax.training import ppo
 
     mask = observation.hand_scaled_mask(observation.layout("relative"))
     obs = jnp.asarray(np.random.default_rng(0).normal(3.0, 2.0, (512, 29)), jnp.float32)
@@ -200,8 +204,11 @@ def test_privileged_critic_trains_and_exports_a_policy_without_it(tmp_path):
     import jax
     import jax.numpy as jnp
 
-    from sagrasp_jax import actor_critic, ppo, runtime, train
-    from sagrasp_jax.env import GraspEnv
+    from sagrasp_jax import train
+    from sagrasp_jax.training import actor_critic
+    from sagrasp_jax.training import ppo
+    from sagrasp_jax.task import policy_file as runtime
+    from sagrasp_jax.envs.grasp_env import GraspEnv
 
     cfg = train.build_config("cpu-quick", overrides=["env.task.obs_layout=relative", "ppo.privileged_critic=true",
                                                      "ppo.num_envs=8", "ppo.unroll_length=4", "ppo.num_minibatches=1",
@@ -277,7 +284,7 @@ def test_obstacle_shape_entries_give_centre_and_bounding_box():
 def test_obstacle_extent_holds_every_surface_point_and_is_reached(kind):
     """The bounding box of shapes.extent holds the shape and touches it on every axis: sampled points of the
     sampled sizes and yaws, inside by the SDF, never leave it, and the box is no more than 2 mm too wide."""
-    from sagrasp_jax import shapes
+    from sagrasp_jax.task import shapes
 
     shape = shapes.BY_NAME[kind]
     rng = np.random.default_rng(3)

@@ -19,7 +19,8 @@ import sagrasp_jax  # noqa: F401  (XLA flags before jax)
 pytest.importorskip("pybullet")
 pytest.importorskip("gymnasium")
 
-from sagrasp_jax import parity  # noqa: E402
+from sagrasp_jax import parity as parity_command  # noqa: E402
+from sagrasp_jax.reference import parity  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -80,9 +81,9 @@ def test_a_perturbed_reward_constant_makes_the_harness_fail(tmp_path):
 
 
 def test_cli_refuses_bad_arguments(capsys):
-    assert parity.main(["--actions", "random,bogus", "--out", ""]) == 2
+    assert parity_command.main(["--actions", "random,bogus", "--out", ""]) == 2
     assert "bogus" in capsys.readouterr().err
-    assert parity.main(["--episodes", "0", "--out", ""]) == 2
+    assert parity_command.main(["--episodes", "0", "--out", ""]) == 2
 
 
 def test_parity_configs_change_only_what_they_must():

@@ -290,8 +290,9 @@ def test_minimum_area_rectangle_and_hull():
 # ---------------------------------------------------------------------- the twin camera's renders
 
 pytest.importorskip("pybullet")
-from sagrasp_jax import robot, sampling  # noqa: E402
-from sagrasp_jax.config import EnvConfig, blocking_sampling  # noqa: E402
+from sagrasp_jax.task import robot  # noqa: E402
+from sagrasp_jax.task import sampling  # noqa: E402
+from sagrasp_jax.task.config import EnvConfig, blocking_sampling  # noqa: E402
 from sagrasp_jax.deploy import twin_camera as tc  # noqa: E402
 from sagrasp_jax.deploy.twin import PyBulletTwin  # noqa: E402
 
@@ -419,7 +420,7 @@ def test_yolo_dataset_and_detections(tmp_path):
 
 
 def test_yolo_detector_needs_its_extra():
-    from sagrasp_jax import extras
+    from sagrasp_jax.base import extras
     from sagrasp_jax.deploy import yolo
 
     if not extras.missing("yolo"):

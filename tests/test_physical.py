@@ -11,10 +11,10 @@ import os
 import numpy as np
 import pytest
 
-from sagrasp_jax.config import get_config
-from sagrasp_jax.physical import GraspScene, PhysicalCheckError, physical_grasp_check
-from sagrasp_jax.robot import BOX, CYLINDER
-from sagrasp_jax.sampling import ResetSpec
+from sagrasp_jax.task.config import get_config
+from sagrasp_jax.reference.grasp_check import GraspScene, PhysicalCheckError, physical_grasp_check
+from sagrasp_jax.task.robot import BOX, CYLINDER
+from sagrasp_jax.task.sampling import ResetSpec
 from tiny_run import tiny_run
 
 
@@ -25,7 +25,7 @@ def scripted_grasp() -> tuple[np.ndarray, ResetSpec]:
     import jax
 
     from scripted import scripted_action
-    from sagrasp_jax.env import GraspEnv
+    from sagrasp_jax.envs.grasp_env import GraspEnv
 
     cfg = get_config("cpu-quick").env
     cfg = dataclasses.replace(cfg, task=dataclasses.replace(cfg.task, obs_noise_std=0.0))

@@ -14,7 +14,8 @@ import sys
 import numpy as np
 import pytest
 
-from sagrasp_jax import plot, run_files
+from sagrasp_jax import plot
+from sagrasp_jax.base import run_files
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 matplotlib = pytest.importorskip("matplotlib", reason='the plots extra is not installed (pip install "sagrasp_jax[plots]")')
@@ -54,7 +55,7 @@ def _plot(*args: str) -> subprocess.CompletedProcess[str]:
 
 
 def test_file_names_are_run_dirs():
-    from sagrasp_jax import run_dir
+    from sagrasp_jax.training import run_dir
 
     assert (run_files.CONFIG_FILE, run_files.METRICS_FILE, run_files.POLICY_FILE) == \
         (run_dir.CONFIG_FILE, run_dir.METRICS_FILE, run_dir.POLICY_FILE)
@@ -121,7 +122,7 @@ def test_window_reports_success_per_episode_kind():
     while it holds none of a kind."""
     import jax.numpy as jnp
 
-    from sagrasp_jax import metrics_window
+    from sagrasp_jax.training import metrics_window
 
     keys = ("success", "obstacle_present", "blocking", "steps")
     window = metrics_window.init_window(keys, 8)

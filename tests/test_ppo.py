@@ -18,7 +18,14 @@ import pytest
 from conftest import toy_config
 from toy_env import AutoReset, PointReach
 
-from sagrasp_jax import actor_critic, losses, metrics_window, policy_eval, ppo, rollout, sa_schedule, sharding
+from sagrasp_jax.training import actor_critic
+from sagrasp_jax.training import losses
+from sagrasp_jax.training import metrics_window
+from sagrasp_jax.training import fixed_seed_eval as policy_eval
+from sagrasp_jax.training import ppo
+from sagrasp_jax.training import rollout
+from sagrasp_jax.training import sa_schedule
+from sagrasp_jax.training import sharding
 
 
 def _setup(env=None, cfg=None, mesh=None):
@@ -138,7 +145,7 @@ _TWO_DEVICE_SCRIPT = textwrap.dedent("""
     import sagrasp_jax, jax, numpy as np
     from conftest import FIRST_GRADIENT_SETS, first_gradients, toy_config
     from toy_env import AutoReset, PointReach
-    from sagrasp_jax import sharding
+    from sagrasp_jax.training import sharding
     assert len(jax.devices()) == 2, jax.devices()
     cfg = toy_config(extra=FIRST_GRADIENT_SETS)
     env = AutoReset(PointReach())

@@ -11,7 +11,7 @@ import sys
 import numpy as np
 import pytest
 
-from sagrasp_jax.runtime import PRETRAINED, PolicyFormatError, load_policy, pretrained_path, pretrained_provenance
+from sagrasp_jax.task.policy_file import PRETRAINED, PolicyFormatError, load_policy, pretrained_path, pretrained_provenance
 from tiny_run import REPO
 
 

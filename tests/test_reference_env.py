@@ -15,9 +15,12 @@ import sagrasp_jax  # noqa: F401  (XLA flags before jax)
 pytest.importorskip("pybullet")
 gym = pytest.importorskip("gymnasium")
 
-from sagrasp_jax import config, observation, robot, sampling  # noqa: E402
+from sagrasp_jax.task import config  # noqa: E402
+from sagrasp_jax.task import observation  # noqa: E402
+from sagrasp_jax.task import robot  # noqa: E402
+from sagrasp_jax.task import sampling  # noqa: E402
 from sagrasp_jax.reference import ENV_ID, ENV_IDS, EPISODE_INFO, MAX_EPISODE_STEPS  # noqa: E402
-from sagrasp_jax.episode import EPISODE_KEYS
+from sagrasp_jax.task.episode import EPISODE_KEYS
 from sagrasp_jax.reference.pybullet_env import PyBulletGraspEnv  # noqa: E402
 
 ROBOT = robot.load_robot()
@@ -156,7 +159,7 @@ def test_pybullet_link_frames_match_project_kinematics(kin_env):
 def test_same_reset_spec_gives_the_same_first_observation_as_the_jax_env():
     import jax
 
-    from sagrasp_jax.env import GraspEnv
+    from sagrasp_jax.envs.grasp_env import GraspEnv
 
     cfg = env_config(obstacle_prob=0.5)
     jax_env = GraspEnv(cfg)
@@ -183,7 +186,7 @@ def test_obstacle_at_the_gripper_is_a_collision_in_both_envs():
     import jax
     import jax.numpy as jnp
 
-    from sagrasp_jax.env import GraspEnv
+    from sagrasp_jax.envs.grasp_env import GraspEnv
 
     cfg = env_config()
     home = np.array(config.HOME_Q)
@@ -273,7 +276,7 @@ def test_rgb_array_render_and_human_needs_a_display(monkeypatch):
 
 def test_scripted_controller_succeeds_in_the_reference_env():
     """The harness's scripted action source really grasps (so parity exercises the success branch)."""
-    from sagrasp_jax.parity import scripted_actions
+    from sagrasp_jax.reference.parity import scripted_actions
 
     cfg = env_config(obstacle_prob=0.0)
     env = PyBulletGraspEnv(cfg)
@@ -303,7 +306,7 @@ def test_sb3_baseline_explains_a_missing_extra(tmp_path):
         pytest.skip("stable-baselines3 is installed here")
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     out = tmp_path / "sb3.json"
-    proc = subprocess.run([sys.executable, os.path.join(root, "experiments", "sb3_baseline.py"), "--total-steps", "10",
-                           "--out", str(out)], capture_output=True, text=True, timeout=120)
+    proc = subprocess.run([sys.executable, "-m", "experiments.bench_vs_paper_stack", "sb3-baseline", "--total-steps", "10",
+                           "--out", str(out)], capture_output=True, text=True, timeout=120, cwd=root)
     assert proc.returncode != 0 and "pip install -e .[baseline]" in proc.stderr
     assert not out.exists()

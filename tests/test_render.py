@@ -11,7 +11,7 @@ import pytest
 from tiny_run import REPO, tiny_run
 
 PROBE = (
-    "import mujoco; from sagrasp_jax import assets; m = mujoco.MjModel.from_xml_path(assets.MJCF_SCENE); r = mujoco.Renderer(m, 32, 32); "
+    "import mujoco; from sagrasp_jax.base import assets; m = mujoco.MjModel.from_xml_path(assets.MJCF_SCENE); r = mujoco.Renderer(m, 32, 32); "
     "d = mujoco.MjData(m); mujoco.mj_forward(m, d); r.update_scene(d); r.render(); r.close()"
 )
 

@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 
 import sagrasp_jax  # noqa: F401  (sets XLA flags before jax is imported)
-from sagrasp_jax.config import HOME_Q, PPOConfig, RewardConfig, TaskConfig
-from sagrasp_jax.control import gripper_state
-from sagrasp_jax.reward import resolve_outcome, reward_weights, step_reward, success_flag
-from sagrasp_jax.robot import load_robot
+from sagrasp_jax.task.config import HOME_Q, PPOConfig, RewardConfig, TaskConfig
+from sagrasp_jax.task.control import gripper_state
+from sagrasp_jax.task.reward import resolve_outcome, reward_weights, step_reward, success_flag
+from sagrasp_jax.task.robot import load_robot
 
 CFG = RewardConfig()
 PER_STEP = dataclasses.replace(CFG, rc_mode="per_step")

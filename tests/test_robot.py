@@ -6,7 +6,10 @@ import numpy as np
 import pytest
 
 import sagrasp_jax  # noqa: F401  (sets XLA_FLAGS before jax)
-from sagrasp_jax import assets, config, robot, scene
+from sagrasp_jax.base import assets
+from sagrasp_jax.task import config
+from sagrasp_jax.task import robot
+from sagrasp_jax.task import scene
 
 ROBOT = robot.load_robot()
 

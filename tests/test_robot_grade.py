@@ -11,12 +11,18 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sagrasp_jax import collision, config, control, observation, robot, sampling, sysid
-from sagrasp_jax.config import ConfigError, ControlConfig, apply_overrides, get_config
-from sagrasp_jax.env import GraspEnv
+from sagrasp_jax.task import collision
+from sagrasp_jax.task import config
+from sagrasp_jax.task import control
+from sagrasp_jax.task import observation
+from sagrasp_jax.task import robot
+from sagrasp_jax.task import sampling
+from sagrasp_jax.deploy import sysid
+from sagrasp_jax.task.config import ConfigError, ControlConfig, apply_overrides, get_config
+from sagrasp_jax.envs.grasp_env import GraspEnv
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, os.path.join(REPO, "experiments"))
+sys.path.insert(0, REPO)  # experiments/ is a package of the repository root
 
 
 KNOBS_OFF = list(config.KNOBS_OFF)
@@ -109,11 +115,11 @@ def test_latency_is_a_queue_of_commands() -> None:
 
 def test_lagged_model_tracks_the_dynamic_env() -> None:
     """Open loop, random actions: the lagged mode's gripper stays within a few mm of the MJX servos', with and
-    without latency, several times closer than exact tracking (experiments/fit_servo_lag.py has the full fit)."""
-    import fit_servo_lag
+    without latency, several times closer than exact tracking (`python -m experiments.robot_grade servo-fit` has the full fit)."""
+    from experiments import robot_grade
 
     gains = {"lag_gain": ControlConfig().lag_gain, "lag_momentum": ControlConfig().lag_momentum}
-    gap = fit_servo_lag.drift(episodes=8, steps=16, seed=3, latency=1.0, gains=gains)
+    gap = robot_grade.drift(episodes=8, steps=16, seed=3, latency=1.0, gains=gains)
     assert gap["lagged_vs_dynamic_mean_m"] < 0.002, gap
     assert gap["lagged_vs_dynamic_mean_m"] < 0.3 * gap["kinematic_vs_dynamic_mean_m"], gap
 
@@ -153,11 +159,11 @@ def test_sysid_recovers_the_lagged_model(latency: float) -> None:
 
 
 def test_sysid_on_a_dynamic_env_log() -> None:
-    """A log synthesised by the dynamic (MJX) env with known whole-step latency and offsets (experiments/sysid_check.py)."""
-    import sysid_check
+    """A log synthesised by the dynamic (MJX) env with known whole-step latency and offsets (`python -m experiments.robot_grade sysid-check`)."""
+    from experiments import robot_grade
 
     offset = [0.004, -0.003, 0.002, -0.005, 0.001, 0.003]
-    log = sysid_check.synthesize([1.0] * 6, 1.0, offset, episodes=1, steps=300)
+    log = robot_grade.synthesize([1.0] * 6, 1.0, offset, episodes=1, steps=300)
     fit = sysid.identify(log)
     assert abs(fit.latency_steps - 1.0) * 0.05 < 0.005
     np.testing.assert_allclose(fit.joint_offset, offset, atol=0.001)
@@ -222,7 +228,7 @@ def test_a_29_number_policy_still_loads_evaluates_and_deploys(tmp_path) -> None:
     working next to the robot-grade ones: the runtime reads their layout from the file, and the deploy
     loop builds their 29 numbers (the command is only passed on, never appended)."""
     pytest.importorskip("pybullet")
-    from sagrasp_jax import runtime
+    from sagrasp_jax.task import policy_file as runtime
     from sagrasp_jax.deploy import run_episode, scene_spec
     from sagrasp_jax.deploy.twin import PyBulletTwin
 

@@ -10,8 +10,8 @@ import sys
 import numpy as np
 import pytest
 
-from sagrasp_jax.config import Config, config_hash, get_config
-from sagrasp_jax.runtime import (
+from sagrasp_jax.task.config import Config, config_hash, get_config
+from sagrasp_jax.task.policy_file import (
     FORMAT_VERSION,
     OBS_LAYOUT,
     NumpyPolicy,
@@ -136,7 +136,7 @@ def test_bad_observation_refused(policy_file):
 def test_import_does_not_import_jax(policy_file):
     code = (
         "import sys, numpy as np\n"
-        "import sagrasp_jax.runtime as rt, sagrasp_jax.deploy.calibration, sagrasp_jax.deploy.safety\n"
+        "import sagrasp_jax.task.policy_file as rt, sagrasp_jax.deploy.calibration, sagrasp_jax.deploy.safety\n"
         f"p = rt.load_policy({str(policy_file[0])!r})\n"
         "a = p(np.zeros(17)); sagrasp_jax.deploy.safety.check_policy_constants(p.env_config()); s = sagrasp_jax.deploy.safety.SafetyLayer()\n"
         "bad = sorted(m for m in sys.modules if m == 'jax' or m.startswith(('jax.', 'jaxlib', 'brax', 'flax')))\n"

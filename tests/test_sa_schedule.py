@@ -9,8 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from sagrasp_jax import sa_schedule as sa
-from sagrasp_jax.config import SAConfig
+from sagrasp_jax.training import sa_schedule as sa
+from sagrasp_jax.task.config import SAConfig
 
 LR0 = 3e-4  # ppo.learning_rate, where SA starts
 CFG = SAConfig(tol=0.05)  # the rules on hand-made numbers: lr0 3e-4, decay 0.98, lr_min 1e-6, tol 0.05, min_delta 0.02, patience 5, rollbacks 3, T0 0.1

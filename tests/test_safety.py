@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from sagrasp_jax.config import HOME_GRIPPER_CENTRE, HOME_Q, EnvConfig
+from sagrasp_jax.task.config import HOME_GRIPPER_CENTRE, HOME_Q, EnvConfig
 from sagrasp_jax.deploy.safety import (
     DeploySettings,
     PolicyMismatch,
@@ -16,7 +16,7 @@ from sagrasp_jax.deploy.safety import (
     WorkspaceBox,
     check_policy_constants,
 )
-from sagrasp_jax.robot import forward_kinematics, load_robot, solve_home_pose
+from sagrasp_jax.task.robot import forward_kinematics, load_robot, solve_home_pose
 
 HOME = np.array(HOME_Q)
 

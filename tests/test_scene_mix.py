@@ -19,7 +19,12 @@ import sagrasp_jax  # noqa: F401
 import jax
 import jax.numpy as jnp
 
-from sagrasp_jax import collision, config, robot, sampling, shapes, train
+from sagrasp_jax import train
+from sagrasp_jax.task import collision
+from sagrasp_jax.task import config
+from sagrasp_jax.task import robot
+from sagrasp_jax.task import sampling
+from sagrasp_jax.task import shapes
 import exact_geometry as geometry
 
 ROBOT = robot.load_robot()

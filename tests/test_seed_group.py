@@ -18,7 +18,11 @@ import pytest
 
 from conftest import toy_config, toy_factory
 
-from sagrasp_jax import actor_critic, evaluate, lr_schedule, run_dir, runtime, train
+from sagrasp_jax import evaluate, train
+from sagrasp_jax.training import actor_critic
+from sagrasp_jax.training import lr_schedule
+from sagrasp_jax.training import run_dir
+from sagrasp_jax.task import policy_file as runtime
 
 GROUP = [0, 2]
 ALONE = 2  # the group's second seed, also trained alone

@@ -19,7 +19,13 @@ import sagrasp_jax  # noqa: F401
 import jax
 import jax.numpy as jnp
 
-from sagrasp_jax import assets, collision, config, reward, robot, sampling, shapes
+from sagrasp_jax.base import assets
+from sagrasp_jax.task import collision
+from sagrasp_jax.task import config
+from sagrasp_jax.task import reward
+from sagrasp_jax.task import robot
+from sagrasp_jax.task import sampling
+from sagrasp_jax.task import shapes
 import exact_geometry as geometry
 
 ROBOT = robot.load_robot()
@@ -245,7 +251,7 @@ def test_blocking_placement_puts_capsules_on_the_approach_path():
 def test_capsule_in_the_mjcf_slots_and_the_physical_scene():
     import mujoco
 
-    from sagrasp_jax.physical import GraspScene
+    from sagrasp_jax.reference.grasp_check import GraspScene
 
     model = mujoco.MjModel.from_xml_path(assets.MJCF_SCENE)
     for slot in range(2):
@@ -317,7 +323,7 @@ def test_capsule_in_the_pybullet_reference_env_and_the_twin():
 
 def test_privileged_critic_one_hot_follows_the_kinds():
     """The critic's kind one-hot has one entry per kind of env.sampling.obstacle_kinds (the paper's three by default)."""
-    from sagrasp_jax import observation
+    from sagrasp_jax.task import observation
 
     assert observation.privileged_layout(_cfg([]))[3:8] == (
         "obstacle0_present", "obstacle0_sphere", "obstacle0_cylinder", "obstacle0_box", "obstacle0_size_x")

@@ -14,8 +14,13 @@ import pytest
 
 from conftest import toy_config, toy_factory
 
-from sagrasp_jax import actor_critic, lr_schedule, policy_eval, run_dir, runtime, train
-from sagrasp_jax.checkpoint import CheckpointError
+from sagrasp_jax import train
+from sagrasp_jax.training import actor_critic
+from sagrasp_jax.training import lr_schedule
+from sagrasp_jax.training import fixed_seed_eval as policy_eval
+from sagrasp_jax.training import run_dir
+from sagrasp_jax.task import policy_file as runtime
+from sagrasp_jax.training.checkpoint import CheckpointError
 
 
 def _leaves_equal(a, b) -> bool:
@@ -194,7 +199,7 @@ def test_uneven_cycles_run_one_call_each_and_log_every_iteration(tmp_path):
 def test_short_cpu_quick_run_learns_to_grasp(trained_run):
     """The CLI run of the real env beats the untrained policy clearly on held-out episodes."""
     from sagrasp_jax import evaluate
-    from sagrasp_jax.env import GraspEnv
+    from sagrasp_jax.envs.grasp_env import GraspEnv
 
     assert train.main(["--out", trained_run]) == 2  # a finished run is not overwritten
     assert evaluate.main(["--run", trained_run, "--episodes", "256"]) == 0
@@ -285,7 +290,7 @@ def test_sa_without_rollback_keeps_the_rejected_parameters(tmp_path):
 
 def test_resume_reads_a_checkpoint_from_before_lr_schedules(tmp_path):
     """A checkpoint whose host state holds ``sa_state`` (no ``lr_state``) resumes as if uninterrupted."""
-    from sagrasp_jax import checkpoint
+    from sagrasp_jax.training import checkpoint
 
     cfg = toy_config(cycles=4)
     full = train.run(cfg, str(tmp_path / "full"), env_factory=toy_factory(), progress=False)

@@ -23,7 +23,7 @@ def main() -> int:
     p.add_argument("--port", type=int, default=0)
     p.add_argument("--process-id", type=int, default=0)
     args = p.parse_args()
-    from sagrasp_jax import distributed
+    from sagrasp_jax.training import distributed
 
     if args.mode == "proc":
         distributed.initialize(f"localhost:{args.port}", 2, args.process_id)
@@ -31,7 +31,8 @@ def main() -> int:
     import numpy as np
 
     from conftest import FIRST_GRADIENT_SETS, first_gradients, toy_config, toy_factory
-    from sagrasp_jax import sharding, train
+    from sagrasp_jax import train
+    from sagrasp_jax.training import sharding
 
     assert len(jax.devices()) == 2, jax.devices()
     cfg = toy_config(cycles=2)

@@ -64,13 +64,14 @@ from sagrasp_jax.deploy.calibration import (
     standing_cube_centre,
     validate_target,
 )
-from sagrasp_jax import extras, shapes
+from sagrasp_jax.base import extras
+from sagrasp_jax.task import shapes
 from sagrasp_jax.deploy.loop import DeployError, Obstacle, format_report, run_episode, scene_spec, with_obstacle_kinds
-from sagrasp_jax.config import HOME_Q
+from sagrasp_jax.task.config import HOME_Q
 from sagrasp_jax.deploy import aubo
 from sagrasp_jax.deploy.safety import SafetyViolation, check_policy_constants, check_policy_scene, deployment_env
 from sagrasp_jax.deploy.transfer import TransferErrors
-from sagrasp_jax.runtime import PolicyFormatError, load_policy
+from sagrasp_jax.task.policy_file import PolicyFormatError, load_policy
 
 BACKENDS = ("twin", "aubo")
 UNITS = ("mm", "m")

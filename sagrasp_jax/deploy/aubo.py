@@ -43,7 +43,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from sagrasp_jax import extras
+from sagrasp_jax.base import extras
 from sagrasp_jax.deploy.loop import DeployError
 from sagrasp_jax.deploy.safety import DeploySettings, SafetyLayer
 

@@ -30,11 +30,11 @@ from typing import Any
 
 import numpy as np
 
-from sagrasp_jax.config import SamplingConfig
-from sagrasp_jax.shapes import footprint_gap
+from sagrasp_jax.task.config import SamplingConfig
+from sagrasp_jax.task.shapes import footprint_gap
 
 # The paper's printed hand-eye matrix (mm) lives once, in the cell description; re-exported here.
-from sagrasp_jax.scene import T_CAM_BASE_MM
+from sagrasp_jax.task.scene import T_CAM_BASE_MM
 
 __all__ = [
     "T_CAM_BASE_MM",

@@ -28,7 +28,7 @@ from typing import Any, NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
 
-from sagrasp_jax import extras
+from sagrasp_jax.base import extras
 
 CAMERAS = ("mecheye", "realsense")
 

@@ -44,15 +44,19 @@ from typing import Any, Callable, NamedTuple, Protocol, Sequence, runtime_checka
 
 import numpy as np
 
-from sagrasp_jax import collision, control, observation, reward, shapes
-from sagrasp_jax.config import EnvConfig
+from sagrasp_jax.task import collision
+from sagrasp_jax.task import control
+from sagrasp_jax.task import observation
+from sagrasp_jax.task import reward
+from sagrasp_jax.task import shapes
+from sagrasp_jax.task.config import EnvConfig
 from sagrasp_jax.deploy.calibration import standing_cube_centre, validate_obstacle_clearance, validate_target
 from sagrasp_jax.deploy.safety import (
     SafetyLayer, SafetyViolation, check_policy_constants, check_policy_scene, deployment_env,
 )
-from sagrasp_jax.robot import IKError, RobotModel, forward_kinematics, lift_pose, load_robot, translated_pose
-from sagrasp_jax.runtime import NumpyPolicy
-from sagrasp_jax.sampling import ResetSpec
+from sagrasp_jax.task.robot import IKError, RobotModel, forward_kinematics, lift_pose, load_robot, translated_pose
+from sagrasp_jax.task.policy_file import NumpyPolicy
+from sagrasp_jax.task.sampling import ResetSpec
 
 LIFT_HEIGHT = 0.05  # m, docs/task.md §2/§5: lift after closing the gripper
 LIFT_MIN_STEPS = 10  # control periods the lift takes at least (0.5 s: ≤ 0.1 m/s)

@@ -54,12 +54,13 @@ from typing import Any, NamedTuple, Sequence
 
 import numpy as np
 
-from sagrasp_jax import geometry, shapes
-from sagrasp_jax.config import SamplingConfig
+from sagrasp_jax.task import geometry
+from sagrasp_jax.task import shapes
+from sagrasp_jax.task.config import SamplingConfig
 from sagrasp_jax.deploy.calibration import CameraCalibration, detected_top_to_cube_centre
 from sagrasp_jax.deploy.loop import Obstacle
-from sagrasp_jax.robot import RobotModel, forward_kinematics, load_robot, primitive_poses
-from sagrasp_jax.scene import SCENE
+from sagrasp_jax.task.robot import RobotModel, forward_kinematics, load_robot, primitive_poses
+from sagrasp_jax.task.scene import SCENE
 
 DEPTH_RANGE_MM = (300.0, 3000.0)  # where a depth camera over the table reports anything (deploy's DETECTION_RANGE)
 PLANE_POINTS = 20_000  # table points the plane is fitted to (evenly strided)

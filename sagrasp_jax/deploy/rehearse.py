@@ -29,12 +29,14 @@ from typing import Any, NamedTuple, Sequence
 
 import numpy as np
 
-from sagrasp_jax import extras, robot, sampling
-from sagrasp_jax.config import EVAL_CONDITIONS, Config, ConfigError, EnvConfig, apply_overrides, blocking_sampling
+from sagrasp_jax.base import extras
+from sagrasp_jax.task import robot
+from sagrasp_jax.task import sampling
+from sagrasp_jax.task.config import EVAL_CONDITIONS, Config, ConfigError, EnvConfig, apply_overrides, blocking_sampling
 from sagrasp_jax.deploy import transfer
 from sagrasp_jax.deploy.calibration import ObstacleRejected, TargetRejected
 from sagrasp_jax.deploy.loop import DeployReport, obstacles_from_spec, run_episode
-from sagrasp_jax.runtime import NumpyPolicy, PolicyFormatError, load_policy, resolve_policy
+from sagrasp_jax.task.policy_file import NumpyPolicy, PolicyFormatError, load_policy, resolve_policy
 
 SCENE_SETS = ("mix", "blocking")
 MAX_EPISODES = 100_000
@@ -320,7 +322,7 @@ def check_arguments(args: argparse.Namespace) -> None:
 
 def run_cli(policy_path: str, args: argparse.Namespace) -> int:
     """Shared by this module's CLI and ``evaluate --backend twin``: validate, run, print, write; exit status."""
-    from sagrasp_jax import fileio
+    from sagrasp_jax.base import fileio
 
     try:
         check_arguments(args)

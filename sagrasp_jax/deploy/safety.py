@@ -49,9 +49,9 @@ import numpy as np
 
 import dataclasses
 
-from sagrasp_jax.config import ControlConfig, EnvConfig, SamplingConfig
-from sagrasp_jax.scene import SCENE
-from sagrasp_jax.robot import (
+from sagrasp_jax.task.config import ControlConfig, EnvConfig, SamplingConfig
+from sagrasp_jax.task.scene import SCENE
+from sagrasp_jax.task.robot import (
     ARM_JOINTS,
     BOX,
     CAPSULE,

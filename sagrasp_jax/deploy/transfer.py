@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from sagrasp_jax.config import RandomizeConfig
+from sagrasp_jax.task.config import RandomizeConfig
 
 ARM_DOF = 6
 MAX_TWIN_LATENCY = 10.0  # control steps

@@ -30,21 +30,22 @@ from typing import Any
 
 import numpy as np
 
-from sagrasp_jax import extras
-from sagrasp_jax.fileio import stdout_fd_to
+from sagrasp_jax.base import extras
+from sagrasp_jax.base.fileio import stdout_fd_to
 
 extras.require("twin", what="the PyBullet twin")
 with stdout_fd_to("stderr"):  # PyBullet's C code prints banners on fd 1; keep stdout for reports (--json)
     import pybullet as pb
 
-from sagrasp_jax import control, shapes
-from sagrasp_jax import robot as robot_mod
-from sagrasp_jax.config import HOME_Q, EnvConfig
+from sagrasp_jax.task import control
+from sagrasp_jax.task import shapes
+from sagrasp_jax.task import robot as robot_mod
+from sagrasp_jax.task.config import HOME_Q, EnvConfig
 from sagrasp_jax.deploy.transfer import TransferErrors
-from sagrasp_jax.reference.pybullet_env import _shape_kwargs, disconnect, rotation_to_quaternion
-from sagrasp_jax.robot import BOX
-from sagrasp_jax.sampling import ResetSpec
-from sagrasp_jax.scene import SCENE
+from sagrasp_jax.reference.bullet import disconnect, rotation_to_quaternion, shape_kwargs
+from sagrasp_jax.task.robot import BOX
+from sagrasp_jax.task.sampling import ResetSpec
+from sagrasp_jax.task.scene import SCENE
 
 PHYSICS_HZ = 240  # PyBullet's default step; 12 substeps per 0.05 s control period
 FINGER_FORCE = 20.0  # N per finger (EG2: the MJCF actuator's force range)
@@ -105,8 +106,8 @@ class PyBulletTwin:
         return self._pb(
             pb.createMultiBody,
             baseMass=mass,
-            baseCollisionShapeIndex=self._pb(pb.createCollisionShape, **_shape_kwargs(kind, size, visual=False)),
-            baseVisualShapeIndex=self._pb(pb.createVisualShape, rgbaColor=list(rgba), **_shape_kwargs(kind, size, visual=True)),
+            baseCollisionShapeIndex=self._pb(pb.createCollisionShape, **shape_kwargs(kind, size, visual=False)),
+            baseVisualShapeIndex=self._pb(pb.createVisualShape, rgbaColor=list(rgba), **shape_kwargs(kind, size, visual=True)),
             basePosition=[float(v) for v in pos],
             baseOrientation=list(orn),
         )

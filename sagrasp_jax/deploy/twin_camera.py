@@ -57,10 +57,10 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from sagrasp_jax import extras
+from sagrasp_jax.base import extras
 from sagrasp_jax.deploy.calibration import CameraCalibration
-from sagrasp_jax.fileio import stdout_fd_to
-from sagrasp_jax.scene import SCENE
+from sagrasp_jax.base.fileio import stdout_fd_to
+from sagrasp_jax.task.scene import SCENE
 
 extras.require("twin", what="the twin camera")
 with stdout_fd_to("stderr"):

@@ -21,7 +21,8 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from sagrasp_jax import extras, shapes
+from sagrasp_jax.base import extras
+from sagrasp_jax.task import shapes
 from sagrasp_jax.deploy.calibration import CameraCalibration
 from sagrasp_jax.deploy.perception import Detection, PerceptionError, SceneDetection, detect_scene
 

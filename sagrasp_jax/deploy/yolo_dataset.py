@@ -35,7 +35,7 @@ from typing import Sequence
 
 import numpy as np
 
-from sagrasp_jax import extras
+from sagrasp_jax.base import extras
 
 MIN_PIXELS = 12  # visible pixels an object needs to be labelled
 
@@ -82,7 +82,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _check(args: argparse.Namespace) -> list[str]:
-    from sagrasp_jax import shapes
+    from sagrasp_jax.task import shapes
 
     problems = []
     if not 1 <= args.images <= 1_000_000:
@@ -110,12 +110,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"{prog}: error: " + "; ".join(problems), file=sys.stderr)
         return 2
     extras.require_cli("twin", prog=prog)
-    from sagrasp_jax import robot, sampling, shapes
-    from sagrasp_jax.config import EnvConfig, blocking_sampling
+    from sagrasp_jax.task import robot
+    from sagrasp_jax.task import sampling
+    from sagrasp_jax.task import shapes
+    from sagrasp_jax.task.config import EnvConfig, blocking_sampling
     from sagrasp_jax.deploy.twin import PyBulletTwin
     from sagrasp_jax.deploy.twin_camera import TwinCamera, random_colours, random_lighting
     from sagrasp_jax.deploy.yolo import CLASSES
-    from sagrasp_jax.fileio import NotWritable, atomic_write_bytes, atomic_write_text, check_writable
+    from sagrasp_jax.base.fileio import NotWritable, atomic_write_bytes, atomic_write_text, check_writable
 
     try:
         check_writable(args.out, "dataset folder")

@@ -19,8 +19,8 @@ PyBullet itself is imported only when an env is built.  Nothing here imports jax
 
 from __future__ import annotations
 
-from sagrasp_jax.config import get_config
-from sagrasp_jax.observation import LAYOUT_NAMES
+from sagrasp_jax.task.config import get_config
+from sagrasp_jax.task.observation import LAYOUT_NAMES
 
 ENV_ID = "SAGrasp-PyBullet-v0"  # the paper layout
 EPISODE_INFO = "task_episode"  # info key of a finished episode's task metrics (episode.EPISODE_KEYS)

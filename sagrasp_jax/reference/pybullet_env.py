@@ -1,8 +1,8 @@
 """PyBullet reference implementation of the grasping MDP (docs/task.md §1-§2), as a Gymnasium env.
 
-Why it exists: the MJX/JAX env (``sagrasp_jax.env.GraspEnv``) is fast but new; this env
+Why it exists: the MJX/JAX env (``sagrasp_jax.envs.grasp_env.GraspEnv``) is fast but new; this env
 rebuilds the same task in the simulator the paper used, from the same URDF and the same
-scene description, so ``sagrasp_jax.parity`` can show step by step that both are one task.
+scene description, so ``sagrasp_jax.reference.parity`` can show step by step that both are one task.
 
 What is shared, never re-typed: the control step (``control.control_step``), the reward,
 success test and outcome precedence (``reward``), the collision rules
@@ -49,7 +49,7 @@ from typing import Any, SupportsFloat
 
 import numpy as np
 
-from sagrasp_jax import extras
+from sagrasp_jax.base import extras
 
 extras.require("twin", what="the PyBullet reference env")
 import pybullet as pb  # noqa: E402
@@ -61,17 +61,28 @@ except ImportError:  # the twin uses this module's PyBullet helpers without gymn
     gym = spaces = None
 
 from sagrasp_jax.reference import EPISODE_INFO
-from sagrasp_jax import assets, collision, config, control, episode, fileio, observation, reward, robot, sampling, shapes
-from sagrasp_jax.config import EnvConfig
-from sagrasp_jax.robot import BOX, CAPSULE, CYLINDER, SPHERE, Kinematics
-from sagrasp_jax.scene import SCENE
+from sagrasp_jax.base import assets
+from sagrasp_jax.task import collision
+from sagrasp_jax.task import config
+from sagrasp_jax.task import control
+from sagrasp_jax.task import episode
+from sagrasp_jax.base import fileio
+from sagrasp_jax.task import observation
+from sagrasp_jax.task import reward
+from sagrasp_jax.task import robot
+from sagrasp_jax.task import sampling
+from sagrasp_jax.task import shapes
+from sagrasp_jax.task.config import EnvConfig
+from sagrasp_jax.task.robot import BOX, Kinematics
+from sagrasp_jax.task.scene import SCENE
+from sagrasp_jax.reference.bullet import disconnect, quaternions_to_rotations, rotation_to_quaternion, shape_kwargs  # noqa: F401
 
 ENV_ID = "SAGrasp-PyBullet-v0"
 
 # POSITION_CONTROL gains of servo="position_control", per arm joint: positionGain kp and velocityGain kd of
 # PyBullet's motor constraint (after a substep h: v = kp·(q* − q)/h + (1 − kd)·v, whatever the arm's inertia).
 # Refitted to the MJX env's servos by linear least squares over 19,200 physics substeps of scripted episodes
-# (experiments/fit_position_control.py).  That law cannot follow MuJoCo's force servo (pose-dependent inertia,
+# (the position-control fit, docs/parity.md).  That law cannot follow MuJoCo's force servo (pose-dependent inertia,
 # armature, torque limits), and parity fails with it (docs/parity.md); the default servo="mujoco" is exact.
 DYNAMIC_POSITION_GAINS = (0.126, 0.087, 0.115, 0.142, 0.134, 0.143)
 DYNAMIC_VELOCITY_GAINS = (0.636, 0.439, 0.584, 0.517, 0.493, 0.523)
@@ -79,52 +90,6 @@ GRAVITY = 9.81  # m/s²: the world's gravity when the arm's weight is not left o
 UNLIMITED = 1e3  # a joint range no motion reaches (rad or m)
 SERVOS = ("mujoco", "position_control")  # dynamic-mode motor models (PyBulletGraspEnv's ``servo``)
 FINGER_FORCE_FALLBACK = 20.0  # N, used only if the URDF gives a finger no effort limit
-
-
-def rotation_to_quaternion(rot: np.ndarray) -> tuple[float, float, float, float]:
-    """3×3 rotation → PyBullet quaternion (x, y, z, w); Shepperd's method, stable for any angle."""
-    m = np.asarray(rot, dtype=float)
-    tr = m[0, 0] + m[1, 1] + m[2, 2]
-    if tr > 0:
-        s = 2.0 * math.sqrt(tr + 1.0)
-        w, x, y, z = 0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s
-    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
-        w, x, y, z = (m[2, 1] - m[1, 2]) / s, 0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s
-    elif m[1, 1] > m[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
-        w, x, y, z = (m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s
-    else:
-        s = 2.0 * math.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
-        w, x, y, z = (m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s
-    return (x, y, z, w)
-
-
-def quaternions_to_rotations(quats: np.ndarray) -> np.ndarray:
-    """(..., 4) PyBullet quaternions (x, y, z, w) → (..., 3, 3) rotations, vectorised."""
-    q = np.asarray(quats, dtype=float)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    rows = [
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
-    ]
-    return np.stack(rows, -2)
-
-
-def _shape_kwargs(kind: int, size: Any, visual: bool) -> dict[str, Any]:
-    """createCollisionShape / createVisualShape arguments for a primitive in MuJoCo's size convention."""
-    size = [float(v) for v in size]
-    if kind == SPHERE:
-        return {"shapeType": pb.GEOM_SPHERE, "radius": size[0]}
-    if kind == BOX:
-        return {"shapeType": pb.GEOM_BOX, "halfExtents": size}
-    if kind in (CYLINDER, CAPSULE):
-        length_key = "length" if visual else "height"  # PyBullet names the same thing differently
-        shape = pb.GEOM_CYLINDER if kind == CYLINDER else pb.GEOM_CAPSULE
-        return {"shapeType": shape, "radius": size[0], length_key: 2 * size[1]}
-    raise ValueError(f"unknown primitive kind {kind}")
 
 
 def _as_numpy_spec(spec: sampling.ResetSpec) -> sampling.ResetSpec:
@@ -187,15 +152,6 @@ def load_servo_model(xml_path: str | None = None) -> ServoModel:
     cols = list(zip(*rows))
     return ServoModel(*(np.asarray(c, dtype=bool if i == 5 else float) for i, c in enumerate(cols)))
 
-
-def disconnect(client: int) -> int:
-    """Disconnect a PyBullet client if it is connected (idempotent); returns -1, the "closed" id."""
-    if client >= 0:
-        try:
-            pb.disconnect(physicsClientId=client)
-        except pb.error:
-            pass
-    return -1
 
 RENDER_MODES = ("human", "rgb_array")
 
@@ -276,10 +232,10 @@ class PyBulletGraspEnv(gym.Env if gym is not None else object):  # type: ignore[
 
     def _static_body(self, kind: int, size: Any, pos: Any, rot: np.ndarray, rgba: Any) -> tuple[int, int]:
         """A fixed (mass 0) primitive body; returns (body, collision shape)."""
-        col = self._pb(pb.createCollisionShape, **_shape_kwargs(kind, size, visual=False))
+        col = self._pb(pb.createCollisionShape, **shape_kwargs(kind, size, visual=False))
         vis = -1
         if self.render_mode is not None:  # DIRECT runs need no visuals (PyBullet never frees them)
-            vis = self._pb(pb.createVisualShape, rgbaColor=list(rgba), **_shape_kwargs(kind, size, visual=True))
+            vis = self._pb(pb.createVisualShape, rgbaColor=list(rgba), **shape_kwargs(kind, size, visual=True))
         body = self._pb(
             pb.createMultiBody,
             baseMass=0.0,

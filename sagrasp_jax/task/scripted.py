@@ -1,0 +1,46 @@
+"""A scripted (non-learned) grasping controller: proof that the task is solvable, and a
+reference action source for the parity harness.
+
+Damped-least-squares steps toward a point above the target that descends as the horizontal
+error closes (no switching chatter), keeping the gripper pointing down.  It ignores
+obstacles.  Backend-agnostic (``xp`` = numpy or jax.numpy; Jacobian by central differences)
+and batched over leading dimensions of ``q`` and ``target``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from sagrasp_jax.task import robot
+from sagrasp_jax.task.config import EnvConfig
+
+APPROACH_HEIGHT = 0.08  # m above the target centre while still off to the side
+GRASP_HEIGHT = 0.0125  # m above the target centre: the middle of the success band
+DESCENT_RADIUS = 0.02  # m of horizontal error over which the waypoint descends
+TILT_WEIGHT = 0.3  # weight of the approach-axis tilt residual against position (m)
+DAMPING = 1e-4  # λ² of the damped least squares
+_EPS = 1e-6  # central-difference step, rad
+
+
+def scripted_action(xp: Any, cfg: EnvConfig, q: Any, target: Any) -> Any:
+    """Action(s) in [-1, 1]^6 for joints ``q`` (..., 6) and target centres (..., 3)."""
+    model = robot.load_robot()
+    q = xp.asarray(q)
+    target = xp.asarray(target, dtype=q.dtype)
+    centre = robot.forward_kinematics(xp, model, q).gripper_centre
+    horizontal = xp.sqrt(xp.sum((centre[..., :2] - target[..., :2]) ** 2, axis=-1))
+    height = GRASP_HEIGHT + APPROACH_HEIGHT * xp.clip(horizontal / DESCENT_RADIUS, 0.0, 1.0)
+    goal = target + xp.asarray([0.0, 0.0, 1.0], dtype=q.dtype) * height[..., None]
+
+    def residual(qs: Any, g: Any) -> Any:
+        kin = robot.forward_kinematics(xp, model, qs)
+        return xp.concatenate([kin.gripper_centre - g, TILT_WEIGHT * kin.approach_axis[..., :2]], axis=-1)
+
+    eye = xp.eye(6, dtype=q.dtype)
+    probes = q[..., None, :] + _EPS * xp.concatenate([eye, -eye])  # (..., 12, 6)
+    res = residual(probes, goal[..., None, :])
+    jac = xp.swapaxes(res[..., :6, :] - res[..., 6:, :], -1, -2) / (2 * _EPS)  # (..., 5, 6)
+    r = residual(q, goal)
+    lhs = jac @ xp.swapaxes(jac, -1, -2) + DAMPING * xp.eye(5, dtype=q.dtype)
+    dq = (xp.swapaxes(jac, -1, -2) @ xp.linalg.solve(lhs, -r[..., None]))[..., 0]
+    return xp.clip(dq / cfg.control.q_max, -1.0, 1.0)

@@ -1,0 +1,2 @@
+"""The trainer: PPO (networks, losses, rollout, the jitted cycle), the lr and SA schedules, the fixed-seed
+evaluation, checkpoints, run folders, seed groups over devices and processes.  Imports `base`, `task`, `envs`."""

@@ -1,0 +1,184 @@
+"""The actor-critic: policy and value networks, their optimizer and the policy's action maths.
+
+brax supplies the networks, the tanh-Gaussian distribution and the running observation
+statistics; this module builds them for the task (normalised, clipped observations; an
+optional privileged critic), keeps the learning rate as optimizer state so the host and the
+jitted cycle can set it, and samples actions with device-count-independent noise.
+"""
+
+from __future__ import annotations
+
+import sagrasp_jax  # noqa: F401  (sets XLA_FLAGS before jax is imported)
+
+import functools
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from brax.envs.base import State
+from brax.training import networks as brax_networks
+from brax.training.acme import running_statistics
+from brax.training.agents.ppo import networks as ppo_networks
+from brax.training.distribution import TanhBijector
+from flax import linen
+
+from sagrasp_jax.task.config import ACTIVATIONS, NetworkConfig, PPOConfig
+from sagrasp_jax.training.sharding import batch_normal
+
+Normaliser = running_statistics.RunningStatisticsState
+PPONetworks = ppo_networks.PPONetworks
+
+_ACTIVATIONS: dict[str, Callable[[jax.Array], jax.Array]] = {name: getattr(linen, name) for name in ACTIVATIONS}
+
+
+class Params(NamedTuple):
+    policy: Any
+    value: Any
+
+
+class TrainingState(NamedTuple):
+    """What SGD changes and what an SA rejection restores."""
+
+    params: Params
+    opt_state: optax.OptState
+    normaliser: Normaliser
+
+
+
+def make_networks(net: NetworkConfig, obs_size: int, action_size: int, obs_clip: float,
+                  critic_extra: int = 0) -> PPONetworks:
+    """brax PPO networks whose preprocessor normalises with the running stats and clips (docs/task.md §2).
+
+    With ``critic_extra`` > 0 the value network also reads that many privileged inputs appended
+    to the observation (already scaled by the env, not normalised): an asymmetric actor-critic
+    whose policy — all that is exported — never needs them."""
+    if net.activation not in _ACTIVATIONS:
+        raise ValueError(f"activation {net.activation!r} not one of {', '.join(_ACTIVATIONS)}")
+    preprocess = functools.partial(_normalise, obs_clip=obs_clip)
+    nets = ppo_networks.make_ppo_networks(
+        obs_size,
+        action_size,
+        preprocess_observations_fn=preprocess,
+        policy_hidden_layer_sizes=tuple(net.policy_hidden),
+        value_hidden_layer_sizes=tuple(net.value_hidden),
+        activation=_ACTIVATIONS[net.activation],
+    )
+    if not critic_extra:
+        return nets
+    value = brax_networks.make_value_network(
+        obs_size + critic_extra,
+        preprocess_observations_fn=functools.partial(_normalise_head, obs_clip=obs_clip, obs_size=obs_size),
+        hidden_layer_sizes=tuple(net.value_hidden),
+        activation=_ACTIVATIONS[net.activation],
+        kernel_init=jax.nn.initializers.lecun_uniform(),
+    )
+    return nets.replace(value_network=value)
+
+
+def _normalise(obs: jax.Array, normaliser: Normaliser, obs_clip: float) -> jax.Array:
+    return running_statistics.normalize(obs, normaliser, max_abs_value=obs_clip)
+
+
+def _normalise_head(x: jax.Array, normaliser: Normaliser, obs_clip: float, obs_size: int) -> jax.Array:
+    """Normalise the observation part of a critic input; the privileged tail passes unchanged."""
+    return jnp.concatenate([_normalise(x[..., :obs_size], normaliser, obs_clip), x[..., obs_size:]], axis=-1)
+
+
+def critic_input(obs: jax.Array, critic_extra: jax.Array) -> jax.Array:
+    """What the value network reads: the observation and the privileged inputs (possibly none)."""
+    return jnp.concatenate([obs, critic_extra.astype(obs.dtype)], axis=-1)
+
+
+def critic_extra_of(state: State, width: int) -> jax.Array:
+    """The env's privileged critic inputs (``info["privileged"]``), or a width-0 array."""
+    if width:
+        return state.info["privileged"]
+    return jnp.zeros(state.obs.shape[:-1] + (0,), state.obs.dtype)
+
+
+def make_optimizer(cfg: PPOConfig, learning_rate: float) -> optax.GradientTransformation:
+    """Adam behind grad-norm clipping; the lr is a state entry so the host can change it."""
+    return optax.chain(
+        optax.clip_by_global_norm(cfg.max_grad_norm),
+        optax.inject_hyperparams(optax.adam)(learning_rate=learning_rate),
+    )
+
+
+def init_policy(key: jax.Array, networks: PPONetworks, obs_size: int) -> tuple[Params, Normaliser]:
+    """Fresh policy and value parameters and an empty observation normaliser (no optimizer)."""
+    k_policy, k_value = jax.random.split(key)
+    params = Params(policy=networks.policy_network.init(k_policy), value=networks.value_network.init(k_value))
+    return params, running_statistics.init_state(jnp.zeros((obs_size,), jnp.float32))
+
+
+def init_training_state(key: jax.Array, networks: PPONetworks, optimizer: optax.GradientTransformation,
+                        obs_size: int) -> TrainingState:
+    params, normaliser = init_policy(key, networks, obs_size)
+    return TrainingState(params=params, opt_state=optimizer.init(params), normaliser=normaliser)
+
+
+def get_learning_rate(opt_state: optax.OptState) -> float:
+    return float(opt_state[1].hyperparams["learning_rate"])
+
+
+def with_learning_rate(opt_state: optax.OptState, lr: jax.Array) -> optax.OptState:
+    """``set_learning_rate`` inside a traced function (``lr`` a traced scalar)."""
+    inject = opt_state[1]
+    old = inject.hyperparams["learning_rate"]
+    hyper = dict(inject.hyperparams, learning_rate=jnp.asarray(lr, dtype=old.dtype))
+    return (opt_state[0], inject._replace(hyperparams=hyper), *opt_state[2:])
+
+
+def learning_rate_of(opt_state: optax.OptState) -> jax.Array:
+    """The Adam lr in ``opt_state`` as an array (traceable)."""
+    return opt_state[1].hyperparams["learning_rate"]
+
+
+def set_learning_rate(opt_state: optax.OptState, lr: float) -> optax.OptState:
+    """Return ``opt_state`` with a new Adam lr (the optimizer built by ``make_optimizer``)."""
+    inject = opt_state[1]
+    old = inject.hyperparams["learning_rate"]
+    hyper = dict(inject.hyperparams, learning_rate=jnp.asarray(lr, dtype=old.dtype))
+    if isinstance(old, jax.Array):  # keep it where the rest of the state lives (replicated)
+        hyper["learning_rate"] = jax.device_put(np.asarray(lr, dtype=old.dtype), old.sharding)
+    return (opt_state[0], inject._replace(hyperparams=hyper), *opt_state[2:])
+
+
+
+def sample_action(networks: PPONetworks, params: Params, normaliser: Normaliser, obs: jax.Array,
+                  key: jax.Array, axis_name: str | None = None) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """(action in [-1, 1], pre-tanh sample, its log-prob under the tanh-Gaussian)."""
+    dist = networks.parametric_action_distribution
+    logits = networks.policy_network.apply(normaliser, params.policy, obs)
+    gauss = dist.create_dist(logits)
+    raw = batch_normal(key, gauss.loc.shape, axis_name) * gauss.scale + gauss.loc  # brax's sample_no_postprocessing
+    return dist.postprocess(raw), raw, dist.log_prob(logits, raw)
+
+
+def deterministic_action(networks: PPONetworks, params: Params, normaliser: Normaliser,
+                         obs: jax.Array) -> jax.Array:
+    logits = networks.policy_network.apply(normaliser, params.policy, obs)
+    return networks.parametric_action_distribution.mode(logits)
+
+
+def gaussian_entropy_from_logits(networks: PPONetworks, logits: jax.Array) -> jax.Array:
+    """Closed-form entropy of the pre-tanh Gaussian, summed over action dims (SA temperature)."""
+    scale = networks.parametric_action_distribution.create_dist(logits).scale
+    return jnp.sum(0.5 * jnp.log(2.0 * jnp.pi * jnp.e) + jnp.log(scale), axis=-1)
+
+
+def mean_policy_entropy(networks: PPONetworks, params: Params, normaliser: Normaliser,
+                        obs: jax.Array) -> jax.Array:
+    logits = networks.policy_network.apply(normaliser, params.policy, obs)
+    return jnp.mean(gaussian_entropy_from_logits(networks, logits))
+
+
+def tanh_gaussian_entropy(networks: PPONetworks, logits: jax.Array, key: jax.Array,
+                          axis_name: str | None = None) -> jax.Array:
+    """brax's one-sample estimate of the tanh-Gaussian entropy (``dist.entropy``), per row."""
+    gauss = networks.parametric_action_distribution.create_dist(logits)
+    sample = batch_normal(key, gauss.loc.shape, axis_name) * gauss.scale + gauss.loc
+    return jnp.sum(gauss.entropy() + TanhBijector().forward_log_det_jacobian(sample), axis=-1)
+

@@ -1,0 +1,176 @@
+"""Checkpoint files: everything an exact resume needs, written atomically, validated on load.
+
+Layout of a ``.ckpt`` file::
+
+    MAGIC (13 bytes) | header length (uint64 little-endian) | header JSON | payload
+
+The payload is ``flax.serialization.msgpack_serialize`` of ``{tree name: {leaf path: ndarray}}``
+(any pytree, flattened by ``jax.tree_util`` key paths, so brax/MJX/optax states need no
+special handling).  The header holds the format and package versions, the full config, host
+side state (counters, SA schedule, RNG states) and the payload's length and SHA-256.  Loading
+checks all of them and raises :class:`CheckpointError` naming the file and the problem: a
+damaged or mismatched checkpoint must stop the run, never silently restart it.
+"""
+
+from __future__ import annotations
+
+import sagrasp_jax  # noqa: F401  (sets XLA_FLAGS before jax is imported)
+
+import hashlib
+import json
+import struct
+from dataclasses import dataclass
+from typing import Any
+
+import jax
+import numpy as np
+from flax import serialization
+
+from sagrasp_jax import __version__
+from sagrasp_jax.base import fileio
+from sagrasp_jax.task.config import Config, ConfigError, config_from_dict, config_to_dict
+
+MAGIC = b"SAGRASP-CKPT\n"
+FORMAT_VERSION = 1
+_LEN = struct.Struct("<Q")
+
+
+class CheckpointError(RuntimeError):
+    """A checkpoint that is missing, corrupt, truncated or incompatible with the run."""
+
+
+@dataclass(frozen=True)
+class Checkpoint:
+    header: dict[str, Any]
+    trees: dict[str, dict[str, np.ndarray]]  # tree name -> {leaf path: array}
+    path: str
+
+    @property
+    def host(self) -> dict[str, Any]:
+        return self.header["host"]
+
+
+def _is_key(x: Any) -> bool:
+    return isinstance(x, jax.Array) and jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key)
+
+
+def flatten_tree(tree: Any) -> dict[str, np.ndarray]:
+    """{key path: host ndarray}; typed PRNG keys are stored as their raw key data."""
+    leaves, _ = jax.tree_util.tree_flatten_with_path(tree)
+    out: dict[str, np.ndarray] = {}
+    for path, leaf in leaves:
+        if _is_key(leaf):
+            leaf = jax.random.key_data(leaf)
+        out[jax.tree_util.keystr(path)] = np.asarray(leaf)
+    return out
+
+
+def restore_tree(template: Any, flat: dict[str, np.ndarray], name: str, path: str) -> Any:
+    """Fill ``template``'s structure with the saved leaves; paths, shapes and dtypes must match."""
+    leaves, treedef = jax.tree_util.tree_flatten_with_path(template)
+    keys = [jax.tree_util.keystr(p) for p, _ in leaves]
+    missing = sorted(set(keys) - set(flat))
+    extra = sorted(set(flat) - set(keys))
+    if missing or extra:
+        raise CheckpointError(
+            f"{path}: incompatible checkpoint: '{name}' has a different structure "
+            f"(missing {missing[:5]}, unexpected {extra[:5]}); was it written by another version or config?")
+    values = []
+    for key, (_, leaf) in zip(keys, leaves):
+        saved = flat[key]
+        python_scalar = type(leaf) in (bool, int, float)  # not np.float64, a float subclass
+        if _is_key(leaf):
+            ref = jax.random.key_data(leaf)
+        else:
+            ref = np.asarray(jax.numpy.asarray(leaf) if python_scalar else leaf)
+        if saved.shape != ref.shape or saved.dtype != ref.dtype:
+            raise CheckpointError(
+                f"{path}: incompatible checkpoint: {name}{key} is {saved.dtype}{list(saved.shape)}, "
+                f"this run expects {ref.dtype}{list(ref.shape)}")
+        if _is_key(leaf):
+            saved = jax.random.wrap_key_data(saved, impl=jax.random.key_impl(leaf))
+        elif (python_scalar or getattr(leaf, "weak_type", False)) and saved.shape == ():
+            saved = saved.item()  # a Python scalar stays weakly typed: same jit signature, no recompile
+        values.append(saved)
+    return jax.tree_util.tree_unflatten(treedef, values)
+
+
+atomic_write_bytes = fileio.atomic_write_bytes
+
+
+def save(path: str, *, trees: dict[str, Any], host: dict[str, Any], config: Config) -> None:
+    """Write a checkpoint: ``trees`` are pytrees of arrays, ``host`` is JSON-safe host state."""
+    payload = serialization.msgpack_serialize({name: flatten_tree(t) for name, t in trees.items()})
+    header = {
+        "format_version": FORMAT_VERSION,
+        "package_version": __version__,
+        "config": config_to_dict(config),
+        "host": host,
+        "payload_bytes": len(payload),
+        "payload_sha256": hashlib.sha256(payload).hexdigest(),
+    }
+    head = json.dumps(header, sort_keys=True, allow_nan=False).encode()
+    atomic_write_bytes(path, MAGIC + _LEN.pack(len(head)) + head + payload)
+
+
+def load(path: str) -> Checkpoint:
+    """Read and verify a checkpoint (magic, format version, lengths, checksum); only a regular file is read."""
+    try:
+        blob = fileio.read_regular(path)  # a FIFO or device is refused before it is opened
+    except FileNotFoundError:
+        raise CheckpointError(f"{path}: no checkpoint found") from None
+    except fileio.NotRegularFile as exc:
+        raise CheckpointError(f"{path} is {exc.kind}, not a checkpoint file") from None
+    except OSError as exc:
+        raise CheckpointError(f"{path}: cannot read the checkpoint ({exc.strerror or exc})") from None
+    if not blob.startswith(MAGIC):
+        raise CheckpointError(f"{path}: not a sagrasp_jax checkpoint (bad magic bytes); the file is corrupt")
+    start = len(MAGIC) + _LEN.size
+    if len(blob) < start:
+        raise CheckpointError(f"{path}: truncated checkpoint (header length missing)")
+    (head_len,) = _LEN.unpack(blob[len(MAGIC):start])
+    if len(blob) < start + head_len:
+        raise CheckpointError(f"{path}: truncated checkpoint (header cut off)")
+    try:
+        header = json.loads(blob[start:start + head_len].decode())
+        version = header["format_version"]
+        size, digest = header["payload_bytes"], header["payload_sha256"]
+    except (ValueError, KeyError, TypeError, RecursionError) as exc:  # ValueError: bad UTF-8 or JSON, 5,000-digit ints
+        raise CheckpointError(f"{path}: corrupt checkpoint header ({exc})") from None
+    if version != FORMAT_VERSION:
+        raise CheckpointError(
+            f"{path}: checkpoint format version {version} (package {header.get('package_version')}), "
+            f"this sagrasp_jax {__version__} reads version {FORMAT_VERSION}")
+    payload = blob[start + head_len:]
+    if len(payload) != size:
+        raise CheckpointError(f"{path}: truncated checkpoint: payload has {len(payload)} of {size} bytes")
+    if hashlib.sha256(payload).hexdigest() != digest:
+        raise CheckpointError(f"{path}: corrupt checkpoint: payload checksum mismatch")
+    try:
+        trees = serialization.msgpack_restore(payload)
+    except Exception as exc:  # msgpack raises several unrelated types on bad data
+        raise CheckpointError(f"{path}: corrupt checkpoint payload ({exc})") from None
+    return Checkpoint(header=header, trees=trees, path=path)
+
+
+def config_differences(saved: dict[str, Any], current: dict[str, Any], prefix: str = "") -> list[str]:
+    """Dotted keys whose values differ between two config dicts."""
+    diffs: list[str] = []
+    for key in sorted(set(saved) | set(current)):
+        a, b = saved.get(key), current.get(key)
+        if isinstance(a, dict) and isinstance(b, dict):
+            diffs += config_differences(a, b, f"{prefix}{key}.")
+        elif (list(a) if isinstance(a, (list, tuple)) else a) != (list(b) if isinstance(b, (list, tuple)) else b):
+            diffs.append(f"{prefix}{key}: checkpoint {a!r}, now {b!r}")
+    return diffs
+
+
+def check_config(ckpt: Checkpoint, config: Config) -> None:
+    """Refuse to resume a run with a different config (the result would not be that run)."""
+    try:  # a checkpoint written before a key existed means that key's legacy value (config.LEGACY_VALUES)
+        saved = config_to_dict(config_from_dict(ckpt.header["config"]))
+    except (ConfigError, TypeError, ValueError, AttributeError) as exc:
+        raise CheckpointError(f"{ckpt.path}: the checkpoint's config does not load ({exc})") from None
+    diffs = config_differences(saved, config_to_dict(config))
+    if diffs:
+        raise CheckpointError(f"{ckpt.path}: incompatible checkpoint: config differs: " + "; ".join(diffs))
