@@ -34,6 +34,8 @@ os.environ.setdefault(
 os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "1")
 
 
+from sagrasp_jax.base import extras as _extras  # noqa: E402  (stdlib only)
+
 _WARP_MODULE = "mujoco.mjx.warp"
 _WARP_ABSENT = re.compile(r"^Failed to import (warp|mujoco_warp): No module named 'warp'$")
 
@@ -43,14 +45,8 @@ def filter_warp_noise(text: str) -> str:
     return "".join(line for line in text.splitlines(keepends=True) if not _WARP_ABSENT.match(line.rstrip("\n")))
 
 
-class _QuietLoader(importlib.abc.Loader):
+class _QuietLoader(_extras.WrappingLoader):
     """Runs ``mujoco.mjx.warp`` with stdout captured, then re-prints all but the known noise."""
-
-    def __init__(self, loader: Any) -> None:
-        self._loader = loader
-
-    def create_module(self, spec: Any) -> Any:
-        return self._loader.create_module(spec)
 
     def exec_module(self, module: Any) -> None:
         buffer = io.StringIO()
@@ -59,9 +55,6 @@ class _QuietLoader(importlib.abc.Loader):
                 self._loader.exec_module(module)
         finally:
             sys.stdout.write(filter_warp_noise(buffer.getvalue()))
-
-    def __getattr__(self, name: str) -> Any:  # get_source, get_code, ... for tracebacks and tools
-        return getattr(self._loader, name)
 
 
 class _QuietWarpImport(importlib.abc.MetaPathFinder):
@@ -80,8 +73,6 @@ if _WARP_MODULE not in sys.modules and not any(isinstance(f, _QuietWarpImport) f
 
 # A module of the package that meets an absent optional package raises extras.MissingExtra naming the
 # extra to install (``pip install "sagrasp_jax[train]"``), not a bare ModuleNotFoundError.
-from sagrasp_jax.base import extras as _extras  # noqa: E402  (stdlib only)
-
 _extras.install_import_hints()
 
 

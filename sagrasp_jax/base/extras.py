@@ -97,14 +97,21 @@ def extra_providing(package: str) -> str | None:
     return next((extra for extra, names in EXTRAS.items() if root in names), None)
 
 
-class _HintingLoader(importlib.abc.Loader):
-    """Runs a ``sagrasp_jax`` module; an absent optional package it imports becomes ``MissingExtra``."""
+class WrappingLoader(importlib.abc.Loader):
+    """A loader that runs another one's module its own way (``exec_module``) and passes on the rest."""
 
     def __init__(self, loader: Any) -> None:
         self._loader = loader
 
     def create_module(self, spec: Any) -> Any:
         return self._loader.create_module(spec)
+
+    def __getattr__(self, name: str) -> Any:  # get_source, get_resource_reader, ... for tools and resources
+        return getattr(self._loader, name)
+
+
+class _HintingLoader(WrappingLoader):
+    """Runs a ``sagrasp_jax`` module; an absent optional package it imports becomes ``MissingExtra``."""
 
     def exec_module(self, module: Any) -> None:
         try:
@@ -115,9 +122,6 @@ class _HintingLoader(importlib.abc.Loader):
                 raise
             absent = missing(extra) or [exc.name.partition(".")[0]]
             raise MissingExtra((extra,), absent, module.__name__) from None  # the hint says it all
-
-    def __getattr__(self, name: str) -> Any:  # get_source, get_resource_reader, ... for tools and resources
-        return getattr(self._loader, name)
 
 
 class ImportHints(importlib.abc.MetaPathFinder):

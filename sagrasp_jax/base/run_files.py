@@ -60,18 +60,28 @@ def read_metrics(folder: str) -> list[dict[str, Any]]:
     file = os.path.join(check_run(folder), METRICS_FILE)
     try:
         with open(file, "rb") as f:
-            lines = [(i + 1, line) for i, line in enumerate(f.read().split(b"\n")) if line.strip()]
+            data = f.read()
     except OSError as exc:
         raise RunFolderError(f"{file}: cannot read the metrics log ({exc.strerror or exc})") from None
+    return parse_metrics(data, file, RunFolderError, need_env_steps=True)
+
+
+def parse_metrics(data: bytes, file: str, error: type[Exception], need_env_steps: bool = False) -> list[dict[str, Any]]:
+    """The rows of a ``metrics.jsonl``'s bytes: JSON objects with an integer ``iteration`` ≥ 0 (and
+    ``env_steps``, for the plots).  The last line may be cut short by a kill and is then dropped; any other
+    damage (a bad line, binary bytes, a row without its counters) raises ``error`` naming the file and line."""
+    lines = [(i + 1, line) for i, line in enumerate(data.split(b"\n")) if line.strip()]
+    what = "integer 'iteration' and 'env_steps'" if need_env_steps else "an integer 'iteration'"
     rows = []
     for k, (number, line) in enumerate(lines):
         try:
             row = json.loads(line.decode("utf-8"))
-            if not isinstance(row, dict) or type(row.get("iteration")) is not int or type(row.get("env_steps")) is not int:
-                raise ValueError("not a metrics row (a JSON object with integer 'iteration' and 'env_steps')")
+            if (not isinstance(row, dict) or type(row.get("iteration")) is not int or row["iteration"] < 0
+                    or need_env_steps and type(row.get("env_steps")) is not int):
+                raise ValueError(f"not a metrics row (a JSON object with {what})")
         except (UnicodeDecodeError, ValueError, RecursionError) as exc:
             if k == len(lines) - 1:
-                break
-            raise RunFolderError(f"{file}: damaged metrics log at line {number} ({exc})") from None
+                break  # the last row, cut short by a kill mid-write
+            raise error(f"{file}: damaged metrics log at line {number} ({exc})") from None
         rows.append(row)
     return rows

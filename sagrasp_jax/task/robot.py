@@ -357,22 +357,28 @@ def solve_home_pose(
     q = np.array(seed, dtype=float)
     target = np.asarray(target, dtype=float)
 
-    def residual(qv: np.ndarray) -> np.ndarray:
+    def error(qv: np.ndarray) -> np.ndarray:
         kin = forward_kinematics(np, robot, qv)
         axis = kin.approach_axis
         return np.concatenate([kin.gripper_centre - target, axis[:2]])
 
+    return _damped_least_squares(error, q, iterations, 1e-13, damping)
+
+
+def _damped_least_squares(error: Any, q: np.ndarray, iterations: int, tol: float, damping: float) -> np.ndarray:
+    """Joints that drive ``error(q)`` (a vector) to zero: damped least squares on a central-difference
+    Jacobian, stopping once ``|error| < tol``."""
+    n = len(error(q))
     for _ in range(iterations):
-        r = residual(q)
-        if np.linalg.norm(r) < 1e-13:
+        e = error(q)
+        if np.linalg.norm(e) < tol:
             break
-        jac = np.zeros((5, 6))
+        jac = np.zeros((n, 6))
         for j in range(6):
             dq = np.zeros(6)
             dq[j] = 1e-7
-            jac[:, j] = (residual(q + dq) - residual(q - dq)) / 2e-7
-        step = jac.T @ np.linalg.solve(jac @ jac.T + damping**2 * np.eye(5), -r)
-        q = q + step
+            jac[:, j] = (error(q + dq) - error(q - dq)) / 2e-7
+        q = q + jac.T @ np.linalg.solve(jac @ jac.T + damping**2 * np.eye(n), -e)
     return q
 
 
@@ -408,17 +414,7 @@ def translated_pose(model: RobotModel, q: Any, delta: Any, max_joint_move: float
         kin = forward_kinematics(np, model, qv)
         return np.concatenate([goal - kin.gripper_centre, _orientation_error(kin.link_rot[-1], rot_goal)])
 
-    qv = q.copy()
-    for _ in range(iterations):
-        r = residual(qv)
-        if np.linalg.norm(r) < 1e-12:
-            break
-        jac = np.zeros((6, 6))
-        for j in range(6):
-            dq = np.zeros(6)
-            dq[j] = 1e-7
-            jac[:, j] = -(residual(qv + dq) - residual(qv - dq)) / 2e-7
-        qv = qv + jac.T @ np.linalg.solve(jac @ jac.T + damping**2 * np.eye(6), r)
+    qv = _damped_least_squares(lambda v: -residual(v), q.copy(), iterations, 1e-12, damping)
     r = residual(qv)
     move = float(np.abs(qv - q).max())
     if not (np.isfinite(qv).all() and np.linalg.norm(r[:3]) <= 1e-3 and np.linalg.norm(r[3:]) <= np.radians(0.1)

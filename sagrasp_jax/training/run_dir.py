@@ -55,6 +55,7 @@ import numpy as np
 from sagrasp_jax.training import checkpoint
 from sagrasp_jax.base import fileio
 from sagrasp_jax.task.config import MAX_CONFIG_BYTES, Config, ConfigError, config_from_dict, config_to_dict, parse_json
+from sagrasp_jax.base import run_files
 from sagrasp_jax.base.run_files import CONFIG_FILE, METRICS_FILE, POLICY_FILE  # shared with the jax-free readers
 
 CHECKPOINT_FILE = "checkpoint.ckpt"
@@ -275,27 +276,15 @@ def write_config(run: str, cfg: Config) -> str:
 # ---------------------------------------------------------------------- metrics
 
 def read_metrics(file: str) -> list[dict[str, Any]]:
-    """Rows of ``metrics.jsonl``.  The last line may be cut short by a kill and is then dropped;
-    any other damage (a bad line, binary bytes, a row without an iteration) raises RunDirError
-    naming the file and the line."""
+    """Rows of ``metrics.jsonl`` (``run_files.parse_metrics``: the last line may be cut short by a kill and is
+    then dropped; any other damage raises RunDirError naming the file and the line)."""
     try:
-        lines = [(i + 1, line) for i, line in enumerate(fileio.read_regular(file).split(b"\n")) if line.strip()]
+        data = fileio.read_regular(file)
     except fileio.NotRegularFile as exc:
         raise RunDirError(f"{exc} (the metrics log)") from None
     except OSError as exc:
         raise RunDirError(f"{file}: cannot read the metrics log ({exc.strerror or exc})") from None
-    rows = []
-    for k, (number, line) in enumerate(lines):
-        try:
-            row = json.loads(line.decode("utf-8"))
-            if not isinstance(row, dict) or type(row.get("iteration")) is not int or row["iteration"] < 0:
-                raise ValueError("not a metrics row (a JSON object with an integer 'iteration')")
-        except (UnicodeDecodeError, ValueError, RecursionError) as exc:
-            if k == len(lines) - 1:
-                break  # the last row, cut short by a kill mid-write
-            raise RunDirError(f"{file}: damaged metrics log at line {number} ({exc})") from None
-        rows.append(row)
-    return rows
+    return run_files.parse_metrics(data, file, RunDirError)
 
 
 def _json_safe(value: Any) -> Any:
