@@ -212,10 +212,10 @@ def write_results(path: str, results: dict[str, Any]) -> str:
 def evaluate_physical(run: str, episodes: int, seed: int, max_steps: int, lift: float | None = None,
                       overrides: list[str] | None = None, scenes: str = "mix") -> dict[str, Any]:
     """Replay ``evaluate_run``'s episodes (same keys, same jitted evaluator, same scene set) recording each
-    final pose, and run the physical grasp check (``physical.physical_grasp_check``) on every kinematic
+    final pose, and run the physical grasp check (``grasp_check.physical_grasp_check``) on every kinematic
     success.
 
-    The replay goes through ``policy_eval.evaluate_policy`` with the env wrapped to copy the final
+    The replay goes through ``fixed_seed_eval.evaluate_policy`` with the env wrapped to copy the final
     joints into the episode record, so it is the evaluation's own code path; the kinematic
     success count is reported next to the physical one so a mismatch would show.  As the
     deployment loop does (docs/design.md, "One grasp"), the gripper first slides, its orientation
@@ -312,7 +312,7 @@ def replay_final_poses(run: str, episodes: int, seed: int, max_steps: int,
 
 class _FinalPoseRecorder:
     """Env wrapper that copies the measured arm joints (``GraspEnv.measured_joints``) into ``info["episode"]``
-    as scalar entries ``final_q1..6`` (scalars, so ``policy_eval.evaluate_policy`` keeps them per episode)."""
+    as scalar entries ``final_q1..6`` (scalars, so ``fixed_seed_eval.evaluate_policy`` keeps them per episode)."""
 
     ARM_DOF = 6
 

@@ -13,7 +13,7 @@ Writes, each atomically (temp file + rename), into ``--out``:
 * ``export.json`` — what was exported from where (run, checkpoint counters, config hash,
   file checksums) and the measured largest action difference between the two files.
 
-Why both: ``policy.npz`` runs with NumPy alone on the robot PC (``runtime.load_policy``);
+Why both: ``policy.npz`` runs with NumPy alone on the robot PC (``policy_file.load_policy``);
 ONNX serves any other runtime.  Both come from the same arrays, and the exporter checks that
 they agree (``onnxruntime``, when installed) before it reports success.
 

@@ -5,7 +5,7 @@ takes a finished run folder (its ``policy.npz``); ``--policy`` an exported polic
 
 Each episode is a training scene (target, obstacles, start noise from the shared sampler,
 ``--seed``), run by the deployment loop (``deploy.loop.run_episode``: NumPy policy, shared
-control step, safety layer) on MuJoCo through ``physical.MujocoRobot``: the approach is
+control step, safety layer) on MuJoCo through ``grasp_check.MujocoRobot``: the approach is
 kinematic like training, then the gripper closes and lifts with physics, as in the physical
 grasp check.  Frames come from MuJoCo's offscreen renderer at the control rate (20 fps) from
 the ``overview`` or the calibrated ``depth_camera``; the mp4 is written with imageio-ffmpeg

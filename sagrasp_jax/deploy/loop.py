@@ -6,8 +6,8 @@ training env runs, with NumPy:
 
 * observation: ``observation.observe`` in the layout the policy was trained with (its config's
   ``env.task.obs_layout``: the paper's 17 numbers or the relative obstacle encoding), from the
-  measured joints, no noise (a test compares them with ``env.GraspEnv``'s);
-* action: ``runtime.NumpyPolicy`` with the normaliser it was trained with;
+  measured joints, no noise (a test compares them with ``grasp_env.GraspEnv``'s);
+* action: ``policy_file.NumpyPolicy`` with the normaliser it was trained with;
 * joint target: ``control.control_step`` (slow-down, wrist fine-tuning, target accumulation,
   joint-limit clip) with the policy's own ``env.control`` constants, which must equal the
   deployment's and the URDF's (``safety.check_policy_constants``; the safety limits never come

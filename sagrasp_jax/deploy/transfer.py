@@ -2,7 +2,7 @@
 
 Plain data, no PyBullet and no jax: the deploy CLI validates these before a twin exists.  ``draw`` takes one
 episode's errors from an ``env.randomize`` section with the distributions the MJX env draws them from
-(``env.GraspEnv._draw_randomization``), so a named evaluation condition means the same errors on the twin.
+(``grasp_env.GraspEnv._draw_randomization``), so a named evaluation condition means the same errors on the twin.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """The grasp task as a ``brax.envs.Env``, and a registry: ``load("grasp-kinematic")``.
 
-``GraspEnv`` (``env.py``) is this project's env for its own trainer (``wrappers.AutoReset``,
+``GraspEnv`` (``grasp_env.py``) is this project's env for its own trainer (``auto_reset.AutoReset``,
 ``ppo``).  ``BraxGraspEnv`` is a thin adapter around it that keeps brax's conventions, so that
 ``brax.envs.training.wrap(env, episode_length, action_repeat)`` (vmap, episode and auto-reset
 wrappers) and ``brax.training.acting.generate_unroll`` run the task correctly:
@@ -16,7 +16,7 @@ wrappers) and ``brax.training.acting.generate_unroll`` run the task correctly:
   ``BraxAutoResetWrapper``: ``info["AutoResetWrapper_first_data"]`` / ``..._first_obs``): whenever
   the state it steps is such a start (``pipeline_state["pending"]``), it draws the next one from its
   own key chain (``info["reset_key"]``).  Under ``vmap`` the draw is a select, so it costs a reset per
-  step; ``wrappers.AutoReset`` (the project trainer's) refills lazily instead.
+  step; ``auto_reset.AutoReset`` (the project trainer's) refills lazily instead.
 * **MuJoCo Playground** (``mujoco_playground.wrapper.wrap_for_brax_training``, PyPI ``playground``,
   the ``playground`` extra): its wrappers read and replace the physics as ``state.data``, brax's as
   ``state.pipeline_state``; the states here (:class:`GraspState`) answer to both names.

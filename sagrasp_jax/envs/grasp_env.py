@@ -1,9 +1,9 @@
 """The grasping MDP of docs/task.md §2 as a pure-JAX environment (MuJoCo-MJX physics).
 
 ``GraspEnv(cfg).reset(rng)`` / ``.step(state, action)`` work on one env; ``jax.vmap``
-them for batches (``wrappers.AutoReset`` does, with fresh-sample auto-reset).  Its states are
+them for batches (``auto_reset.AutoReset`` does, with fresh-sample auto-reset).  Its states are
 ``brax.envs.base.State`` but it is not a brax env: brax's wrappers (``training.wrap``) need
-``envs.BraxGraspEnv`` (``envs.load("grasp-kinematic")``), which keeps their conventions.  The
+``brax_adapter.BraxGraspEnv`` (``envs.load("grasp-kinematic")``), which keeps their conventions.  The
 control step, reward, sampling and collision maths come from the backend-agnostic
 modules that the PyBullet reference env and the deployment runtime share.
 
@@ -199,7 +199,7 @@ class GraspEnv:
 
     def sample_spec(self, rng: jax.Array) -> tuple[sampling.ResetSpec, jax.Array]:
         """A fresh scene drawn from ``rng`` and the key ``reset_to`` builds its state with: ``reset`` in two
-        halves, so that a training curriculum (``wrappers.AutoReset``) can put a remembered scene in its place."""
+        halves, so that a training curriculum (``auto_reset.AutoReset``) can put a remembered scene in its place."""
         rng, key_sample = jax.random.split(rng)
         u = jax.random.uniform(key_sample, (self.n_uniforms,))
         return sampling.sample_reset(jnp, self.robot, self.cfg.sampling, self.cfg.task, u), rng

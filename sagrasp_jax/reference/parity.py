@@ -16,7 +16,7 @@ Action sources (``--actions``), each over ``--episodes`` episodes:
   noise, computed from each env's own observation (it succeeds often, so the success,
   slow-down and fine-tune branches are exercised, which random actions almost never reach);
 * ``policy`` (with ``--policy``): the deterministic actions of a trained ``policy.npz``
-  (``runtime.load_policy``, NumPy), computed from each env's own observation; each env's own
+  (``policy_file.load_policy``, NumPy), computed from each env's own observation; each env's own
   success rate is reported.
 
 Per step it compares the gripper centre, the full observation, each reward term and the total,

@@ -90,7 +90,7 @@ def init_policy_state(ts: actor_critic.TrainingState, cfg: Config, obs_size: int
 
 
 def export_policy(file: str, cfg: Config, params: actor_critic.Params, normaliser: actor_critic.Normaliser, obs_size: int) -> str:
-    """Write the deterministic policy (weights + normaliser) as ``runtime``'s ``policy.npz``."""
+    """Write the deterministic policy (weights + normaliser) as ``policy_file``'s ``policy.npz``."""
     layers = sharding.to_host(params.policy["params"])
     weights = [(np.asarray(layers[f"hidden_{i}"]["kernel"]), np.asarray(layers[f"hidden_{i}"]["bias"]))
                for i in range(len(layers))]

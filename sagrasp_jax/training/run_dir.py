@@ -7,7 +7,7 @@ A run folder (``python -m sagrasp_jax.train --out RUN``) holds:
 ``metrics.jsonl``                              one JSON row per logged iteration (appended)
 ``tb/``                                        TensorBoard event files
 ``checkpoint.ckpt``                            everything an exact resume needs (``checkpoint``)
-``policy.npz``                                 the final policy, ``runtime`` format
+``policy.npz``                                 the final policy, ``policy_file`` format
 ``evaluation-<E>ep-seed<S>[-<N>steps].json``   ``evaluate``'s result for E episodes from seed S
 =============================================  ==============================================
 
