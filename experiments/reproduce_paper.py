@@ -39,7 +39,7 @@ import numpy as np
 
 from experiments import study
 from experiments.study import Study, git_state, load_curves, machine
-from sagrasp_jax import evaluate, train  # noqa: F401
+from sagrasp_jax import evaluate
 from sagrasp_jax.plot import pyplot, save, smooth  # the package's plotting helpers (python -m sagrasp_jax.plot)
 from sagrasp_jax.training import run_dir
 from sagrasp_jax.training.stats import BAND_LABELS, band, band_kind, curve_matrix, mean_ci

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
-from typing import Any, NamedTuple
+from typing import Any, Iterable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -109,9 +109,11 @@ class SeedGroup:
     def __len__(self) -> int:
         return len(self.seeds)
 
-    def place(self, seeds: list[RunnerState]) -> RunnerState:
+    def place(self, seeds: Iterable[RunnerState]) -> RunnerState:
         """Each seed's host (or device) state onto the devices: a group's stacked, env states split over the
-        mesh on their env axis; a single run's as its freshly reset state (``self.runner``) is placed."""
+        mesh on their env axis; a single run's as its freshly reset state (``self.runner``) is placed.  A group's
+        seeds are copied to the host one at a time as ``seeds`` yields them, so a generator of fresh device
+        states never holds more than one seed's on the devices."""
         rep = lambda tree: sharding.replicate(tree, self.mesh)  # noqa: E731
         if not self.group:
             (one,) = seeds

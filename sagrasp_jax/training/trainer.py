@@ -50,11 +50,6 @@ def default_envs(cfg: Config) -> tuple[rollout.Env, rollout.Env]:
                       replay=cfg.train.curriculum_replay, max_replays=cfg.train.curriculum_max_replays), GraspEnv(cfg.env))
 
 
-def _seed0(name: str) -> property:
-    """A single run's view (a group's seed 0) of a host-state field."""
-    return property(lambda self: getattr(self.hosts[0], name) if name != "lr" else self.hosts[0].lr_state.lr)
-
-
 class Trainer:
     """One training run bound to a run folder, or a seed group (``seeds``) bound to ``out_dir/seed<S>`` folders.
 
@@ -102,7 +97,7 @@ class Trainer:
         self.compile_s: dict[str, float] = {}
         resumed = resume if isinstance(resume, list) else [resume] * len(self.seeds)
         self._reset = rollout.make_reset(self.train_env, self.mesh)
-        self.runner = self.seed_group.place([self._fresh_one(c, r) for c, r in zip(self.cfgs, resumed)])
+        self.runner = self.seed_group.place(self._fresh_one(c, r) for c, r in zip(self.cfgs, resumed))
         if any(resumed):
             group_checkpoint.load(self.seed_group, group_checkpoint.paths(self.seed_group, resumed), self.rule)
 
@@ -128,7 +123,8 @@ class Trainer:
     train_state = property(lambda self: self.runner.train_state)
     snapshot = property(lambda self: self.runner.snapshot)
     env_state = property(lambda self: self.runner.env_state)
-    lr_state, lr = _seed0("lr_state"), _seed0("lr")  # lr: what the next iteration starts from
+    lr_state = property(lambda self: self.hosts[0].lr_state)
+    lr = property(lambda self: self.hosts[0].lr_state.lr)  # what the next iteration starts from
     sa_state = property(lambda self: self.hosts[0].lr_state.sa)  # None under schedules other than sa
 
     def save_checkpoint(self, which: list[int] | None = None) -> list[str]:
