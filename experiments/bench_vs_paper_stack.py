@@ -504,8 +504,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 
 def main(argv: list[str] | None = None) -> int:
-    if (sys.argv[1:] if argv is None else list(argv))[:1] == ["sb3-baseline"]:
-        return sb3_baseline_main((sys.argv[1:] if argv is None else list(argv))[1:])
+    given = sys.argv[1:] if argv is None else list(argv)
+    if given[:1] == ["sb3-baseline"]:
+        return sb3_baseline_main(given[1:])
     args = parse_args(argv)
     if args.sb3_worker:
         return sb3_worker(args.seconds, args.sb3_envs, 0, args.success, args.window, args.worker_out)

@@ -516,8 +516,9 @@ def failures_main(argv: Sequence[str] | None = None) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    if (sys.argv[1:] if argv is None else list(argv))[:1] == ["failures"]:
-        return failures_main((sys.argv[1:] if argv is None else list(argv))[1:])
+    given = sys.argv[1:] if argv is None else list(argv)
+    if given[:1] == ["failures"]:
+        return failures_main(given[1:])
     args = parse_args(argv)
     default = list(SCHEDULE_VARIANTS) + (list(ABLATION_VARIANTS) if args.ablation else [])
     return run_table(args, VARIANTS, default, args.reference or REFERENCE, argv)
