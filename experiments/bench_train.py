@@ -438,10 +438,12 @@ def _fmt_reach(value: Any) -> str:
 
 # ---------------------------------------------------------------------- SB3 and the raw PyBullet env
 
-def bench_bare_pybullet(steps: int = 20_000) -> dict[str, Any] | None:
+def bench_bare_pybullet(steps: int = 20_000, physics_steps: int = 0) -> dict[str, Any] | None:
     """Raw stepping of a bare PyBullet AUBO-i5 chain (docs/task.md §6's anchor, no learning): per step
-    resetJointState of the 6 arm joints, the gripper link's pose, one closest-point query to an
-    obstacle, a 17-number observation."""
+    the 6 arm joints' new targets, the gripper link's pose, one closest-point query to an obstacle, a
+    17-number observation.  ``physics_steps`` 0 sets the joints (``resetJointState``: the kinematic
+    stepping); N > 0 is the paper stack's dynamic stepping: position control of the 6 joints under
+    gravity and N ``stepSimulation`` calls of 1/240 s (12: one 0.05 s control period)."""
     try:
         import pybullet as pb
     except ImportError:
@@ -462,12 +464,23 @@ def bench_bare_pybullet(steps: int = 20_000) -> dict[str, Any] | None:
         rng = np.random.default_rng(0)
         actions = rng.uniform(-1, 1, (steps, 6))
         q = np.array(config.HOME_Q)
+        for j, qj in zip(joints, q):
+            pb.resetJointState(arm, j, qj, physicsClientId=cid)
+        if physics_steps:
+            pb.setGravity(0, 0, -9.81, physicsClientId=cid)
+            pb.setTimeStep(1.0 / 240.0, physicsClientId=cid)
         target = np.array([0.1, -0.45, 0.025])
         t = time.perf_counter()
         for a in actions:
             q = np.clip(q + 0.05 * a, -config.Q_LIMIT, config.Q_LIMIT)
-            for j, qj in zip(joints, q):
-                pb.resetJointState(arm, j, qj, physicsClientId=cid)
+            if physics_steps:
+                pb.setJointMotorControlArray(arm, joints, pb.POSITION_CONTROL, targetPositions=q.tolist(),
+                                             forces=[150.0] * 6, physicsClientId=cid)
+                for _ in range(physics_steps):
+                    pb.stepSimulation(physicsClientId=cid)
+            else:
+                for j, qj in zip(joints, q):
+                    pb.resetJointState(arm, j, qj, physicsClientId=cid)
             pos = pb.getLinkState(arm, tip, physicsClientId=cid)[0]
             close = pb.getClosestPoints(arm, obstacle, 1.0, physicsClientId=cid)
             d = min((c[8] for c in close), default=1.0)
@@ -475,8 +488,10 @@ def bench_bare_pybullet(steps: int = 20_000) -> dict[str, Any] | None:
         elapsed = time.perf_counter() - t
     finally:
         pb.disconnect(physicsClientId=cid)
-    return {"what": "bare PyBullet AUBO-i5 chain: resetJointState x6, link pose, one closest-point query, "
-                    "17-d observation", "steps": steps, "env_steps_per_s": steps / elapsed}
+    how = (f"position control, {physics_steps} x stepSimulation(1/240 s)" if physics_steps
+           else "resetJointState x6")
+    return {"what": f"bare PyBullet AUBO-i5 chain: {how}, link pose, one closest-point query, 17-d observation",
+            "steps": steps, "physics_steps": physics_steps, "env_steps_per_s": steps / elapsed}
 
 
 def bench_sb3_section(sb3_python: str | None, seconds: float, work: str) -> dict[str, Any]:

@@ -22,6 +22,13 @@ Prints a ratio table and writes JSON atomically.
 
     python -m experiments.bench_vs_paper_stack --seconds 120 --sb3-python .venv-sb3/bin/python \\
         --out experiments/results/bench_vs_paper_stack_cpu.json
+
+``raw`` compares raw dynamic stepping, no learning, in one run: the paper stack's (a bare PyBullet AUBO-i5
+chain under position control, 12 physics steps of 1/240 s per 0.05 s control step, timed before and after
+ours) against our dynamic env (MJX servo physics) at batch 256 in a jitted ``lax.scan``, bare and with the
+auto-reset that training steps it through, on 1 and on every CPU device:
+
+    python -m experiments.bench_vs_paper_stack raw --out experiments/results/raw_dynamic_cpu.json
 """
 
 from __future__ import annotations
@@ -476,6 +483,61 @@ def summary_table(result: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def raw_main(argv: list[str] | None = None) -> int:
+    """``raw``: our dynamic env's env-steps/s at ``--batch`` against the bare PyBullet chain's dynamic stepping."""
+    p = argparse.ArgumentParser(prog="bench_vs_paper_stack raw", description=raw_main.__doc__)
+    p.add_argument("--batch", type=int, default=256, help="our env batch (default 256)")
+    p.add_argument("--scan-steps", type=int, default=200, help="env steps per timed lax.scan call")
+    p.add_argument("--pybullet-steps", type=int, default=3000, help="control steps of the bare chain per timing")
+    p.add_argument("--physics-steps", type=int, default=12, help="PyBullet physics steps (1/240 s) per control step")
+    p.add_argument("--out", default=None, help="result JSON (default: print only)")
+    args = p.parse_args(argv)
+    if min(args.batch, args.scan_steps, args.pybullet_steps, args.physics_steps) < 1:
+        p.error("--batch, --scan-steps, --pybullet-steps and --physics-steps must be >= 1")
+    from experiments import bench_env, bench_train
+    import jax
+
+    def paper_side() -> float:
+        row = bench_train.bench_bare_pybullet(args.pybullet_steps, physics_steps=args.physics_steps)
+        if row is None:
+            raise SystemExit("error: pybullet is not installed (pip install -e \".[twin]\")")
+        return row["env_steps_per_s"]
+
+    before = paper_side()
+    rows = []
+    for auto_reset in (False, True):
+        for devices in sorted({1, len(jax.devices())}):
+            if args.batch % devices:
+                continue
+            row = bench_env.bench_jax("dynamic", args.batch, args.scan_steps, auto_reset, devices=devices)
+            rows.append(row)
+            print(f"  ours dynamic, batch {args.batch}, {'auto-reset' if auto_reset else 'bare step'}, "
+                  f"{devices} device(s): {row['env_steps_per_s']:,.0f} env-steps/s", flush=True)
+    after = paper_side()
+    paper = (before + after) / 2
+    trained = max(r["env_steps_per_s"] for r in rows if r["auto_reset"])
+    bare = max(r["env_steps_per_s"] for r in rows if not r["auto_reset"])
+    result = {
+        "machine": f"{platform.node()} {platform.machine()}, {os.cpu_count()} CPU cores",
+        "load_1min_end": round(os.getloadavg()[0], 2),
+        "command": "python -m experiments.bench_vs_paper_stack raw " + " ".join(sys.argv[2:] if argv is None else argv),
+        "paper_raw_dynamic": {"what": f"bare PyBullet AUBO-i5 chain, position control, {args.physics_steps} x 1/240 s "
+                                      "per control step, link pose, one closest-point query",
+                              "env_steps_per_s_before": before, "env_steps_per_s_after": after,
+                              "env_steps_per_s": paper},
+        "ours": rows,
+        "ratio_auto_reset": trained / paper, "ratio_bare_step": bare / paper,
+    }
+    print(f"{'paper stack, raw dynamic stepping (bare chain)':52s} {paper:>10,.0f} env-steps/s "
+          f"(before {before:,.0f}, after {after:,.0f})")
+    print(f"{'ours, dynamic, as training steps it (auto-reset)':52s} {trained:>10,.0f} env-steps/s   {trained / paper:.1f}x")
+    print(f"{'ours, dynamic, bare step':52s} {bare:>10,.0f} env-steps/s   {bare / paper:.1f}x")
+    if args.out:
+        fileio.atomic_write_json(args.out, result, sort_keys=True)
+        print(f"written to {args.out}")
+    return 0
+
+
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--seconds", type=float, default=120.0, help="training wall-clock budget per stack")
@@ -507,6 +569,8 @@ def main(argv: list[str] | None = None) -> int:
     given = sys.argv[1:] if argv is None else list(argv)
     if given[:1] == ["sb3-baseline"]:
         return sb3_baseline_main(given[1:])
+    if given[:1] == ["raw"]:
+        return raw_main(given[1:])
     args = parse_args(argv)
     if args.sb3_worker:
         return sb3_worker(args.seconds, args.sb3_envs, 0, args.success, args.window, args.worker_out)

@@ -155,6 +155,62 @@ def test_lean_dynamic_model_is_the_six_joint_arm():
     assert float(np.sum(m.body_mass)) == pytest.approx(sum(masses.values()) - masses["base_link"], abs=1e-5)
 
 
+def test_servo_physics_step_is_mjx_step_bit_for_bit():
+    """The dynamic mode's physics step leaves out MJX stages its model has nothing for: from random joint
+    states, targets and randomised servo gains, 20 substeps give mjx.step's qpos, qvel, actuator forces and
+    time exactly (``qacc``, mjx.step's qacc_smooth, is not computed: nothing reads it)."""
+    from mujoco import mjx
+
+    from sagrasp_jax.envs.grasp_env import servo_physics_step
+
+    env = GraspEnv(_cfg("dynamic").env)
+    assert env._lean_physics
+    k = jax.random.split(jax.random.PRNGKey(3), 4)
+    n = 16
+    data = jax.vmap(lambda q, v: mjx.make_data(env._mjx_model).replace(qpos=q, qvel=v))(
+        jax.random.uniform(k[0], (n, 6), minval=-2.0, maxval=2.0), jax.random.uniform(k[1], (n, 6), minval=-1.0, maxval=1.0))
+    ctrl = jax.random.uniform(k[2], (n, 6), minval=-2.5, maxval=2.5)
+    kp = env._servo_kp * jax.random.uniform(k[3], (n, 6), minval=0.7, maxval=1.3)
+
+    def run(step):
+        def one(d, c, gain):
+            m = env._mjx_model
+            m = m.replace(actuator_gainprm=m.actuator_gainprm.at[:, 0].set(gain),
+                          actuator_biasprm=m.actuator_biasprm.at[:, 1].set(-gain))
+            return jax.lax.scan(lambda dd, _: (step(m, dd.replace(ctrl=c)), None), d, None, length=20)[0]
+        return jax.device_get(jax.jit(jax.vmap(one))(data, ctrl, kp))
+
+    lean, full = run(servo_physics_step), run(mjx.step)
+    for field in ("qpos", "qvel", "qfrc_actuator", "qfrc_bias", "time"):
+        np.testing.assert_array_equal(getattr(lean, field), getattr(full, field), err_msg=field)
+    assert float(np.max(np.abs(full.qpos - data.qpos))) > 0.05  # the arm moved
+
+
+def test_compact_servo_state_steps_the_env_as_a_full_mjx_data():
+    """The env carries only qpos / qvel between control steps (``ServoState``) and rebuilds MJX's Data for its
+    substeps: with latency and servo-gain randomisation on, 6 steps of N envs give the joints, observations and
+    rewards of the same env carrying the whole Data through mjx.step to float32 rounding (≤ 1e-6: XLA fuses the
+    two programs differently, 1-ulp moves), and the same done flags."""
+    from sagrasp_jax.envs.grasp_env import ServoState
+
+    cfg = _cfg("dynamic", "env.randomize.servo_gain=0.3", "env.randomize.latency=1.5").env
+    lean, full = GraspEnv(cfg), GraspEnv(cfg)
+    full._lean_physics = False  # the path before the compact state: a whole Data, mjx.step
+
+    def run(env):
+        state = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(11), N))
+        actions = jax.random.uniform(jax.random.PRNGKey(12), (6, N, 6), minval=-1.0, maxval=1.0)
+        return state, jax.lax.scan(lambda st, a: (jax.vmap(env.step)(st, a),) * 2, state, actions)[1]
+
+    (start, states), (_, ref) = jax.device_get(jax.jit(lambda: run(lean))()), jax.device_get(jax.jit(lambda: run(full))())
+    assert isinstance(start.pipeline_state, ServoState) and not isinstance(ref.pipeline_state, ServoState)
+    for got, want in ((states.pipeline_state.qpos, ref.pipeline_state.qpos), (states.pipeline_state.qvel, ref.pipeline_state.qvel),
+                      (states.obs, ref.obs), (states.reward, ref.reward)):
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-6)
+    np.testing.assert_array_equal(states.done, ref.done)
+    assert float(np.max(np.abs(states.pipeline_state.qpos[-1] - start.pipeline_state.qpos))) > 0.01
+
+
 # --------------------------------------------------------------------------------------- fine-tune path
 
 def test_init_from_continues_policy_and_normaliser_with_a_fresh_optimizer(toy_run, tmp_path):

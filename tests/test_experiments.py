@@ -150,7 +150,6 @@ def test_training_time_adds_up_sessions() -> None:
 
 def test_variant_tables_are_valid_configs() -> None:
     from sagrasp_jax import train
-    from sagrasp_jax.training import run_dir
 
     assert list(compare.SCHEDULE_VARIANTS) == ["constant", "sa", "kl-adaptive", "cosine", "linear"]
     assert compare.ABLATION_VARIANTS["sa-no-plateau-decay"] == ("lr.schedule=sa", "sa.plateau_decay=false")
@@ -375,6 +374,27 @@ def test_bench_vs_paper_stack_smoke_without_sb3(tmp_path: pytest.TempPathFactory
     assert set(ours["time_to_success"]) == {"0.5"}
     assert result["ratio_ours_over_sb3_env_steps_per_s"] is None
     assert "skipped" in res.stdout
+
+
+@pytest.mark.bench
+def test_bench_vs_paper_stack_raw_dynamic_smoke(tmp_path: pytest.TempPathFactory) -> None:
+    """``raw``: the bare PyBullet chain's dynamic stepping timed before and after ours, our dynamic env bare and
+    through auto-reset on 1 and every device, the ratio of the best to the paper side; bad sizes exit 2."""
+    pytest.importorskip("pybullet")
+    out = str(tmp_path / "raw.json")
+    res = _run(["experiments.bench_vs_paper_stack", "raw", "--batch", "4", "--scan-steps", "3", "--pybullet-steps",
+                "20", "--out", out])
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    with open(out, encoding="utf-8") as f:
+        result = json.load(f)
+    paper = result["paper_raw_dynamic"]
+    assert paper["env_steps_per_s_before"] > 0 and paper["env_steps_per_s_after"] > 0
+    assert "12 x 1/240 s" in paper["what"]
+    assert {(r["auto_reset"], r["devices"]) for r in result["ours"]} >= {(False, 1), (True, 1)}
+    assert all(r["mode"] == "dynamic" and r["batch"] == 4 for r in result["ours"])
+    best = max(r["env_steps_per_s"] for r in result["ours"] if r["auto_reset"])
+    assert result["ratio_auto_reset"] == pytest.approx(best / paper["env_steps_per_s"])
+    assert _run(["experiments.bench_vs_paper_stack", "raw", "--batch", "0"]).returncode == 2
 
 
 def test_bench_sb3_missing_interpreter_is_skipped(tmp_path: pytest.TempPathFactory) -> None:

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import functools
 import os
-from typing import Any
+from typing import Any, NamedTuple
 
 import sagrasp_jax  # noqa: F401  (XLA flags before jax)
 import jax
@@ -43,6 +43,48 @@ MJCF_SCENE = assets.MJCF_SCENE
 MJCF_ROBOT = assets.MJCF_ROBOT  # the dynamic mode's model
 
 OBS_SIZE = observation.OBS_SIZE  # the paper layout's 17; an env's own size is ``GraspEnv.observation_size``
+
+
+class ServoState(NamedTuple):
+    """The dynamic mode's physics state between control steps (JAX backend): all that persists.
+
+    Everything else in MJX's ``Data`` is recomputed from the joint positions and velocities at every
+    substep (no activations, mocap bodies, contacts or constraint warm-start in the lean model), so an env
+    state carries these two arrays instead of the ~90 of a ``Data``: the auto-reset's per-env selects and
+    the pending starts' refills then touch two leaves, not ninety.  ``.qpos`` / ``.qvel`` read as on a Data."""
+
+    qpos: jax.Array
+    qvel: jax.Array
+
+
+def servo_physics_step(model: Any, data: Any) -> Any:
+    """``mjx.step`` for the dynamic mode's lean model (JAX backend), without the stages it has nothing for.
+
+    The model has no geoms, tendons, cameras, sensors, contacts or constraints, and integrates with
+    implicitfast, which solves its own (M − h·∂f/∂v) system: so this is ``mjx.step``'s ``forward`` minus
+    camlight, tendons, collision, the constraint rows, sensors and the factorisation / solve of M that
+    ``fwd_acceleration`` makes for ``qacc_smooth`` (which implicitfast overwrites), then its ``implicit``.
+    Every stage left is MJX's own function, in MJX's order, so the state is ``mjx.step``'s bit for bit
+    (``tests/test_dynamic.py``; ``qacc``, mjx.step's unused ``qacc_smooth``, is left as it was) at ≈ 7 % less work; mujoco-mjx is pinned to the version this was read from
+    (3.17.0: its ``_src`` modules are not a public API)."""
+    from mujoco.mjx._src import derivative, passive, smooth
+    from mujoco.mjx._src import forward as mjx_forward
+
+    d = smooth.kinematics(model, data)
+    d = smooth.com_pos(model, d)
+    d = smooth.crb(model, d)
+    d = smooth.transmission(model, d)
+    d = d.tree_replace({"_impl.actuator_velocity": d._impl.actuator_moment @ d.qvel})
+    d = smooth.com_vel(model, d)
+    d = passive.passive(model, d)
+    d = smooth.rne(model, d)
+    d = mjx_forward.fwd_actuation(model, d)
+    qfrc_smooth = d.qfrc_passive - d.qfrc_bias + d.qfrc_actuator + d.qfrc_applied
+    d = d.replace(qfrc_smooth=qfrc_smooth)
+    qm = d._impl.M - model.opt.timestep * derivative.deriv_smooth_vel(model, d)
+    factor, _ = jax.scipy.linalg.cho_factor(qm)
+    qacc = jax.scipy.linalg.cho_solve((factor, False), qfrc_smooth)
+    return mjx_forward._advance(model, d, d.act_dot, qacc)
 
 
 class GraspEnv:
@@ -104,6 +146,10 @@ class GraspEnv:
         if model.nq != 6 or model.nu != 6:
             raise RuntimeError(f"{MJCF_ROBOT}: expected the 6-joint arm after welding the fingers, got nq={model.nq}")
         self._mj_model = model  # Warp's make_data takes the MuJoCo model
+        # servo_physics_step's premises (else mjx.step): the JAX backend, implicitfast, nothing but the servos
+        self._lean_physics = (self.cfg.control.impl == "jax" and model.opt.integrator == mujoco.mjtIntegrator.mjINT_IMPLICITFAST
+                              and model.ngeom == model.nsite == model.ntendon == model.nsensor == model.ncam == 0
+                              and model.neq == model.nlight == model.nflex == model.na == model.nmocap == 0)
         self._servo_kp = jnp.asarray(model.actuator_gainprm[:, 0])  # for the servo-gain randomisation
         self._servo_kv = jnp.asarray(-model.actuator_biasprm[:, 2])
         return mjx.put_model(model, impl=self.cfg.control.impl)
@@ -113,6 +159,9 @@ class GraspEnv:
             return None
         from mujoco import mjx
 
+        if self._lean_physics:
+            dtype = self._mjx_model.qpos0.dtype
+            return ServoState(qpos=q0.astype(dtype), qvel=jnp.zeros(q0.shape, dtype))
         impl = self.cfg.control.impl
         data = mjx.make_data(self._mj_model if impl == "warp" else self._mjx_model, impl=impl)
         return data.replace(qpos=q0.astype(data.qpos.dtype), ctrl=q0.astype(data.ctrl.dtype))
@@ -150,13 +199,18 @@ class GraspEnv:
                                   .at[:, 2].set(-kv.astype(model.actuator_biasprm.dtype)))
         delay = jnp.round(fraction * self.cfg.control.substeps).astype(jnp.int32)
         pipeline = state.pipeline_state
+        if self._lean_physics:  # the substeps' Data, rebuilt from the only state that persists
+            pipeline = mjx.make_data(self._mjx_model).replace(qpos=pipeline.qpos, qvel=pipeline.qvel)
         ctrl_dtype = pipeline.ctrl.dtype
+        physics_step = servo_physics_step if self._lean_physics else mjx.step
 
         def substep(data: Any, i: Any) -> tuple[Any, None]:
             ctrl = jnp.where(i < delay, previous, current)
-            return mjx.step(model, data.replace(ctrl=ctrl.astype(ctrl_dtype))), None
+            return physics_step(model, data.replace(ctrl=ctrl.astype(ctrl_dtype))), None
 
         pipeline, _ = jax.lax.scan(substep, pipeline, jnp.arange(self.cfg.control.substeps))
+        if self._lean_physics:
+            pipeline = ServoState(qpos=pipeline.qpos, qvel=pipeline.qvel)
         return pipeline, pipeline.qpos[:6].astype(dtype), {}
 
     def measured_joints(self, state: State) -> jax.Array:
