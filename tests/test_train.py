@@ -325,3 +325,37 @@ def test_algo_and_lr_schedule_options(tmp_path, capsys):
         assert train.main(["--out", str(out), *argv]) == 2
         assert message in capsys.readouterr().err
         assert not out.exists()
+
+
+def test_stopping_rule_ends_the_run_as_the_full_runs_first_part(tmp_path, capsys):
+    """``train.stop_success`` over ``train.stop_cycles``: the run stops at the first cycle whose policy SA kept
+    with the window's pooled evaluation success at the level, its rows are the full budget's rows up to there,
+    it records why (rows, checkpoint, summary), writes its policy, and a resume trains nothing more."""
+    full_dir, stop_dir = str(tmp_path / "full"), str(tmp_path / "stop")
+    base = ["sa.tol=0.0", "sa.t0=0.5"]
+    train.run(toy_config(cycles=8, extra=base), full_dir, env_factory=toy_factory(), progress=False)
+    cycles = [r for r in _rows(full_dir) if "sa_decision" in r]
+    success = [r["eval_success"] for r in cycles]
+    pooled = [float(np.mean(success[k - 2:k])) for k in range(2, 7)]
+    level = max(pooled)
+    assert 0 < level <= 1, success  # the toy learns something to stop on
+    kept = [r["sa_decision"] != "reject" for r in cycles]
+    expect = next(k for k in range(2, 9) if kept[k - 1] and np.mean(success[k - 2:k]) >= level)  # cycles run
+    assert expect < 8
+
+    stopped = train.run(toy_config(cycles=8, extra=base + [f"train.stop_success={level!r}", "train.stop_cycles=2"]),
+                        stop_dir, env_factory=toy_factory(), progress=False)
+    rows = _rows(stop_dir)
+    last = [r for r in rows if "sa_decision" in r][-1]
+    assert len([r for r in rows if "sa_decision" in r]) == expect and last["stopped_by_rule"]
+    assert last["stop_window_cycles"] == 2 and last["stop_window_success"] >= level
+    stop_keys = ("stop_window_success", "stop_window_cycles", "stopped_by_rule")
+    assert [{k: v for k, v in r.items() if k not in stop_keys} for r in rows] == _rows(full_dir)[:len(rows)]
+    assert stopped.host.stopped_at == rows[-1]["env_steps"] < train.make_schedule(toy_config(cycles=8)).num_iterations * 512
+    assert "stopped by the stopping rule at" in capsys.readouterr().err
+    assert os.path.exists(os.path.join(stop_dir, run_dir.POLICY_FILE))
+    from sagrasp_jax.training.checkpoint import load as load_checkpoint
+    assert load_checkpoint(os.path.join(stop_dir, run_dir.CHECKPOINT_FILE)).host["counters"]["stopped_at"] == stopped.host.stopped_at
+    resumed = train.run(toy_config(cycles=8, extra=base + [f"train.stop_success={level!r}", "train.stop_cycles=2"]),
+                        stop_dir, env_factory=toy_factory(), progress=False, resume=True)
+    assert resumed.host.iteration == stopped.host.iteration and len(_rows(stop_dir)) == len(rows)

@@ -426,6 +426,13 @@ class TrainConfig:
     curriculum_max_replays: int = key(
         8, "learnability curriculum: a remembered scene is retired after this many replays (one solved half the time "
         "keeps its score and would otherwise be replayed for ever)", within(1, 10**6))
+    stop_success: float = key(
+        0.0, "Stopping rule (docs/design.md, \"Stopping when the evaluation holds\"): end the run, before "
+        "train.total_steps, at the end of a cycle whose policy SA kept when the fixed-seed evaluations of the last "
+        "train.stop_cycles cycles, pooled, succeeded at least this often; the reward weights and the cycles stay those of "
+        "the whole budget, so the run is the full run's first part.  0 = off (train to total_steps)", within(0, 1))
+    stop_cycles: int = key(20, "stopping rule: cycles (fixed-seed evaluations) pooled, the current one included",
+                           within(1, 10**6))
     log_every: int = key(1, "iterations between JSONL rows", within(1, 10**9))
     checkpoint_every_cycles: int = key(10, "cycles between checkpoints", within(1, 10**9))
     metrics_window: int = key(256, "finished episodes in the training-episode window", within(1, 10**7))
@@ -980,7 +987,7 @@ RESPELLED_VALUES: dict[str, tuple[Any, Any]] = {"train.obstacle_prob": (-1.0, No
 # (The curriculum was off in every earlier run, which makes its retirement count moot there: the default stands in.)
 ADDED_KEYS: dict[str, Any] = {"env.reward.tilt_weight": 0.0, "env.reward.tilt_free_deg": 5.0, "env.reward.tilt_near": 0.0,
                               "train.curriculum_replay": 0.0, "train.curriculum_max_replays": 8,
-                              "env.task.obs_obstacle_shape": False}
+                              "env.task.obs_obstacle_shape": False, "train.stop_success": 0.0, "train.stop_cycles": 20}
 
 
 def _upgraded(flat: dict[str, Any]) -> dict[str, Any]:

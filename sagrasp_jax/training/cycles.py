@@ -157,6 +157,22 @@ def anneal(group: SeedGroup, rule: lr_schedule.Rule, cfg: Config, n_actions: int
     return decisions
 
 
+def stop_rule(host: Any, cfg: Config, success: float, kept: bool) -> dict[str, Any]:
+    """The stopping rule (``train.stop_success`` over ``train.stop_cycles``) at a cycle's end: records the
+    cycle's evaluation success in the seed's window and stops the seed (``host.stopped_at``) when the window is
+    full, its pooled success is at least ``stop_success`` and the lr schedule kept the policy just evaluated (so
+    the run's policy is the one the last evaluation judged).  Returns the row fields (none when the rule is off)."""
+    train = cfg.train
+    if not train.stop_success:
+        return {}
+    host.recent_evals = (list(host.recent_evals) + [float(success)])[-train.stop_cycles:]
+    pooled = float(np.mean(host.recent_evals))
+    held = kept and len(host.recent_evals) == train.stop_cycles and pooled >= train.stop_success
+    if held:
+        host.stopped_at = host.env_steps
+    return {"stop_window_success": pooled, "stop_window_cycles": len(host.recent_evals), "stopped_by_rule": held}
+
+
 def cycle_metric(cfg: Config, ev: EvalResult | None) -> float | None:
     """The number SA judges a cycle by (``sa.metric``): the evaluation's success rate or mean return."""
     return None if ev is None else float(ev.mean_return if cfg.sa.metric == "return" else ev.success_rate)

@@ -119,7 +119,9 @@ def summary(host: HostState, rule: lr_schedule.Rule, row: dict[str, Any], steps:
     schedule = (f"SA accept {sa.n_accept}, accept-worse {sa.n_accept_worse}, reject {sa.n_reject}, "
                 f"decays {sa.decays}, lr {sa.lr:.3g}" if sa is not None else
                 f"{rule.name} lr schedule, lr {lr:.3g}" + (" (PPO)" if rule.name == "constant" else ""))
-    return (f"{steps:,} env steps this session, {row['time_s']:.1f} s training ({steps / max(row['time_s'], 1e-9):,.0f} "
+    stop = (f"stopped by the stopping rule at {host.stopped_at:,} env steps (the last {len(host.recent_evals)} "
+            f"evaluations: {100 * sum(host.recent_evals) / len(host.recent_evals):.2f} % success); ") if host.stopped_at else ""
+    return (stop + f"{steps:,} env steps this session, {row['time_s']:.1f} s training ({steps / max(row['time_s'], 1e-9):,.0f} "
             f"steps/s incl. evaluation) + {row['compile_s']:.1f} s compile; {schedule}; "
             f"non-finite {host.nonfinite}; last eval success {fmt(row.get('eval_success'))}, "
             f"return {fmt(row.get('eval_return'))}")

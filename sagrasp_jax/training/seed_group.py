@@ -9,7 +9,7 @@ so that a group's seed computes bit for bit what the same seed computes alone.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Iterable, NamedTuple
 
 import jax
@@ -35,7 +35,8 @@ class RunnerState(NamedTuple):
 # RunnerState field -> its tree name in the checkpoint (the layout runs written before the split use)
 CHECKPOINT_TREES = {"train_state": "train_state", "snapshot": "snapshot", "env_state": "env_state",
                     "train_key": "train_key", "window": "episode_window"}
-COUNTERS = ("iteration", "env_steps", "cycle_start", "entropy_sum", "entropy_n", "nonfinite")
+COUNTERS = ("iteration", "env_steps", "cycle_start", "entropy_sum", "entropy_n", "nonfinite", "recent_evals",
+            "stopped_at")
 
 
 @dataclass
@@ -52,6 +53,8 @@ class HostState:
     entropy_sum: float = 0.0  # over the current cycle's iterations
     entropy_n: int = 0
     nonfinite: int = 0  # iterations rolled back for NaN/inf
+    recent_evals: list[float] = field(default_factory=list)  # the stopping rule's window of evaluation success rates
+    stopped_at: int = 0  # env steps at which the stopping rule ended the run (0: it has not)
 
     @classmethod
     def fresh(cls, rule: lr_schedule.Rule, seed: int) -> HostState:

@@ -224,19 +224,25 @@ class Trainer:
         for i, (host, decision) in enumerate(zip(self.hosts, decisions)):
             if decision is not None:
                 host.start_cycle()
-            out.append(None if decision is None else
-                       cycles.cycle_row(host.lr_state, decision, evals[i], eval_s[i], metric[i], entropy[i]))
+            if decision is None:
+                out.append(None)
+                continue
+            row = cycles.cycle_row(host.lr_state, decision, evals[i], eval_s[i], metric[i], entropy[i])
+            kept = not decision.restore and decision.kind != "reject"
+            row.update(cycles.stop_rule(host, self.cfgs[i], float(evals[i].success_rate), kept))
+            out.append(row)
         return out
 
     def train(self, stop_after_cycles: int | None = None) -> dict[str, Any]:
-        """Train every seed to ``train.total_steps`` (or stop, checkpointed, after ``stop_after_cycles`` cycles);
+        """Train every seed to ``train.total_steps`` or its stopping rule (``train.stop_success``), or stop,
+        checkpointed, after ``stop_after_cycles`` cycles;
         returns the last row (a group's: seed 0's).  The loop is :func:`sagrasp_jax.training.loop.train`."""
         return loop.train(self, stop_after_cycles)
 
     def export_finished(self) -> None:
         """Each finished seed's final policy into its run folder (``policy.npz``; process 0)."""
         for i, host in enumerate(self.hosts):
-            if self.primary and host.iteration >= self.schedule.num_iterations:
+            if self.primary and (host.iteration >= self.schedule.num_iterations or host.stopped_at):
                 ts = self.seed_group.train_state_of(i)
                 restore.export_policy(os.path.join(self.dirs[i], run_dir.POLICY_FILE), self.cfgs[i], ts.params, ts.normaliser,
                               self.obs_size)
