@@ -153,7 +153,7 @@ def anneal(group: SeedGroup, rule: lr_schedule.Rule, cfg: Config, n_actions: int
                                                         n_actions=n_actions)
         decisions.append(decision)
     group.restore_and_accept(restore=[d is not None and d.restore for d in decisions],
-                             accept=[d is not None and not d.restore and d.kind != "reject" for d in decisions])
+                             accept=[d is not None and d.kept for d in decisions])
     return decisions
 
 

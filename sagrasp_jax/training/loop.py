@@ -40,7 +40,7 @@ def train(tr: Any, stop_after_cycles: int | None = None) -> dict[str, Any]:
                               f"{sched.num_cycles} cycles of <= {sched.iterations_per_cycle}, {tr.mesh.size} device(s)"
                               + (f", {len(tr.seeds)} seeds in one program" if tr.group else ""))
         while True:
-            active = [not s and h.iteration < sched.num_iterations and not h.stopped_at for s, h in zip(stopped, tr.hosts)]
+            active = [not s and not h.finished(sched.num_iterations) for s, h in zip(stopped, tr.hosts)]
             if not any(active):
                 break
             lrs = [h.lr_state.lr for h in tr.hosts]  # during this call (fixed-lr schedules)
@@ -66,7 +66,7 @@ def train(tr: Any, stop_after_cycles: int | None = None) -> dict[str, Any]:
                         callback.on_row(row, tr.seeds[i] if tr.group else None)
                 last_rows[i] = seed_rows[-1]
                 cycles_done = host.lr_state.cycle
-                finished = host.iteration >= sched.num_iterations or bool(host.stopped_at)
+                finished = host.finished(sched.num_iterations)
                 stopped[i] = ending[i] and stop_after_cycles is not None and cycles_done >= stop_after_cycles
                 if finished or stopped[i] or (ending[i] and cycles_done % tr.cfg.train.checkpoint_every_cycles == 0):
                     due.append(i)

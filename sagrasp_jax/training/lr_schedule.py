@@ -114,6 +114,11 @@ class CycleOutcome(NamedTuple):
     delta_e: float = math.nan  # sa: M_acc − M
     accept_prob: float = 1.0  # sa: probability with which this outcome could be accepted
 
+    @property
+    def kept(self) -> bool:
+        """The cycle's updates stay: the snapshot moves to them (an accept, or an accept-worse)."""
+        return not self.restore and self.kind != "reject"
+
 
 # ------------------------------------------------------------------ the per-step rules (any array module)
 

@@ -80,6 +80,10 @@ class HostState:
             raise ValueError(f"unknown counters {', '.join(sorted(unknown))}")
         return cls(lr_state=lr_state, sa_rng=rng, **host["counters"])
 
+    def finished(self, num_iterations: int) -> bool:
+        """The seed has trained its whole budget of ``num_iterations``, or its stopping rule ended it."""
+        return self.iteration >= num_iterations or bool(self.stopped_at)
+
     def start_cycle(self) -> None:
         self.cycle_start = self.iteration
         self.entropy_sum, self.entropy_n = 0.0, 0

@@ -228,8 +228,7 @@ class Trainer:
                 out.append(None)
                 continue
             row = cycles.cycle_row(host.lr_state, decision, evals[i], eval_s[i], metric[i], entropy[i])
-            kept = not decision.restore and decision.kind != "reject"
-            row.update(cycles.stop_rule(host, self.cfgs[i], float(evals[i].success_rate), kept))
+            row.update(cycles.stop_rule(host, self.cfgs[i], float(evals[i].success_rate), decision.kept))
             out.append(row)
         return out
 
@@ -242,7 +241,7 @@ class Trainer:
     def export_finished(self) -> None:
         """Each finished seed's final policy into its run folder (``policy.npz``; process 0)."""
         for i, host in enumerate(self.hosts):
-            if self.primary and (host.iteration >= self.schedule.num_iterations or host.stopped_at):
+            if self.primary and host.finished(self.schedule.num_iterations):
                 ts = self.seed_group.train_state_of(i)
                 restore.export_policy(os.path.join(self.dirs[i], run_dir.POLICY_FILE), self.cfgs[i], ts.params, ts.normaliser,
                               self.obs_size)
