@@ -45,3 +45,13 @@ def test_string_lists_parse_from_bare_words_and_json():
 def test_minibatches_must_divide_the_batch():
     with pytest.raises(config.ConfigError, match="ppo.num_minibatches"):
         config.apply_overrides(config.get_config("paper"), ["ppo.num_envs=10", "ppo.unroll_length=3", "ppo.num_minibatches=4"])
+
+
+def test_late_epochs_may_only_lower_the_passes():
+    cfg = config.apply_overrides(config.get_config("cpu-quick"), ["ppo.late_epochs=4", "ppo.late_from=0.25"])
+    assert (cfg.ppo.late_epochs, cfg.ppo.late_from, cfg.ppo.num_epochs) == (4, 0.25, 8)
+    with pytest.raises(config.ConfigError, match="ppo.late_epochs=9 must not exceed ppo.num_epochs=8"):
+        config.apply_overrides(config.get_config("cpu-quick"), ["ppo.late_epochs=9"])
+    # off at its default: a run's identity does not change with the key's arrival
+    assert {"late_epochs", "late_from"}.isdisjoint(config.identity_dict(config.get_config("cpu-quick"))["ppo"])
+    assert config.identity_dict(cfg)["ppo"]["late_epochs"] == 4

@@ -84,6 +84,29 @@ def test_iteration_writes_progress_and_counts_finished_episodes():
     assert int(ts2.opt_state[1].count) == cfg.num_epochs * cfg.num_minibatches
 
 
+def test_late_epochs_run_fewer_of_the_same_passes_from_late_from_on():
+    """``ppo.late_epochs``: before ``late_from`` an iteration takes the fixed scan's passes (same update count,
+    parameters equal to float rounding); from it on, only ``late_epochs`` of them, in the same program."""
+    import dataclasses
+    base, env, mesh, nets, opt, ts, es = _setup()
+    assert base.num_epochs >= 2
+    late = dataclasses.replace(base, late_epochs=1, late_from=0.5)
+    key = jax.random.PRNGKey(2)
+    fixed, _, m_fixed = _iteration(env, nets, opt, base, mesh, ts, es, key, 0.25)
+    early, _, m_early = _iteration(env, nets, opt, late, mesh, ts, es, key, 0.25)
+    after, _, m_after = _iteration(env, nets, opt, late, mesh, ts, es, key, 0.75)
+    per_epoch = base.num_minibatches
+    assert int(early.opt_state[1].count) == int(fixed.opt_state[1].count) == base.num_epochs * per_epoch
+    assert int(after.opt_state[1].count) == per_epoch
+    for a, b in zip(jax.tree_util.tree_leaves(early.params), jax.tree_util.tree_leaves(fixed.params)):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(m_early["loss"], m_fixed["loss"], rtol=1e-5, atol=1e-6)  # the passes' mean
+    moved = lambda new: sum(float(jnp.sum(jnp.abs(x - y))) for x, y in
+                            zip(jax.tree_util.tree_leaves(new.params), jax.tree_util.tree_leaves(ts.params)))
+    assert 0 < moved(after) < moved(early)  # one pass moves the policy, less far than all of them
+    assert bool(m_after["finite"]) and np.isfinite(float(m_after["loss"]))
+
+
 def test_nonfinite_iteration_keeps_the_old_state_bit_for_bit():
     cfg, env, mesh, nets, opt, ts, es = _setup(env=AutoReset(PointReach(nan_progress=(0.5, 1.0))))
     kept, es2, m = _iteration(env, nets, opt, cfg, mesh, ts, es, jax.random.PRNGKey(3), 0.6)

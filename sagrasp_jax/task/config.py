@@ -325,6 +325,12 @@ class PPOConfig:
     unroll_length: int = key(128, "steps per env per PPO iteration (rollout length)", within(1, 100_000))
     num_minibatches: int = key(8, "minibatches per epoch; must divide num_envs × unroll_length", within(1, 2**24))
     num_epochs: int = key(10, "passes over each rollout", within(1, 10_000))
+    late_epochs: int = key(
+        0, "Fewer passes late in the run (docs/design.md, \"Fewer SGD passes late\"): from training progress "
+        "ppo.late_from on, each rollout gets this many passes instead of ppo.num_epochs (at most that many).  "
+        "0 = off, ppo.num_epochs throughout", within(0, 10_000))
+    late_from: float = key(
+        0.3, "training progress (env steps / train.total_steps) from which ppo.late_epochs applies", within(0, 1))
     clip_eps: float = key(0.2, "PPO ratio clip ε", above(0, 10))
     gamma: float = key(0.99, "discount factor γ of the returns", above(0, 1))
     gae_lambda: float = key(0.95, "λ of the generalised advantage estimate", within(0, 1))
@@ -948,6 +954,9 @@ def validate(cfg: Config) -> None:
         if not get_key(cfg, name):
             raise ConfigError(f"{name} is empty: give at least one hidden layer width (e.g. {name}=64,64); "
                               "no hidden layer would make the network linear")
+    if cfg.ppo.late_epochs > cfg.ppo.num_epochs:
+        raise ConfigError(f"ppo.late_epochs={cfg.ppo.late_epochs} must not exceed ppo.num_epochs={cfg.ppo.num_epochs} "
+                          "(it gives fewer passes late in the run; 0 turns it off)")
     if (cfg.ppo.num_envs * cfg.ppo.unroll_length) % cfg.ppo.num_minibatches:
         raise ConfigError(f"ppo.num_minibatches={cfg.ppo.num_minibatches} must divide ppo.num_envs × ppo.unroll_length "
                           f"= {cfg.ppo.num_envs} × {cfg.ppo.unroll_length}")
@@ -987,7 +996,8 @@ RESPELLED_VALUES: dict[str, tuple[Any, Any]] = {"train.obstacle_prob": (-1.0, No
 # (The curriculum was off in every earlier run, which makes its retirement count moot there: the default stands in.)
 ADDED_KEYS: dict[str, Any] = {"env.reward.tilt_weight": 0.0, "env.reward.tilt_free_deg": 5.0, "env.reward.tilt_near": 0.0,
                               "train.curriculum_replay": 0.0, "train.curriculum_max_replays": 8,
-                              "env.task.obs_obstacle_shape": False, "train.stop_success": 0.0, "train.stop_cycles": 20}
+                              "env.task.obs_obstacle_shape": False, "train.stop_success": 0.0, "train.stop_cycles": 20,
+                              "ppo.late_epochs": 0, "ppo.late_from": 0.3}
 
 
 def _upgraded(flat: dict[str, Any]) -> dict[str, Any]:

@@ -46,8 +46,13 @@ CYCLE_METRICS = ("loss", "policy_loss", "value_loss", "entropy_bonus", "approx_k
 def sgd_epochs(params: Params, opt_state: optax.OptState, normaliser: Normaliser, batch: Batch, key: jax.Array,
                networks: PPONetworks, optimizer: optax.GradientTransformation,
                cfg: PPOConfig, axis_name: str | None = None,
-               kl_rule: lr_schedule.Rule | None = None) -> tuple[Params, optax.OptState, dict[str, jax.Array]]:
+               kl_rule: lr_schedule.Rule | None = None,
+               epochs: jax.Array | None = None) -> tuple[Params, optax.OptState, dict[str, jax.Array]]:
     """``num_epochs`` passes over the batch in ``num_minibatches`` shuffled minibatches.
+
+    ``epochs`` (a traced count ≤ ``num_epochs``; ``epochs_at``) runs only the first that many of
+    the same passes, in a loop whose length is set at run time, so one compiled program serves
+    every count; the metrics are then the passes' means (shape []), not [epochs, minibatches].
 
     With ``axis_name`` each device shuffles its own share (a minibatch is the union of the
     devices' minibatches) and the gradients are averaged over devices.  With ``kl_rule`` (the
@@ -86,8 +91,29 @@ def sgd_epochs(params: Params, opt_state: optax.OptState, normaliser: Normaliser
         shuffled = jax.tree_util.tree_map(lambda x: x[perm].reshape((cfg.num_minibatches, mb) + x.shape[1:]), batch)
         return jax.lax.scan(minibatch_step, carry, (shuffled, jax.random.split(k_mb, cfg.num_minibatches)))
 
-    (params, opt_state), metrics = jax.lax.scan(epoch, (params, opt_state), jax.random.split(key, cfg.num_epochs))
-    return params, opt_state, metrics
+    keys = jax.random.split(key, cfg.num_epochs)
+    if epochs is None:
+        (params, opt_state), metrics = jax.lax.scan(epoch, (params, opt_state), keys)
+        return params, opt_state, metrics
+
+    def counted_epoch(e: jax.Array, carry: tuple[tuple[Params, optax.OptState], dict[str, jax.Array]]):
+        state, sums = carry
+        state, metrics = epoch(state, keys[e])
+        return state, jax.tree_util.tree_map(lambda total, x: total + jnp.sum(x, axis=0), sums, metrics)
+
+    shapes = jax.eval_shape(epoch, (params, opt_state), keys[0])[1]
+    zeros = jax.tree_util.tree_map(lambda x: jnp.zeros(x.shape[1:], x.dtype), shapes)
+    (params, opt_state), sums = jax.lax.fori_loop(0, epochs, counted_epoch, ((params, opt_state), zeros))
+    steps = (epochs * cfg.num_minibatches).astype(jnp.float32)
+    return params, opt_state, jax.tree_util.tree_map(lambda total: total / steps, sums)
+
+
+def epochs_at(cfg: PPOConfig, progress: jax.Array) -> jax.Array | None:
+    """SGD passes at training ``progress``: ``late_epochs`` from ``late_from`` on, else ``num_epochs``;
+    None when ``late_epochs`` is off (``sgd_epochs`` then runs its fixed scan, as before the key)."""
+    if not cfg.late_epochs:
+        return None
+    return jnp.where(progress >= cfg.late_from, cfg.late_epochs, cfg.num_epochs).astype(jnp.int32)
 
 
 def _all_finite(tree: Any) -> jax.Array:
@@ -128,7 +154,8 @@ def iteration(train_state: TrainingState, env_state: State, key: jax.Array, prog
     normaliser = update_normaliser(train_state.normaliser, data.obs, cfg, hand_scaled, axis_name)
     batch = make_batch(networks, params, normaliser, data, env_state.obs, cfg, critic_extra_of(env_state, critic_extra))
     new_params, opt_state, sgd_metrics = sgd_epochs(params, train_state.opt_state, normaliser, batch, k_sgd,
-                                                    networks, optimizer, cfg, axis_name, kl_rule)
+                                                    networks, optimizer, cfg, axis_name, kl_rule,
+                                                    epochs_at(cfg, progress))
     new_state = TrainingState(params=new_params, opt_state=opt_state, normaliser=normaliser)
     finite = _all_finite(sgd_metrics["loss"]) & _all_finite(new_state)
     if axis_name is not None:  # every device must take the same branch
