@@ -94,6 +94,10 @@ _OVER_ROUND_2: dict[str, tuple[str, ...]] = {
     # SA's plateau decay steeper still (×0.95: ≈ 1.1e-4 by the end where ×0.96 ends at 1.5e-4): ×0.98 → ×0.96
     # polished the final policy; does a smaller last step size polish more?
     "decay-0.95": ("sa.decay=0.95",),
+    # half the SGD passes once the climb is over (30 % of the budget; 98 % came at 13-28 % on the README seeds):
+    # SGD is 46 % of an iteration (docs/results.md §13), so the last 70 % of the run costs about a sixth less
+    "late-epochs-4": ("ppo.late_epochs=4",),  # ppo.late_from: its default, 0.3
+    "late-epochs-2": ("ppo.late_epochs=2",),  # a quarter of the passes after the climb
 }
 LEVERS: dict[str, tuple[str, ...]] = {**{name: BEFORE + sets for name, sets in _LEVERS.items()},
                                       "adopted": (),  # the preset unchanged: today's cpu-quick

@@ -359,6 +359,24 @@ def test_bench_train_group_reads_the_last_evaluation_of_a_run_folder(tmp_path: p
 
 
 @pytest.mark.bench
+def test_bench_epochs_smoke(tmp_path: pytest.TempPathFactory) -> None:
+    """Fewer passes late: every variant timed, the late counts cheaper than the preset's passes per iteration and
+    their projected README training shorter; a late count above the preset's passes exits 2."""
+    out = str(tmp_path / "epochs.json")
+    sets = [s for s in TINY_SETS if not s.startswith("ppo.num_epochs")] + ["ppo.num_epochs=8", "train.total_steps=16384"]
+    res = _run(["experiments.bench_epochs", "--reps", "2", "--out", out, *_sets(sets)])
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    with open(out, encoding="utf-8") as f:
+        rows = {r["variant"]: r for r in json.load(f)["rows"]}
+    assert set(rows) == {"8 passes (the preset)", "late_epochs=4 (from the start)", "late_epochs=2 (from the start)",
+                         "num_epochs=4 (fixed scan)"}
+    assert rows["late_epochs=2 (from the start)"]["ms_per_iteration"] < rows["8 passes (the preset)"]["ms_per_iteration"]
+    assert 0 < rows["late_epochs=4 (from the start)"]["projected_readme_training_s"]
+    bad = _run(["experiments.bench_epochs", "--set", "ppo.num_epochs=1"])
+    assert bad.returncode == 2 and "ppo.late_epochs=4 must not exceed ppo.num_epochs=1" in bad.stderr
+
+
+@pytest.mark.bench
 def test_bench_vs_paper_stack_smoke_without_sb3(tmp_path: pytest.TempPathFactory) -> None:
     out = str(tmp_path / "bench.json")
     args = ["experiments.bench_vs_paper_stack", "--seconds", "2", "--window", "16", "--success", "0.5",
