@@ -36,7 +36,7 @@ from experiments import compare_schedules
 # policy; 256 envs × 16-step unrolls, 4 minibatches, SA from lr 3e-4 decaying ×0.98): the preset now carries the
 # levers that won, and pinning the old shape keeps every recorded run of this table valid (same configs, same hashes).
 BEFORE: tuple[str, ...] = ("ppo.num_epochs=4", "ppo.entropy_coef=1e-3", "ppo.network.policy_hidden=32,32,32,32",
-                           "ppo.learning_rate=3e-4", "sa.decay=0.98")
+                           "ppo.learning_rate=3e-4", "sa.decay=0.98", "ppo.late_epochs=0")
 
 # lever -> its overrides of BEFORE
 _LEVERS: dict[str, tuple[str, ...]] = {
@@ -84,9 +84,10 @@ _OVER_ADOPTED: dict[str, tuple[str, ...]] = {
     # the paper's PPO schedule (constant lr 3e-4) with the first round's levers: is SA still level with it?
     "constant-lr": ("lr.schedule=constant",),
 }
-# The preset after the second round (its winner, SA from 6e-4 ×0.96, adopted): today's cpu-quick, pinned so that the
-# third round's levers ("round-2+LEVER") keep their configs when the preset moves on; pair them with
-# --reference adopted+lr-6e-4+decay-0.96 (the same config) and that lever's recorded runs.
+# The preset after the second round (its winner, SA from 6e-4 ×0.96, adopted), pinned so that the third round's
+# levers ("round-2+LEVER") keep their configs when the preset moves on; pair them with --reference
+# adopted+lr-6e-4+decay-0.96 (the same config) and that lever's recorded runs.  The third round's "late-epochs-4"
+# won and is today's preset ("adopted").
 ROUND_2: tuple[str, ...] = ROUND_1 + _OVER_ADOPTED["lr-6e-4+decay-0.96"]
 _OVER_ROUND_2: dict[str, tuple[str, ...]] = {
     # more obstacle information at the full budget: most failures left are obstacle hits on blocking scenes
@@ -100,7 +101,7 @@ _OVER_ROUND_2: dict[str, tuple[str, ...]] = {
     "late-epochs-2": ("ppo.late_epochs=2",),  # a quarter of the passes after the climb
 }
 LEVERS: dict[str, tuple[str, ...]] = {**{name: BEFORE + sets for name, sets in _LEVERS.items()},
-                                      "adopted": (),  # the preset unchanged: today's cpu-quick
+                                      "adopted": (),  # the preset unchanged: today's cpu-quick (= round-2+late-epochs-4)
                                       **{f"adopted+{name}": ROUND_1 + sets for name, sets in _OVER_ADOPTED.items()},
                                       **{f"round-2+{name}": ROUND_2 + sets for name, sets in _OVER_ROUND_2.items()}}
 REFERENCE = "baseline"

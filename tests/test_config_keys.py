@@ -47,11 +47,20 @@ def test_minibatches_must_divide_the_batch():
         config.apply_overrides(config.get_config("paper"), ["ppo.num_envs=10", "ppo.unroll_length=3", "ppo.num_minibatches=4"])
 
 
-def test_late_epochs_may_only_lower_the_passes():
-    cfg = config.apply_overrides(config.get_config("cpu-quick"), ["ppo.late_epochs=4", "ppo.late_from=0.25"])
-    assert (cfg.ppo.late_epochs, cfg.ppo.late_from, cfg.ppo.num_epochs) == (4, 0.25, 8)
-    with pytest.raises(config.ConfigError, match="ppo.late_epochs=9 must not exceed ppo.num_epochs=8"):
-        config.apply_overrides(config.get_config("cpu-quick"), ["ppo.late_epochs=9"])
-    # off at its default: a run's identity does not change with the key's arrival
-    assert {"late_epochs", "late_from"}.isdisjoint(config.identity_dict(config.get_config("cpu-quick"))["ppo"])
-    assert config.identity_dict(cfg)["ppo"]["late_epochs"] == 4
+def test_cpu_quick_takes_four_passes_late_and_a_lower_pass_count_keeps_its_own():
+    from sagrasp_jax.training import ppo
+
+    cfg = config.get_config("cpu-quick")
+    assert (cfg.ppo.late_epochs, cfg.ppo.late_from, cfg.ppo.num_epochs) == (4, 0.3, 8)
+    assert [int(ppo.epochs_at(cfg.ppo, p)) for p in (0.0, 0.29, 0.3, 1.0)] == [8, 8, 4, 4]
+    assert config.identity_dict(cfg)["ppo"]["late_epochs"] == 4  # the preset's runs are new runs
+    # fewer passes than the late count: refused before the preset set the key; now the run's own count throughout
+    two = config.apply_overrides(cfg, ["ppo.num_epochs=2"])
+    assert two.ppo.late_epochs == 4 and ppo.epochs_at(two.ppo, 0.9) is None  # the fixed scan of 2 passes
+    assert ppo.epochs_at(config.apply_overrides(cfg, ["ppo.late_epochs=8"]).ppo, 0.9) is None
+    # off: the preset before the key (its recorded runs keep their identity, the key left out at 0)
+    before = config.apply_overrides(cfg, ["ppo.late_epochs=0"])
+    assert ppo.epochs_at(before.ppo, 0.9) is None
+    assert {"late_epochs", "late_from"}.isdisjoint(config.identity_dict(before)["ppo"])
+    with pytest.raises(config.ConfigError, match="ppo.late_from"):
+        config.apply_overrides(cfg, ["ppo.late_from=1.5"])

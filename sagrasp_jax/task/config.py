@@ -327,8 +327,8 @@ class PPOConfig:
     num_epochs: int = key(10, "passes over each rollout", within(1, 10_000))
     late_epochs: int = key(
         0, "Fewer passes late in the run (docs/design.md, \"Fewer SGD passes late\"): from training progress "
-        "ppo.late_from on, each rollout gets this many passes instead of ppo.num_epochs (at most that many).  "
-        "0 = off, ppo.num_epochs throughout", within(0, 10_000))
+        "ppo.late_from on, each rollout gets this many passes instead of ppo.num_epochs.  0 = off, and a count "
+        "not below ppo.num_epochs changes nothing: ppo.num_epochs throughout", within(0, 10_000))
     late_from: float = key(
         0.3, "training progress (env steps / train.total_steps) from which ppo.late_epochs applies", within(0, 1))
     clip_eps: float = key(0.2, "PPO ratio clip ε", above(0, 10))
@@ -957,9 +957,6 @@ def validate(cfg: Config) -> None:
         if not get_key(cfg, name):
             raise ConfigError(f"{name} is empty: give at least one hidden layer width (e.g. {name}=64,64); "
                               "no hidden layer would make the network linear")
-    if cfg.ppo.late_epochs > cfg.ppo.num_epochs:
-        raise ConfigError(f"ppo.late_epochs={cfg.ppo.late_epochs} must not exceed ppo.num_epochs={cfg.ppo.num_epochs} "
-                          "(it gives fewer passes late in the run; 0 turns it off)")
     if (cfg.ppo.num_envs * cfg.ppo.unroll_length) % cfg.ppo.num_minibatches:
         raise ConfigError(f"ppo.num_minibatches={cfg.ppo.num_minibatches} must divide ppo.num_envs × ppo.unroll_length "
                           f"= {cfg.ppo.num_envs} × {cfg.ppo.unroll_length}")

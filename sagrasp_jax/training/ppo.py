@@ -110,8 +110,9 @@ def sgd_epochs(params: Params, opt_state: optax.OptState, normaliser: Normaliser
 
 def epochs_at(cfg: PPOConfig, progress: jax.Array) -> jax.Array | None:
     """SGD passes at training ``progress``: ``late_epochs`` from ``late_from`` on, else ``num_epochs``;
-    None when ``late_epochs`` is off (``sgd_epochs`` then runs its fixed scan, as before the key)."""
-    if not cfg.late_epochs:
+    None when ``late_epochs`` is off or not below ``num_epochs`` (``sgd_epochs`` then runs its fixed scan,
+    as before the key: a run that sets fewer passes than a preset's late count keeps its own throughout)."""
+    if not cfg.late_epochs or cfg.late_epochs >= cfg.num_epochs:
         return None
     return jnp.where(progress >= cfg.late_from, cfg.late_epochs, cfg.num_epochs).astype(jnp.int32)
 
