@@ -45,7 +45,7 @@ from typing import Any, Mapping, Sequence
 
 from experiments import reproduce_paper, study
 from sagrasp_jax.training import stats
-from sagrasp_jax import evaluate, plot, train
+from sagrasp_jax import evaluate, plot
 from sagrasp_jax.base import extras
 from sagrasp_jax.training import run_dir
 from sagrasp_jax.task.config import LR_SCHEDULES

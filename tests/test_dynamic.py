@@ -4,7 +4,6 @@ lean MJX model and the physics backend choice.  Small on purpose: a handful of s
 
 from __future__ import annotations
 
-import os
 
 import jax
 import jax.numpy as jnp

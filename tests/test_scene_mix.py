@@ -20,7 +20,6 @@ import jax
 import jax.numpy as jnp
 
 from sagrasp_jax import train
-from sagrasp_jax.task import collision
 from sagrasp_jax.task import config
 from sagrasp_jax.task import robot
 from sagrasp_jax.task import sampling

@@ -28,7 +28,7 @@ from jax.sharding import Mesh, PartitionSpec
 
 from sagrasp_jax.training import lr_schedule
 from sagrasp_jax.task.config import PPOConfig
-from sagrasp_jax.training.losses import loss_and_grad, make_batch
+from sagrasp_jax.training.losses import Batch, loss_and_grad, make_batch
 from sagrasp_jax.training.metrics_window import kind_success_keys, update_window
 from sagrasp_jax.training.actor_critic import (
     Normaliser, Params, PPONetworks, TrainingState, critic_extra_of, learning_rate_of, mean_policy_entropy,
