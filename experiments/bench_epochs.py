@@ -1,9 +1,9 @@
 """What fewer SGD passes late in the run save: the README preset's training call per iteration with
 eight passes throughout (the preset before it adopted ``ppo.late_epochs=4``) against ``ppo.late_epochs``
 (4, 2) applied from the first iteration, and against a fixed four-pass scan (``ppo.num_epochs=4``: the
-run-time loop's own cost), the calls interleaved so that each sees the same load.  Then what that makes of the README run's training time, from these per-iteration
-costs alone (``ppo.late_from`` of the budget at eight passes, the rest at the late count; evaluation and
-compile not included).
+run-time loop's own cost), the calls interleaved so that each sees the same load.  Then what that makes
+of the README run's training time, from these per-iteration costs alone (``ppo.late_from`` of the budget at
+eight passes, the rest at the late count; evaluation and compile not included).
 
     python -m experiments.bench_epochs --out experiments/results/bench_epochs_cpu.json
 """
