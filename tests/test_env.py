@@ -292,6 +292,27 @@ def test_vmap_equals_single_env():
         assert float(batch.done[i]) == float(s.done)
 
 
+def test_auto_reset_starts_are_the_wrapped_envs_resets_bit_for_bit():
+    """AutoReset.reset draws its env's start and pending start through one copy of the sampler (a 2-step loop):
+    each is exactly the wrapped env's reset of its key, batched as the trainer resets (64 envs)."""
+    inner = GraspEnv(env_config(obstacle_prob=0.5))
+    env = AutoReset(inner)
+    keys = jax.random.split(jax.random.PRNGKey(5), 64)
+    state = jax.jit(jax.vmap(env.reset))(keys)
+    split = jax.vmap(lambda k: jax.random.split(k, 3))(keys)
+    own = jax.jit(jax.vmap(inner.reset))
+    for got, want in ((state, own(split[:, 0])), (state.info["pending"], own(split[:, 1]))):
+        for a, b in zip(jax.tree_util.tree_leaves(_core_of(got)), jax.tree_util.tree_leaves(want)):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    np.testing.assert_array_equal(np.asarray(state.info["reset_key"]), np.asarray(split[:, 2]))
+
+
+def _core_of(state):
+    from sagrasp_jax.envs.auto_reset import _core
+    return _core(state).replace(metrics={k: v for k, v in state.metrics.items() if k not in
+                                         ("reset_overflow", "reset_replays", "curriculum_starts")})
+
+
 def test_no_nan_after_1000_random_steps():
     env = AutoReset(GraspEnv(env_config(obstacle_prob=0.5)))
     state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(1), 256))
