@@ -630,3 +630,15 @@ def test_obstacle_ablation_summary_counts_runs_that_never_learned() -> None:
     assert s["collision_by_in_obstacle_episodes"]["obstacle"]["mean"] == pytest.approx((10 + 98 + 14) / 3)
     table = ab.markdown({"v": s})
     assert "| v | 2 of 3 | 97.0" in table
+
+
+def test_readme_line_times_the_readmes_own_first_command() -> None:
+    """experiments.readme_line runs the README's first bash line as written: the install, the training and the
+    evaluation the README promises, in that order."""
+    from experiments import readme_line
+
+    line = readme_line.readme_line(os.path.join(REPO, "README.md"))
+    parts = [part.strip() for part in line.split("&&")]
+    assert parts[0] == "python3 -m venv .venv" and parts[2].startswith('pip install -e ".[train]"')
+    assert parts[3].startswith("python -m sagrasp_jax.train --preset cpu-quick") and "--out runs/quick" in parts[3]
+    assert parts[4].startswith("python -m sagrasp_jax.evaluate --run runs/quick")
