@@ -83,7 +83,7 @@ def measure_line(workdir: str, keep: bool) -> dict[str, Any]:
         "package_installed_at_s": rel(_mtime(site[0])) if site else None,
         "trainer_built_at_s": config_at,  # config.json is written once the trainer is built
         "compile_s": compile_s, "compile_iteration_s": rows[-1]["compile_iteration_s"],
-        "compile_eval_s": rows[-1]["compile_eval_s"], "compile_reset_s": rows[-1].get("compile_reset_s"),
+        "compile_eval_s": rows[-1]["compile_eval_s"],
         "training_s": training_s, "training_end_at_s": policy_at,
         "evaluation_s": end - start - policy_at if policy_at is not None else None,
         "first_98_env_steps": first98["env_steps"] if first98 else None,
@@ -195,18 +195,18 @@ def main(argv: list[str] | None = None) -> int:
     if args.mode == "line":
         workdir = args.workdir or tempfile.mkdtemp(prefix="readme_line_")
         data: Any = measure_line(workdir, args.keep)
-        for key in ("total_s", "venv_at_s", "package_installed_at_s", "trainer_built_at_s", "compile_s", "compile_reset_s",
+        for key in ("total_s", "venv_at_s", "package_installed_at_s", "trainer_built_at_s", "compile_s",
                     "training_s", "training_end_at_s", "evaluation_s", "first_98_env_steps", "first_98_from_launch_s",
                     "robot_success", "robot_obstacle_success"):
             value = data[key]
             print(f"{key:26s} {value:.3f}" if isinstance(value, float) else f"{key:26s} {value}")
     elif args.mode == "startup":
         data = measure_startup(args.repeats, args.cycles)
-        print(f"{'imports':>8s} {'build':>7s} {'compile':>8s} {'(call':>7s} {'eval':>6s} {'reset)':>7s} {'cycles s':>9s}  digest")
+        print(f"{'imports':>8s} {'build':>7s} {'compile':>8s} {'(call':>7s} {'eval)':>6s} {'cycles s':>9s}  digest")
         for r in data:
             c_ = r["compile_parts"]
             print(f"{r['imports_s']:8.2f} {r['trainer_build_s']:7.2f} {r['compile_s']:8.2f} {c_['iteration']:7.2f} "
-                  f"{c_['eval']:6.2f} {c_.get('reset', 0.0):7.2f} {r['cycles_s']:9.2f}  {r['params_digest']}")
+                  f"{c_['eval']:6.2f} {r['cycles_s']:9.2f}  {r['params_digest']}")
     else:
         counts = [None if s == "all" else int(s) for s in args.slots.split(",")]
         data = measure_eval_slots(args.run, args.condition, args.episodes, counts)

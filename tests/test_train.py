@@ -69,23 +69,6 @@ def test_kill_and_resume_matches_an_uninterrupted_run(tmp_path):
     assert len(decisions) == 6
 
 
-def test_a_fresh_runs_reset_waits_for_compile_and_changes_nothing(tmp_path):
-    """A fresh single run's batched reset runs inside ``compile``, beside the training call's compile (which is
-    lowered from the env state's shapes); reading the env state first resets at once.  Both then run the same
-    iterations, bit for bit."""
-    cfg = toy_config()
-    deferred = train.Trainer(cfg, str(tmp_path / "a"), env_factory=toy_factory(), progress=False)
-    eager = train.Trainer(cfg, str(tmp_path / "b"), env_factory=toy_factory(), progress=False)
-    assert all(isinstance(x, jax.ShapeDtypeStruct) for x in jax.tree_util.tree_leaves(deferred.seed_group.runner.env_state))
-    assert all(isinstance(x, jax.Array) for x in jax.tree_util.tree_leaves(eager.env_state))  # the reset ran here
-    assert deferred.compile()["reset"] > 0 and eager.compile()["reset"] == 0
-    assert all(isinstance(x, jax.Array) for x in jax.tree_util.tree_leaves(deferred.seed_group.runner.env_state))
-    for tr in (deferred, eager):
-        tr.run_iterations(2)
-    assert _leaves_equal(deferred.train_state, eager.train_state)
-    assert _leaves_equal(deferred.env_state, eager.env_state)
-
-
 def test_sa_reject_restores_the_snapshot_bit_for_bit(tmp_path):
     cfg = toy_config(extra=["sa.max_rollbacks=3", "sa.patience=5"])
     tr = train.Trainer(cfg, str(tmp_path), env_factory=toy_factory(), progress=False)

@@ -34,11 +34,9 @@ def train(tr: Any, stop_after_cycles: int | None = None) -> dict[str, Any]:
     try:
         compile_s = tr.compile()["total"]
         t_start = time.perf_counter()  # after compiling: time_s, rates and ETA are training only
-        reset_s = tr.compile_s["reset"]  # a fresh run's first batched reset, compiled beside the training call
         for callback in shared:
             callback.on_start(f"compiled in {compile_s:.1f} s (iteration {tr.compile_s['iteration']:.1f} s, "
-                              f"eval {tr.compile_s['eval']:.1f} s" + (f", first reset {reset_s:.1f} s" if reset_s else "")
-                              + f"); {sched.num_iterations} iterations in "
+                              f"eval {tr.compile_s['eval']:.1f} s); {sched.num_iterations} iterations in "
                               f"{sched.num_cycles} cycles of <= {sched.iterations_per_cycle}, {tr.mesh.size} device(s)"
                               + (f", {len(tr.seeds)} seeds in one program" if tr.group else ""))
         while True:

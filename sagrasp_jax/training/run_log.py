@@ -13,8 +13,7 @@ from sagrasp_jax.training.cycles import Schedule
 from sagrasp_jax.training.seed_group import HostState, SeedGroup
 
 # Row fields that depend on wall-clock time, not on the training maths.
-TIME_FIELDS = ("time_s", "steps_per_s", "compile_s", "compile_iteration_s", "compile_eval_s", "compile_reset_s", "eval_s",
-               "eta_s")
+TIME_FIELDS = ("time_s", "steps_per_s", "compile_s", "compile_iteration_s", "compile_eval_s", "eval_s", "eta_s")
 
 
 class Callback(Protocol):
@@ -110,7 +109,7 @@ def finish_rows(host: HostState, rows: list[dict[str, Any]], lr: float, temperat
         done = row["iteration"] + 1
         rate = (done * schedule.steps_per_iteration - start_steps) / max(elapsed, 1e-9)
         row.update(time_s=elapsed, compile_s=compile_total, compile_iteration_s=compile_s["iteration"],
-                   compile_eval_s=compile_s["eval"], compile_reset_s=compile_s["reset"],
+                   compile_eval_s=compile_s["eval"],
                    eta_s=(schedule.num_iterations - done) * schedule.steps_per_iteration / max(rate, 1e-9))
 
 

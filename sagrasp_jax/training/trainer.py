@@ -97,46 +97,20 @@ class Trainer:
         self.compile_s: dict[str, float] = {}
         resumed = resume if isinstance(resume, list) else [resume] * len(self.seeds)
         self._reset = rollout.make_reset(self.train_env, self.mesh)
-        # A fresh single run's batched reset (≈ 6 s of compile on 2 cores, cold) is compiled and run by ``compile``
-        # beside the training call's compile; until then its env state is abstract (``_finish_reset``).  A group
-        # stacks its seeds' states on the host and a resumed run places its checkpoint like them: both reset here.
-        self._pending_reset: Any = None
-        defer = not self.group and not any(resumed)
-        self.runner = self.seed_group.place(self._fresh_one(c, r, defer) for c, r in zip(self.cfgs, resumed))
+        self.runner = self.seed_group.place(self._fresh_one(c, r) for c, r in zip(self.cfgs, resumed))
         if any(resumed):
             group_checkpoint.load(self.seed_group, group_checkpoint.paths(self.seed_group, resumed), self.rule)
 
-    def _fresh_one(self, cfg: Config, resuming: bool, defer_reset: bool = False) -> RunnerState:
-        """One seed's initial device state, exactly as a single run of ``cfg`` starts (``defer_reset``: its env
-        state abstract, the reset's keys kept for ``_finish_reset``)."""
+    def _fresh_one(self, cfg: Config, resuming: bool) -> RunnerState:
+        """One seed's initial device state, exactly as a single run of ``cfg`` starts."""
         k_params, k_env, k_train = jax.random.split(jax.random.PRNGKey(cfg.train.seed), 3)
         ts = actor_critic.init_training_state(k_params, self.networks, self.optimizer, self.obs_size)
         if cfg.train.init_from and not resuming:  # --init-from: another run's policy and normaliser
             ts = restore.init_policy_state(ts, cfg, self.obs_size, self.action_size)
         train_state = sharding.replicate(ts, self.mesh)
-        env_keys = sharding.shard_batch(jax.random.split(k_env, cfg.ppo.num_envs), self.mesh)
-        if defer_reset:
-            self._pending_reset, shard = env_keys, sharding.batch_sharding(self.mesh)
-            env_state = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=shard),
-                                               self._reset.eval_shape(env_keys))
-        else:
-            env_state = self._reset(env_keys)
+        env_state = self._reset(sharding.shard_batch(jax.random.split(k_env, cfg.ppo.num_envs), self.mesh))
         window = sharding.replicate(metrics_window.init_window(self.window_keys, cfg.train.metrics_window), self.mesh)
         return RunnerState(train_state, train_state, env_state, sharding.replicate(k_train, self.mesh), window)
-
-    def _finish_reset(self) -> float:
-        """Run a deferred fresh reset (compiling it) into the runner state; returns its seconds (0: none was due)."""
-        if self._pending_reset is None:
-            return 0.0
-        t = time.perf_counter()
-        keys, self._pending_reset = self._pending_reset, None
-        group = self.seed_group
-        group.runner = group.runner._replace(env_state=jax.block_until_ready(self._reset(keys)))
-        return time.perf_counter() - t
-
-    def _runner(self) -> RunnerState:
-        self._finish_reset()
-        return self.seed_group.runner
 
     # the group's state, and a single run's views of it (seed 0 of a group)
     group = property(lambda self: self.seed_group.group)
@@ -144,7 +118,7 @@ class Trainer:
     cfgs = property(lambda self: self.seed_group.cfgs)
     dirs = property(lambda self: self.seed_group.dirs)
     hosts = property(lambda self: self.seed_group.hosts)
-    runner = property(_runner, lambda self, value: setattr(self.seed_group, "runner", value))
+    runner = property(lambda self: self.seed_group.runner, lambda self, value: setattr(self.seed_group, "runner", value))
     host: HostState = property(lambda self: self.hosts[0])  # type: ignore[assignment]
     train_state = property(lambda self: self.runner.train_state)
     snapshot = property(lambda self: self.runner.snapshot)
@@ -154,7 +128,6 @@ class Trainer:
     sa_state = property(lambda self: self.hosts[0].lr_state.sa)  # None under schedules other than sa
 
     def save_checkpoint(self, which: list[int] | None = None) -> list[str]:
-        self._finish_reset()
         return group_checkpoint.save(self.seed_group, self.primary, which)
 
     def _cycle_args(self, counts: list[int]) -> tuple[Any, ...]:
@@ -164,11 +137,9 @@ class Trainer:
         """Compile the training call and the evaluation ahead of time.
 
         XLA compiles the training call on a worker thread (it releases the GIL) while this thread
-        traces and compiles the evaluation, then a fresh single run's batched reset (compiled and run),
-        so on 2 cores they overlap: ``compile_s["total"]`` is the wall time the user waits, ``iteration``
-        and ``eval`` each program's own (overlapping) time from the start, ``reset`` the reset's own
-        seconds (0 when the trainer's construction reset).  The training call is lowered from the env
-        state's shapes, so the deferred reset is not waited for; the program is the same."""
+        traces and compiles the evaluation, so on 2 cores the two overlap: ``compile_s["total"]``
+        is the wall time the user waits, ``iteration`` and ``eval`` each program's own (overlapping)
+        time from the start."""
         if self._compiled_cycle is None:
             t = time.perf_counter()
             lowered = self._cycle.lower(*self._cycle_args([1] * len(self.seeds)))
@@ -177,10 +148,9 @@ class Trainer:
                 ts = self.seed_group.train_state_of(0)
                 compiled_eval = self._evaluate.lower(ts.params, ts.normaliser, self.eval_keys).compile()
                 eval_s = time.perf_counter() - t
-                reset_s = self._finish_reset()
                 self._compiled_cycle, cycle_s = cycle.result()  # re-raises the worker's error here
             self._compiled_eval = compiled_eval
-            self.compile_s = {"iteration": cycle_s, "eval": eval_s, "reset": reset_s, "total": time.perf_counter() - t}
+            self.compile_s = {"iteration": cycle_s, "eval": eval_s, "total": time.perf_counter() - t}
         return self.compile_s
 
     def run_iteration(self) -> dict[str, Any]:
