@@ -152,26 +152,3 @@ def trained_run(tmp_path_factory: pytest.TempPathFactory) -> str:
                          cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
     return out
-
-
-# Seconds each test file took in a cold-cache run of the suite on the project's 2-core VM (`pytest --durations=0`,
-# summed per file, 4 Dec 2026: 1,401 s over 2 workers).  `--dist loadfile` hands whole files to the workers in
-# collection order (`--no-loadscope-reorder` in pyproject keeps this order instead of xdist's "most tests
-# first"): the longest first, so that the two workers finish together.  A file not listed counts 0 and runs
-# after these; measure again when one grows past a few seconds.
-FILE_SECONDS = {
-    "test_experiments.py": 184, "test_train.py": 167, "test_faults.py": 134, "test_dynamic.py": 120,
-    "test_env.py": 120, "test_gpu_check.py": 84, "test_brax_envs.py": 84, "test_ppo.py": 73,
-    "test_seed_group.py": 55, "test_parity.py": 46, "test_distributed.py": 45, "test_robot_grade.py": 44,
-    "test_deploy.py": 43, "test_install.py": 35, "test_export.py": 22, "test_observation.py": 21,
-    "test_physical.py": 21, "test_geometry.py": 15, "test_mjcf.py": 13, "test_scene_mix.py": 12,
-    "test_architecture.py": 8, "test_legacy.py": 6, "test_extras.py": 6, "test_grasp_transfer.py": 5,
-    "test_docs.py": 5, "test_collision.py": 5, "test_robot.py": 4, "test_plot.py": 4,
-    "test_hover_trap.py": 4, "test_shapes.py": 3, "test_reference_env.py": 3, "test_evaluate.py": 2,
-    "test_render.py": 2, "test_config_file.py": 2,
-}
-
-
-def pytest_collection_modifyitems(config: Any, items: list[Any]) -> None:
-    """Longest test files first (``FILE_SECONDS``); a file's own tests keep their order (a stable sort)."""
-    items.sort(key=lambda item: -FILE_SECONDS.get(item.path.name, 0))
