@@ -52,17 +52,12 @@ from sagrasp_jax.training.run_dir import RunDirError
 EvalEnvFactory = Callable[[Config], rollout.Env]
 SCENE_SETS = ("mix", "blocking")
 MAX_EPISODES = 100_000  # one batch: every episode's start state is in memory at once
-# On CPU the episodes run this many at a time, each slot taking the next episode when its own ends
-# (fixed_seed_eval.evaluate_policy): 1,000 `robot` episodes of the README policy in 0.9 s instead of 4.5 s
-# all at once on 2 cores (32 slots: 1.2 s, 128: 1.1 s); the same episodes, their floats within 1e-5.
-# Accelerators run every episode at once.
-CPU_SLOTS = 64
-
-
-def eval_slots() -> int | None:
-    """Episode slots of an offline evaluation on this backend (None: all at once)."""
-    return CPU_SLOTS if jax.default_backend() == "cpu" else None
 MAX_STEPS = 100_000
+# On CPU the episodes run this many at a time, each slot taking the next episode when its own ends
+# (fixed_seed_eval.evaluate_policy; accelerators run every episode at once): 1,000 `robot` episodes of the
+# README policy in 0.78 s instead of 4.58 s all at once on 2 cores (32 slots: 0.83 s, 128: 1.01 s); the same
+# episodes, their floats within 3.8e-6 (docs/results.md §17).
+CPU_SLOTS = 64
 
 
 def default_eval_env(cfg: Config) -> rollout.Env:
@@ -171,7 +166,7 @@ def evaluate_run(run: str, episodes: int = 1000, seed: int | None = None, max_st
     seed, steps = resolve_options(cfg, seed, max_steps)
     t = time.perf_counter()
     keys = policy_eval.eval_keys(seed, episodes)
-    evaluator = policy_eval.make_evaluator(networks, env, steps, slots=eval_slots())
+    evaluator = policy_eval.make_evaluator(networks, env, steps, slots=policy_eval.slots_for_backend(CPU_SLOTS))
     result = jax.device_get(evaluator(params, normaliser, keys))
     wall = time.perf_counter() - t
     eps = {k: np.asarray(v) for k, v in result.episodes.items()}
@@ -313,7 +308,7 @@ def replay_final_poses(run: str, episodes: int, seed: int, max_steps: int,
     cfg, params, normaliser, _ = restore.load_policy_state(run, env.observation_size, env.action_size)
     networks = actor_critic.make_networks(cfg.ppo.network, env.observation_size, env.action_size, cfg.ppo.obs_clip)
     keys = policy_eval.eval_keys(seed, episodes)
-    evaluator = policy_eval.make_evaluator(networks, env, max_steps, slots=eval_slots())
+    evaluator = policy_eval.make_evaluator(networks, env, max_steps, slots=policy_eval.slots_for_backend(CPU_SLOTS))
     result = jax.device_get(evaluator(params, normaliser, keys))
     first = jax.device_get(jax.jit(jax.vmap(env.reset))(keys).info)
     target_error = np.asarray(first["randomize"]["target_error"]) if "randomize" in first else np.zeros((episodes, 3))

@@ -308,9 +308,9 @@ def test_auto_reset_starts_are_the_wrapped_envs_resets_bit_for_bit():
 
 
 def _core_of(state):
-    from sagrasp_jax.envs.auto_reset import _core
-    return _core(state).replace(metrics={k: v for k, v in state.metrics.items() if k not in
-                                         ("reset_overflow", "reset_replays", "curriculum_starts")})
+    """The wrapped env's own state inside an AutoReset state: without the wrapper's info keys and counters."""
+    from sagrasp_jax.envs.auto_reset import RESET_METRICS, _core
+    return _core(state).replace(metrics={k: v for k, v in state.metrics.items() if k not in RESET_METRICS})
 
 
 def test_no_nan_after_1000_random_steps():

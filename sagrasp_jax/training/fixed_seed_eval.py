@@ -112,6 +112,12 @@ def make_evaluator(networks: PPONetworks, env: Env, max_steps: int, mesh: Mesh |
     return jax.jit(sharded(local, mesh, (rep, rep, shard), specs))
 
 
+def slots_for_backend(cpu_slots: int) -> int | None:
+    """``cpu_slots`` on CPU, where episodes run a few at a time (``evaluate_policy``'s slots); None (every
+    episode at once) on accelerators."""
+    return cpu_slots if jax.default_backend() == "cpu" else None
+
+
 def eval_keys(seed: int, episodes: int) -> jax.Array:
     """The fixed evaluation set: one reset key per episode, from one seed."""
     return jax.random.split(jax.random.PRNGKey(seed), episodes)

@@ -86,7 +86,7 @@ class Trainer:
         keys = policy_eval.eval_keys(cfg.eval.seed, cfg.eval.episodes)
         split = cfg.eval.episodes % self.mesh.size == 0
         self.eval_keys = sharding.shard_batch(keys, self.mesh) if split else sharding.replicate(keys, self.mesh)
-        slots = CPU_EVAL_SLOTS if jax.default_backend() == "cpu" else None
+        slots = policy_eval.slots_for_backend(CPU_EVAL_SLOTS)
         evaluate = policy_eval.make_evaluator(self.networks, self.eval_env, cfg.env.task.max_steps,
                                               self.mesh if split else None, slots)
         # a group evaluates seed by seed with this single-seed program (see ``evaluate``)
