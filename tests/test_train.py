@@ -50,6 +50,28 @@ def test_run_folder_contents(toy_run):
     assert policy.obs_size == 7 and policy.action_size == 2
 
 
+def test_tensorboard_holds_every_rows_scalars_at_its_env_step(toy_run):
+    """Each metrics row is one TensorBoard event: every numeric field as ``train/<key>`` at the row's env
+    step, equal to the JSONL value in float32 (what TensorBoard stores)."""
+    from tensorboard.backend.event_processing.event_file_loader import EventFileLoader
+
+    folder = os.path.join(toy_run, run_dir.TB_DIR)
+    logged: dict[int, dict[str, float]] = {}
+    for name in sorted(os.listdir(folder)):
+        for event in EventFileLoader(os.path.join(folder, name)).Load():
+            for value in event.summary.value:
+                stored = value.simple_value if value.HasField("simple_value") else float(value.tensor.float_val[0])
+                logged.setdefault(event.step, {})[value.tag] = stored
+    rows = run_dir.read_metrics(os.path.join(toy_run, run_dir.METRICS_FILE))
+    assert sorted(logged) == [r["env_steps"] for r in rows]
+    for row in rows:
+        numeric = {f"train/{k}": v for k, v in row.items() if isinstance(v, (int, float)) and not isinstance(v, bool)
+                   and k not in ("iteration", "env_steps")}
+        assert set(logged[row["env_steps"]]) == set(numeric)
+        for tag, value in numeric.items():
+            assert logged[row["env_steps"]][tag] == pytest.approx(np.float32(value), rel=1e-6, nan_ok=True), tag
+
+
 def test_kill_and_resume_matches_an_uninterrupted_run(tmp_path):
     cfg = toy_config(cycles=6, extra=["sa.tol=0.0", "sa.t0=0.5"])
     full = train.run(cfg, str(tmp_path / "full"), env_factory=toy_factory(), progress=False)

@@ -340,11 +340,16 @@ class TensorBoardLog:
             raise _write_error(self.folder, exc) from None
 
     def write(self, row: dict[str, Any]) -> None:
-        step = int(row["env_steps"])
+        """The row's scalars as one event (one ``Summary`` of many values): ``add_scalar`` per field made an
+        event each, 2.4 ms a row of ~50 fields, ≈ 6 s of the README run's wall in which the devices idle."""
+        from tensorboardX.proto.summary_pb2 import Summary
+
+        values = []
         for key, value in row.items():
             value = _json_safe(value)
             if isinstance(value, (int, float)) and not isinstance(value, bool) and key not in ("iteration", "env_steps"):
-                self.tb.add_scalar(f"train/{key}", value, step)
+                values.append(Summary.Value(tag=f"train/{key}", simple_value=float(value)))
+        self.tb._get_file_writer().add_summary(Summary(value=values), int(row["env_steps"]))
         try:
             self.tb.flush()  # here, not only in tensorboardX's writer thread: a full disk shows in this one
         except OSError as exc:
