@@ -108,6 +108,17 @@ def test_missing_file_and_incompatible_contents(tmp_path):
     extra_leaf = dict(_trees()["state"], more=jnp.zeros(1))
     with pytest.raises(CheckpointError, match="different structure"):
         checkpoint.restore_tree(extra_leaf, ck.trees["state"], "state", path)
+    # a template of shapes only (jax.eval_shape, as restore_policy builds it) restores the same arrays and
+    # refuses the same mismatch
+    shapes = jax.eval_shape(lambda: _trees()["state"])
+    by_shape = checkpoint.restore_tree(shapes, ck.trees["state"], "state", path)
+    by_array = checkpoint.restore_tree(_trees()["state"], ck.trees["state"], "state", path)
+    for name, leaf in by_shape.items():
+        np.testing.assert_array_equal(np.asarray(leaf), np.asarray(by_array[name]))
+        assert np.asarray(leaf).dtype == np.asarray(by_array[name]).dtype
+    with pytest.raises(CheckpointError, match=r"this run expects float32\[3, 2\]"):
+        checkpoint.restore_tree(jax.eval_shape(lambda: dict(shapes, w=jnp.zeros((3, 2), jnp.float32))),
+                                ck.trees["state"], "state", path)
 
 
 def test_a_checkpoint_of_the_trainer_before_its_split_resumes_with_its_numbers(tmp_path):

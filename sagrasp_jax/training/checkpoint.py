@@ -79,7 +79,10 @@ def restore_tree(template: Any, flat: dict[str, np.ndarray], name: str, path: st
     for key, (_, leaf) in zip(keys, leaves):
         saved = flat[key]
         python_scalar = type(leaf) in (bool, int, float)  # not np.float64, a float subclass
-        if _is_key(leaf):
+        if isinstance(leaf, jax.ShapeDtypeStruct) and not jax.dtypes.issubdtype(leaf.dtype, jax.dtypes.prng_key):
+            # a jax.eval_shape template: shapes and dtypes, no arrays made
+            ref: Any = np.empty(leaf.shape, leaf.dtype)
+        elif _is_key(leaf):
             ref = jax.random.key_data(leaf)
         else:
             ref = np.asarray(jax.numpy.asarray(leaf) if python_scalar else leaf)
