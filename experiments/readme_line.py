@@ -6,7 +6,7 @@ where the training command's start-up and the evaluation command's seconds go.
     python -m experiments.readme_line eval-slots --run runs/quick --out experiments/results/eval_slots.json
 
 * ``line``: ``git clone`` of this checkout's HEAD into a temporary folder, then the first ``bash`` block of its
-  README run there by ``bash -c`` (venv, ``pip install -e ".[train]"``, training, the 1,000-episode `robot`
+  README run there by ``bash -c`` (venv, ``pip install --no-compile -e ".[train]"``, training, the 1,000-episode `robot`
   evaluation), with ``JAX_COMPILATION_CACHE_DIR`` on an empty folder and ``PYTHONPATH`` / ``VIRTUAL_ENV``
   unset; timed launch to exit.  Its parts come from the clone's files (the venv's, the run folder's) and the
   run's own log (compile, training seconds); the policy's success from the evaluation file.  pip's cache is
@@ -72,15 +72,17 @@ def measure_line(workdir: str, keep: bool) -> dict[str, Any]:
     first98 = next((r for r in rows if r.get("eval_success", 0.0) >= 0.98), None)
     (evaluation,) = [f for f in os.listdir(run) if f.startswith("evaluation-") and f.endswith(".json")]
     result = json.load(open(os.path.join(run, evaluation)))
-    site = [os.path.join(root, f) for root, _, files in os.walk(os.path.join(clone, ".venv", "lib"))
-            for f in files if f.startswith("__editable__") and f.endswith(".pth")]
+    # pip writes each distribution's RECORD last, the editable's .pth among the first: the install ends at
+    # the latest RECORD (the .pth's time, used before, came ≈ 10 s before pip's end)
+    records = [os.path.join(root, "RECORD") for root, _, files in os.walk(os.path.join(clone, ".venv", "lib"))
+               if root.endswith(".dist-info") and "RECORD" in files]
     rel = lambda t: None if t is None else t - start  # noqa: E731
     config_at, policy_at = rel(_mtime(os.path.join(run, "config.json"))), rel(_mtime(os.path.join(run, "policy.npz")))
     compile_s, training_s = rows[-1]["compile_s"], rows[-1]["time_s"]
     out = {
         "commit": head, "line": line, "total_s": end - start, "load_before": load_before, "load_after": os.getloadavg(),
         "venv_at_s": rel(_mtime(os.path.join(clone, ".venv", "pyvenv.cfg"))),
-        "package_installed_at_s": rel(_mtime(site[0])) if site else None,
+        "package_installed_at_s": rel(max(_mtime(r) or 0.0 for r in records)) if records else None,
         "trainer_built_at_s": config_at,  # config.json is written once the trainer is built
         "compile_s": compile_s, "compile_iteration_s": rows[-1]["compile_iteration_s"],
         "compile_eval_s": rows[-1]["compile_eval_s"],

@@ -639,6 +639,7 @@ def test_readme_line_times_the_readmes_own_first_command() -> None:
 
     line = readme_line.readme_line(os.path.join(REPO, "README.md"))
     parts = [part.strip() for part in line.split("&&")]
-    assert parts[0] == "python3 -m venv .venv" and parts[2].startswith('pip install -e ".[train]"')
+    assert parts[0] == "python3 -m venv .venv" and parts[2].startswith("pip install") \
+        and parts[2].endswith('-e ".[train]"')
     assert parts[3].startswith("python -m sagrasp_jax.train --preset cpu-quick") and "--out runs/quick" in parts[3]
     assert parts[4].startswith("python -m sagrasp_jax.evaluate --run runs/quick")
