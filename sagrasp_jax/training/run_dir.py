@@ -332,7 +332,9 @@ class TensorBoardLog:
 
     def __init__(self, out_dir: str, resume_step: int) -> None:
         from tensorboardX import SummaryWriter
+        from tensorboardX.proto.summary_pb2 import Summary
 
+        self.summary = Summary
         self.folder = os.path.join(out_dir, TB_DIR)
         try:
             self.tb = SummaryWriter(self.folder, purge_step=resume_step + 1 if resume_step else None)
@@ -342,14 +344,12 @@ class TensorBoardLog:
     def write(self, row: dict[str, Any]) -> None:
         """The row's scalars as one event (one ``Summary`` of many values): ``add_scalar`` per field made an
         event each, 2.4 ms a row of ~50 fields, ≈ 6 s of the README run's wall in which the devices idle."""
-        from tensorboardX.proto.summary_pb2 import Summary
-
         values = []
         for key, value in row.items():
             value = _json_safe(value)
             if isinstance(value, (int, float)) and not isinstance(value, bool) and key not in ("iteration", "env_steps"):
-                values.append(Summary.Value(tag=f"train/{key}", simple_value=float(value)))
-        self.tb._get_file_writer().add_summary(Summary(value=values), int(row["env_steps"]))
+                values.append(self.summary.Value(tag=f"train/{key}", simple_value=float(value)))
+        self.tb._get_file_writer().add_summary(self.summary(value=values), int(row["env_steps"]))
         try:
             self.tb.flush()  # here, not only in tensorboardX's writer thread: a full disk shows in this one
         except OSError as exc:
