@@ -190,3 +190,28 @@ def test_two_host_devices_give_the_same_first_gradients(x64: bool, tol: float):
     res = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stdout + res.stderr
     assert "max grad diff" in res.stdout
+
+
+def test_jitted_initial_state_is_the_eager_one_bit_for_bit():
+    """The trainer builds its initial params, normaliser and optimiser state in one jitted program
+    (``Trainer._init_state``) instead of eagerly: the README preset's networks must come out the same to
+    the bit once placed on a device as the trainer places them (the eager normaliser's ``std_eps`` is a
+    Python float, the jitted one a weakly typed array: the same after ``device_put``), or every run's
+    numbers would move."""
+    from sagrasp_jax.task import observation
+    from sagrasp_jax.task.config import get_config
+    from sagrasp_jax.task.control import ACTION_SIZE
+
+    cfg = get_config("cpu-quick")
+    obs_size = len(observation.layout_of(cfg.env))
+    nets = actor_critic.make_networks(cfg.ppo.network, obs_size, ACTION_SIZE, cfg.ppo.obs_clip,
+                                      observation.critic_extra_size(cfg))
+    opt = actor_critic.make_optimizer(cfg.ppo, cfg.ppo.learning_rate)
+    key = jax.random.split(jax.random.PRNGKey(cfg.train.seed), 3)[0]
+    eager = actor_critic.init_training_state(key, nets, opt, obs_size)
+    jitted = jax.jit(lambda k: actor_critic.init_training_state(k, nets, opt, obs_size))(key)
+    a, b = jax.tree_util.tree_leaves(jax.device_put(eager)), jax.tree_util.tree_leaves(jax.device_put(jitted))
+    assert jax.tree_util.tree_structure(eager) == jax.tree_util.tree_structure(jitted) and len(a) > 10
+    for x, y in zip(a, b):
+        assert (x.dtype, x.shape, x.weak_type) == (y.dtype, y.shape, y.weak_type)
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
