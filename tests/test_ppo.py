@@ -194,7 +194,7 @@ def test_two_host_devices_give_the_same_first_gradients(x64: bool, tol: float):
 
 def test_jitted_initial_state_is_the_eager_one_bit_for_bit():
     """The trainer builds its initial params, normaliser and optimiser state in one jitted program
-    (``Trainer._init_state``) instead of eagerly: the README preset's networks must come out the same to
+    (``actor_critic.jitted_init_training_state``) instead of eagerly: the README preset's networks must come out the same to
     the bit once placed on a device as the trainer places them (the eager normaliser's ``std_eps`` is a
     Python float, the jitted one a weakly typed array: the same after ``device_put``), or every run's
     numbers would move."""
@@ -209,7 +209,7 @@ def test_jitted_initial_state_is_the_eager_one_bit_for_bit():
     opt = actor_critic.make_optimizer(cfg.ppo, cfg.ppo.learning_rate)
     key = jax.random.split(jax.random.PRNGKey(cfg.train.seed), 3)[0]
     eager = actor_critic.init_training_state(key, nets, opt, obs_size)
-    jitted = jax.jit(lambda k: actor_critic.init_training_state(k, nets, opt, obs_size))(key)
+    jitted = actor_critic.jitted_init_training_state(nets, opt, obs_size)(key)
     a, b = jax.tree_util.tree_leaves(jax.device_put(eager)), jax.tree_util.tree_leaves(jax.device_put(jitted))
     assert jax.tree_util.tree_structure(eager) == jax.tree_util.tree_structure(jitted) and len(a) > 10
     for x, y in zip(a, b):

@@ -97,9 +97,7 @@ class Trainer:
         self.compile_s: dict[str, float] = {}
         resumed = resume if isinstance(resume, list) else [resume] * len(self.seeds)
         self._reset = rollout.make_reset(self.train_env, self.mesh)
-        # one program, not ~40 eager ops compiled one by one (≈ 1 s cold); the same numbers bit for bit
-        self._init_state = jax.jit(lambda key: actor_critic.init_training_state(key, self.networks, self.optimizer,
-                                                                                self.obs_size))
+        self._init_state = actor_critic.jitted_init_training_state(self.networks, self.optimizer, self.obs_size)
         self.runner = self.seed_group.place(self._fresh_one(c, r) for c, r in zip(self.cfgs, resumed))
         if any(resumed):
             group_checkpoint.load(self.seed_group, group_checkpoint.paths(self.seed_group, resumed), self.rule)
