@@ -1,7 +1,8 @@
 """sagrasp_jax: the SA-PPO obstacle-aware grasping task of Li et al. (Sensors 2025) in MuJoCo-MJX / JAX.
 
-Importing the package sets ``XLA_FLAGS=--xla_cpu_use_fusion_emitters=false`` (MJX on
-CPU compiles and runs 20-70x faster with it) unless the user already set XLA_FLAGS,
+Importing the package adds to ``XLA_FLAGS`` the switch to XLA's legacy CPU fusion emitter that the
+installed jaxlib knows (``base/xla_flags``: MJX on CPU compiles and runs faster with it; jaxlib 0.11
+renamed it and aborts on the old name), where jax will run on the CPU and the user has not set it,
 and points jax's persistent compilation cache at ``~/.cache/sagrasp_jax/jax`` unless
 ``JAX_COMPILATION_CACHE_DIR`` is set.  Neither imports jax.
 
@@ -26,8 +27,9 @@ from typing import Any
 
 __version__ = "0.1.0"
 
-if "XLA_FLAGS" not in os.environ:
-    os.environ["XLA_FLAGS"] = "--xla_cpu_use_fusion_emitters=false"
+from sagrasp_jax.base import xla_flags as _xla_flags  # noqa: E402  (stdlib only)
+
+_xla_flags.apply(os.environ)
 os.environ.setdefault(
     "JAX_COMPILATION_CACHE_DIR", os.path.join(os.path.expanduser("~"), ".cache", "sagrasp_jax", "jax")
 )

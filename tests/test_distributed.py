@@ -21,7 +21,7 @@ WORKER = os.path.join(HERE, "two_process_worker.py")
 
 def _env(devices: int) -> dict[str, str]:
     return dict(os.environ, JAX_PLATFORMS="cpu", JAX_ENABLE_X64="0",
-                XLA_FLAGS=f"--xla_cpu_use_fusion_emitters=false --xla_force_host_platform_device_count={devices}")
+                XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}")
 
 
 def _free_port() -> int:
