@@ -138,3 +138,38 @@ def test_json_numbers_and_nesting_are_bounded():
     with pytest.raises(ValueError, match="nested deeper than 32 levels"):
         config.parse_json("[" * 33 + "]" * 33)
     assert json.dumps(config.parse_json("[" * 32 + "]" * 32)) == "[" * 32 + "]" * 32  # the bound itself
+
+
+@pytest.mark.parametrize("literal, digits", [
+    ("0x" + "f" * 4000, 4000),  # 4,816 decimal digits: str() of it stops at Python's 4,300-digit limit
+    ("-0x" + "F" * 65, 65), ("0x" + "f" * 64, 78),  # a hex literal's letters are digits; its value is bounded too
+    ("0b" + "1" * 65, 65), ("0" + "7" * 64, 65), ("1_" * 64 + "1", 65), ("+" + "9" * 65, 65),
+    ("1" + ":59" * 32, 65),  # base 60
+])
+def test_every_yaml_integer_notation_is_bounded(literal, digits):
+    pytest.importorskip("yaml")
+    import yaml
+
+    with pytest.raises((ValueError, yaml.YAMLError), match=re.escape(f"an integer of {digits} digits (at most 64)")):
+        config.parse_yaml(f"a: {literal}\n")
+    for ok, value in [("0x" + "f" * 53, 16**53 - 1), ("-0x1F", -31), ("0b101", 5), ("017", 15), ("1_000", 1000),
+                      ("1:20", 80), ("+" + "9" * 64, int("9" * 64))]:
+        assert config.parse_yaml(f"a: {ok}") == {"a": value}
+    for empty in ('""', '"-"'):  # PyYAML's own IndexError on an empty explicit integer: a YAML error too
+        with pytest.raises(yaml.YAMLError, match="is not an integer"):
+            config.parse_yaml(f"a: !!int {empty}")
+
+
+@pytest.mark.parametrize("command", ["train", "evaluate"])
+def test_a_hex_integer_in_a_config_file_exits_2(tmp_path, command):
+    """``num_envs: 0xfff…`` (4,000 digits) got past the bound, which counted decimal digits only, and ended in a
+    ValueError traceback ("Exceeds the limit (4300 digits)") when the value was written out as --set text."""
+    pytest.importorskip("yaml")
+    key = "ppo:\n  num_envs" if command == "train" else "env:\n  task:\n    max_steps"
+    path = write(tmp_path, f"{key}: 0x{'f' * 4000}\n", name="cfg.yaml")
+    out = tmp_path / ("run" if command == "train" else "e.json")
+    args = ["--out", str(out), "--config", path] + (["--run", LEGACY_RUN, "--episodes", "8"] if command == "evaluate" else [])
+    res = subprocess.run([sys.executable, "-m", f"sagrasp_jax.{command}", *args], cwd=REPO, capture_output=True, text=True,
+                         timeout=300)
+    assert res.returncode == 2 and "an integer of 4000 digits (at most 64)" in res.stderr, res.stderr
+    assert f"--config {path}" in res.stderr and "Traceback" not in res.stderr and not out.exists()

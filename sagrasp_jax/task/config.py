@@ -762,14 +762,34 @@ def _as_overrides(flat: dict[str, Any], where: str) -> list[str]:
 MAX_CONFIG_BYTES = 256 << 10  # 256 KiB, 50 full configs; checked before the file is read (pure-Python YAML
 # takes a few seconds for this much)
 MAX_CONFIG_DEPTH = 32  # nested mappings and lists
-MAX_NUMBER_DIGITS = 64  # digits of an integer literal (Python's own int() stops at 4,300 with a ValueError)
+MAX_NUMBER_DIGITS = 64  # digits of an integer, in any notation (Python's own int() stops at 4,300 with a ValueError)
 _JSON_TYPES = (str, int, float, bool, type(None))
 
 
+def check_int_literal(text: str) -> None:
+    """Refuse (ValueError) an integer literal of more than ``MAX_NUMBER_DIGITS`` digits before it is converted,
+    in every notation a config file may use: decimal, and YAML's hex ``0x``, octal ``0…``, binary ``0b``
+    and base-60 ``1:20``, with a sign and ``_`` separators (neither counts).  Hex digits count like decimal ones:
+    a bound on the characters, not the value (``check_int_value`` bounds that)."""
+    body = text.strip().lstrip("+-").replace("_", "")
+    if body[:2].lower() in ("0x", "0o", "0b"):
+        body = body[2:]
+    digits = sum(c.isalnum() for c in body)
+    if digits > MAX_NUMBER_DIGITS:
+        raise ValueError(f"an integer of {digits} digits (at most {MAX_NUMBER_DIGITS})")
+
+
+def check_int_value(value: int) -> int:
+    """``value`` if it has at most ``MAX_NUMBER_DIGITS`` decimal digits (a 64-digit hex literal has 78), else
+    ValueError: every integer a config file yields can be written out and read back as ``--set`` text."""
+    if abs(value) >= 10**MAX_NUMBER_DIGITS:
+        raise ValueError(f"an integer of {len(str(abs(value)))} digits (at most {MAX_NUMBER_DIGITS})")
+    return value
+
+
 def _bounded_int(text: str) -> int:
-    if len(text.lstrip("-+")) > MAX_NUMBER_DIGITS:
-        raise ValueError(f"an integer of {len(text.lstrip('-+'))} digits (at most {MAX_NUMBER_DIGITS})")
-    return int(text)
+    check_int_literal(text)
+    return check_int_value(int(text))
 
 
 def _check_plain(data: Any) -> None:
@@ -824,11 +844,12 @@ def _yaml_loader() -> type:
             super().fetch_flow_collection_start(token_class)
 
         def construct_yaml_int(self, node: Any) -> int:
-            digits = sum(c.isdigit() for c in str(node.value))
-            if digits > MAX_NUMBER_DIGITS:
-                raise yaml.constructor.ConstructorError(None, None, f"an integer of {digits} digits (at most "
-                                                        f"{MAX_NUMBER_DIGITS})", node.start_mark)
-            return super().construct_yaml_int(node)
+            try:  # the literal's digits before PyYAML converts it (a hex one's letters count), then the value's
+                check_int_literal(str(node.value))
+                return check_int_value(super().construct_yaml_int(node))
+            except (ValueError, IndexError) as exc:  # IndexError: PyYAML's on an empty !!int "" or "-"
+                message = str(exc) if isinstance(exc, ValueError) else f"{str(node.value)[:40]!r} is not an integer"
+                raise yaml.constructor.ConstructorError(None, None, message, node.start_mark) from None
 
         def refuse_tag(self, node: Any) -> Any:
             raise yaml.constructor.ConstructorError(None, None, f"tag {node.tag} is not allowed in a config file "
@@ -863,8 +884,8 @@ def file_overrides(path: str) -> list[str]:
     when PyYAML is installed.  Sections may nest (``{"ppo": {"num_envs": 512}}``) or be dotted
     (``{"ppo.num_envs": 512}``).  A file that cannot be read or parsed raises ConfigError: it must be
     a regular file (not a FIFO or device: refused before it is opened) of at most ``MAX_CONFIG_BYTES``,
-    nested at most ``MAX_CONFIG_DEPTH`` deep, with integers of at most ``MAX_NUMBER_DIGITS`` digits, and
-    YAML yields JSON's types only (no aliases, dates or sets)."""
+    nested at most ``MAX_CONFIG_DEPTH`` deep, with integers of at most ``MAX_NUMBER_DIGITS`` digits in any
+    notation (hex, octal, binary, base 60), and YAML yields JSON's types only (no aliases, dates or sets)."""
     from sagrasp_jax.base import fileio
 
     where = f"--config {path}"
