@@ -26,6 +26,10 @@ the tests that train it serves it) evaluated on 8 episodes, a group of 2 such se
     python -m experiments.gpu_check --out experiments/results/gpu_check_h200.json
     python -m experiments.gpu_check --quick --out /tmp/gpu_check_quick.json
 
+No environment variable is needed anywhere: importing ``sagrasp_jax`` adds its CPU XLA flag only where jax
+runs on the CPU, in the form the installed jaxlib knows (``sagrasp_jax/base/xla_flags.py``; a GPU machine's
+CUDA plugin keeps it off).
+
 **On a bare GPU machine** (the lent H200: Python 3.12 with jax 0.11 and its CUDA plugin, flax, optax,
 numpy, absl-py, etils, scipy, pillow, tqdm, protobuf, but nothing else of the project's) the
 checkout travels with the command and ``python3 -m`` from its root imports ``sagrasp_jax`` and

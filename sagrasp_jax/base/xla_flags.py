@@ -46,6 +46,8 @@ RULES: tuple[FlagRule, ...] = (
 # jax finds its accelerator plugins as modules of the ``jax_plugins`` namespace package (the CUDA
 # plugins install ``jax_plugins/xla_cuda12``, ROCm ``xla_rocm*``); the TPU runtime is ``libtpu``.
 ACCELERATOR_PLUGIN_PREFIXES = ("xla_cuda", "xla_rocm", "xla_tpu")
+# ... and the kernels' packages beside them (jax-cuda12-plugin is jax_cuda12_plugin), the TPU runtime libtpu
+TOP_LEVEL_PLUGINS = ("jax_cuda12_plugin", "jax_cuda13_plugin", "jax_rocm60_plugin", "jax_rocm7_plugin", "libtpu")
 VERSION_LINE = re.compile(r"""^_version\s*(?::\s*str)?\s*=\s*["']([^"']+)["']""", re.M)
 
 
@@ -87,7 +89,7 @@ def installed_jaxlib_version() -> str | None:
 
 
 def installed_accelerator_plugins() -> tuple[str, ...]:
-    """The accelerator plugins jax will find (names of ``jax_plugins`` modules, and ``libtpu``)."""
+    """The accelerator plugins jax will find (``jax_plugins`` modules, the CUDA / ROCm kernels, ``libtpu``)."""
     found: list[str] = []
     try:
         spec = importlib.util.find_spec("jax_plugins")
@@ -100,11 +102,12 @@ def installed_accelerator_plugins() -> tuple[str, ...]:
         except OSError:
             continue
         found += sorted(n for n in names if n.startswith(ACCELERATOR_PLUGIN_PREFIXES))
-    try:
-        if importlib.util.find_spec("libtpu") is not None:
-            found.append("libtpu")
-    except (ImportError, ValueError):
-        pass
+    for module in TOP_LEVEL_PLUGINS:
+        try:
+            if importlib.util.find_spec(module) is not None:
+                found.append(module)
+        except (ImportError, ValueError):
+            pass
     return tuple(found)
 
 
