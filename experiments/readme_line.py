@@ -1,12 +1,12 @@
-"""The README's first command, exactly as written, from a fresh clone with a cold compilation cache; and
+"""The README's training command, exactly as written, from a fresh clone with a cold compilation cache; and
 where the training command's start-up and the evaluation command's seconds go.
 
     python -m experiments.readme_line line --out experiments/results/readme_line.json
     python -m experiments.readme_line startup --out experiments/results/readme_startup.json
     python -m experiments.readme_line eval-slots --run runs/quick --out experiments/results/eval_slots.json
 
-* ``line``: ``git clone`` of this checkout's HEAD into a temporary folder, then the first ``bash`` block of its
-  README run there by ``bash -c`` (venv, ``pip install --no-compile -e ".[train]"``, training, the 1,000-episode `robot`
+* ``line``: ``git clone`` of this checkout's HEAD into a temporary folder, then its README's training line
+  (``readme_line``; ``--python`` says which interpreter its ``python3`` is) run there by ``bash -c`` (venv, ``pip install --no-compile -e ".[train]"``, training, the 1,000-episode `robot`
   evaluation), with ``JAX_COMPILATION_CACHE_DIR`` on an empty folder and ``PYTHONPATH`` / ``VIRTUAL_ENV``
   unset; timed launch to exit.  Its parts come from the clone's files (the venv's, the run folder's) and the
   run's own log (compile, training seconds); the policy's success from the evaluation file.  pip's cache is
@@ -38,21 +38,24 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def readme_line(readme: str) -> str:
-    """The README's first command: the first line of its first ``bash`` block."""
+    """The README's training command: the first line of a ``bash`` block that installs and trains
+    (``python3 -m venv`` ... ``sagrasp_jax.train``; the README leads with the pretrained try, which trains nothing)."""
     inside = False
     for line in open(readme, encoding="utf-8"):
-        if line.startswith("```bash"):
-            inside = True
-        elif inside:
+        if line.startswith("```"):
+            inside = line.startswith("```bash") and not inside
+        elif inside and line.startswith("python3 -m venv") and "sagrasp_jax.train" in line:
             return line.strip()
-    raise ValueError(f"{readme}: no ```bash block")
+    raise ValueError(f"{readme}: no ```bash line that installs and trains")
 
 
 def _mtime(path: str) -> float | None:
     return os.path.getmtime(path) if os.path.exists(path) else None
 
 
-def measure_line(workdir: str, keep: bool) -> dict[str, Any]:
+def measure_line(workdir: str, keep: bool, python: str | None = None) -> dict[str, Any]:
+    """``python``: the interpreter the line's ``python3`` means (a folder holding a ``python3`` link to it goes
+    first on PATH); default the one on PATH."""
     clone = os.path.join(workdir, "clone")
     cache = os.path.join(workdir, "jax-cache")
     head = subprocess.run(["git", "-C", ROOT, "rev-parse", "HEAD"], capture_output=True, text=True, check=True).stdout.strip()
@@ -60,6 +63,13 @@ def measure_line(workdir: str, keep: bool) -> dict[str, Any]:
     line = readme_line(os.path.join(clone, "README.md"))
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV")}
     env["JAX_COMPILATION_CACHE_DIR"] = cache
+    if python is not None:
+        shim = os.path.join(workdir, "python-shim")
+        os.makedirs(shim, exist_ok=True)
+        os.symlink(os.path.abspath(python), os.path.join(shim, "python3"))
+        env["PATH"] = shim + os.pathsep + env.get("PATH", "")
+    interpreter = subprocess.run(["bash", "-c", "python3 -c 'import platform; print(platform.python_version())'"],
+                                 env=env, capture_output=True, text=True, check=True).stdout.strip()
     load_before = os.getloadavg()
     start = time.time()
     done = subprocess.run(["bash", "-c", line], cwd=clone, env=env, capture_output=True, text=True)
@@ -80,7 +90,7 @@ def measure_line(workdir: str, keep: bool) -> dict[str, Any]:
     config_at, policy_at = rel(_mtime(os.path.join(run, "config.json"))), rel(_mtime(os.path.join(run, "policy.npz")))
     compile_s, training_s = rows[-1]["compile_s"], rows[-1]["time_s"]
     out = {
-        "commit": head, "line": line, "total_s": end - start, "load_before": load_before, "load_after": os.getloadavg(),
+        "commit": head, "line": line, "python": interpreter, "total_s": end - start, "load_before": load_before, "load_after": os.getloadavg(),
         "venv_at_s": rel(_mtime(os.path.join(clone, ".venv", "pyvenv.cfg"))),
         "package_installed_at_s": rel(max(_mtime(r) or 0.0 for r in records)) if records else None,
         "trainer_built_at_s": config_at,  # config.json is written once the trainer is built
@@ -180,9 +190,10 @@ def measure_eval_slots(run: str, condition: str, episodes: int, slot_counts: lis
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="mode", required=True)
-    a = sub.add_parser("line", help="the README's first command from a fresh clone, cold cache")
+    a = sub.add_parser("line", help="the README's training command from a fresh clone, cold cache")
     a.add_argument("--workdir", default=None, help="where the clone goes (default: a new temporary folder)")
     a.add_argument("--keep", action="store_true", help="keep the clone and its run")
+    a.add_argument("--python", default=None, help="the interpreter the line's python3 is (default: python3 on PATH)")
     b = sub.add_parser("startup", help="the README trainer's build and compile, cold cache, in fresh processes")
     b.add_argument("--repeats", type=int, default=2)
     b.add_argument("--cycles", type=int, default=20)
@@ -196,8 +207,8 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.mode == "line":
         workdir = args.workdir or tempfile.mkdtemp(prefix="readme_line_")
-        data: Any = measure_line(workdir, args.keep)
-        for key in ("total_s", "venv_at_s", "package_installed_at_s", "trainer_built_at_s", "compile_s",
+        data: Any = measure_line(workdir, args.keep, args.python)
+        for key in ("python", "total_s", "venv_at_s", "package_installed_at_s", "trainer_built_at_s", "compile_s",
                     "training_s", "training_end_at_s", "evaluation_s", "first_98_env_steps", "first_98_from_launch_s",
                     "robot_success", "robot_obstacle_success"):
             value = data[key]

@@ -1,6 +1,6 @@
 """Optional parts of the install and the one message for a missing one.
 
-The core install (``pip install sagrasp_jax``) needs only NumPy: the policy runtime, export
+The core install (``pip install .`` or the wheel) needs only NumPy: the policy runtime, export
 readers, calibration, safety and the deployment loop.  Everything else is an extra; a
 command that needs one it lacks stops with exit status 2 and names the extra in the syntax
 a wheel user types (``pip install "sagrasp_jax[twin]"``), never a traceback.
