@@ -31,11 +31,12 @@ from typing import Any
 import numpy as np
 
 from sagrasp_jax.base import extras
-from sagrasp_jax.base.fileio import stdout_fd_to
 
 extras.require("twin", what="the PyBullet twin")
-with stdout_fd_to("stderr"):  # PyBullet's C code prints banners on fd 1; keep stdout for reports (--json)
-    import pybullet as pb
+# PyBullet's C code prints banners and URDF warnings on the file descriptors; bullet keeps them off the terminal
+# (stdout stays for reports, --json) and passes real messages on to stderr.  It imports pybullet.
+from sagrasp_jax.reference import bullet  # noqa: E402
+import pybullet as pb  # noqa: E402
 
 from sagrasp_jax.task import control
 from sagrasp_jax.task import shapes
@@ -84,7 +85,7 @@ class PyBulletTwin:
         self._contacts: dict[str, int] = {}  # what an arm link touched during the approach -> substeps
         self._max_shift = 0.0  # m, the cube's largest move on the table before the gripper closed
         self._max_tip = 0.0  # deg
-        with stdout_fd_to("stderr"):
+        with bullet.native_output_filtered():
             self._client = pb.connect(pb.GUI if gui else pb.DIRECT)
             if self._client < 0:
                 raise RuntimeError("could not connect to a PyBullet physics server" + (" (no display for --gui?)" if gui else ""))
@@ -141,7 +142,7 @@ class PyBulletTwin:
             for i in np.nonzero(np.asarray(spec.obstacle_active))[0]
         ]
 
-        self.robot_body = self._pb(pb.loadURDF, self.robot.urdf_path, useFixedBase=True, flags=pb.URDF_USE_INERTIA_FROM_FILE)
+        self.robot_body = bullet.load_urdf(self._client, self.robot.urdf_path, useFixedBase=True, flags=pb.URDF_USE_INERTIA_FROM_FILE)
         joints: dict[str, int] = {}
         efforts: dict[int, float] = {}
         for j in range(self._pb(pb.getNumJoints, self.robot_body)):

@@ -59,12 +59,11 @@ import numpy as np
 
 from sagrasp_jax.base import extras
 from sagrasp_jax.deploy.calibration import CameraCalibration
-from sagrasp_jax.base.fileio import stdout_fd_to
 from sagrasp_jax.task.scene import SCENE
 
 extras.require("twin", what="the twin camera")
-with stdout_fd_to("stderr"):
-    import pybullet as pb
+from sagrasp_jax.reference import bullet  # noqa: E402,F401  (imports pybullet with its banner kept off the terminal)
+import pybullet as pb  # noqa: E402
 
 NEAR_M, FAR_M = 0.3, 3.0  # clip planes; the Mech-Eye Pro M's useful depth range lies inside
 PARK_Z = -50.0  # m: where a hidden arm waits during a capture

@@ -1,20 +1,143 @@
 """PyBullet helpers the reference env and the deploy twin share: primitives in MuJoCo's size convention,
-quaternions, a client's disconnect.  Needs only pybullet (the ``twin`` extra); no gymnasium, no mujoco.
+quaternions, connecting, loading a URDF and a client's disconnect, with PyBullet's native chatter kept out of
+the user's terminal.  Needs only pybullet (the ``twin`` extra); no gymnasium, no mujoco.
+
+PyBullet's C++ code prints straight to the process's file descriptors, past Python's ``sys.stdout``: a
+"pybullet build time" banner on stderr when it is imported, and on stdout, for each URDF link without an
+``<inertial>`` (the robot's frame-only links ``flange`` and ``gripper_center``), a ``b3Warning[...]: No
+inertial data for link ...`` pair.  ``native_output_filtered`` sends both descriptors to a temporary file for
+a block and afterwards passes on to stderr everything but those known-harmless messages
+(``filter_native_output``), so a real message (a URDF not found, a failed connection) still shows, and
+stdout keeps only what a command reports (deploy's ``--json``).  ``connect`` and ``load_urdf`` run inside it,
+and so does the import of pybullet here.
 """
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
 import math
-from typing import Any
+import os
+import re
+import sys
+import tempfile
+import xml.etree.ElementTree as ET
+from typing import Any, Collection, Iterator
 
 import numpy as np
 
 from sagrasp_jax.base import extras
 
+# A native message: its header ("b3Warning[file,line]:" and a newline), then its text (not always ended by a newline).
+_NATIVE_HEADER = re.compile(r"(b3(?:Warning|Error|Printf)\[[^\]\n]*\]:\n)")
+NO_INERTIAL = "No inertial data for link"  # a warning in two messages: this, then the link's name
+_LINK_NAME = re.compile(r"[A-Za-z0-9_.\-]+")
+HARMLESS_LINES = ("pybullet build time:",)  # lines (not b3 messages) that say nothing to a user
+
+
+def _pass_lines(text: str) -> str:
+    return "".join(line for line in text.splitlines(keepends=True) if not line.startswith(HARMLESS_LINES))
+
+
+def _link_name(message: str, frame_links: Collection[str] | None) -> str | None:
+    """The link name a "No inertial data" warning's second message starts with (it ends with no newline, so
+    what is printed next may follow it on the line): one of ``frame_links``, or with None the whole message
+    when it looks like a name; None when it is not one."""
+    if frame_links is None:
+        return message if _LINK_NAME.fullmatch(message) else None
+    return max((name for name in frame_links if message.startswith(name)), key=len, default=None)
+
+
+def filter_native_output(text: str, frame_links: Collection[str] | None = None) -> str:
+    """``text`` as PyBullet's native code printed it, less the known-harmless messages: the import banner and
+    the "No inertial data for link" warnings, each with the link-name message that follows it (only the links
+    of ``frame_links`` when given: those of the URDF loaded without ``<inertial>``, ``urdf_frame_links``)."""
+    parts = _NATIVE_HEADER.split(text)
+    out = [_pass_lines(parts[0])]
+    name_follows = None  # the header of a "No inertial data" warning whose link name comes next
+    for header, body in zip(parts[1::2], parts[2::2]):
+        message, newline, rest = body.partition("\n")
+        name = _link_name(message, frame_links) if header == name_follows else None
+        name_follows = None
+        if message.startswith(NO_INERTIAL):
+            name_follows = header
+        elif name is not None:
+            rest = message[len(name) :] + newline + rest
+        else:
+            out.append(header + message + newline)
+        out.append(_pass_lines(rest))
+    return "".join(out)
+
+
+def urdf_frame_links(path: str) -> tuple[str, ...] | None:
+    """The links of the URDF at ``path`` without ``<inertial>`` (PyBullet warns about each); None if unreadable."""
+    try:
+        return tuple(link.get("name", "") for link in ET.parse(path).getroot().iter("link") if link.find("inertial") is None)
+    except (OSError, ET.ParseError):
+        return None
+
+
+def _flush_c_stdio() -> None:
+    """Flush the C library's stdio buffers (PyBullet's printf), so they land where fd 1 points now."""
+    try:
+        ctypes.CDLL(None).fflush(None)
+    except (OSError, AttributeError, TypeError):  # no C library to reach (not POSIX): nothing buffered there to lose
+        pass
+
+
+@contextlib.contextmanager
+def native_output_filtered(frame_links: Collection[str] | None = None) -> Iterator[None]:
+    """Run the block with file descriptors 1 and 2 going to a temporary file, then write what it holds, less
+    PyBullet's known-harmless messages (``filter_native_output``), to stderr.  Python's own output in the block
+    (``sys.stdout`` too) goes the same way; stdout is left to what the command reports."""
+    for stream in (sys.stdout, sys.stderr):
+        if stream is not None:
+            stream.flush()
+    _flush_c_stdio()
+    saved = os.dup(1), os.dup(2)
+    with tempfile.TemporaryFile() as captured:
+        try:
+            os.dup2(captured.fileno(), 1)
+            os.dup2(captured.fileno(), 2)
+            yield
+        finally:
+            for stream in (sys.stdout, sys.stderr):
+                if stream is not None:
+                    stream.flush()
+            _flush_c_stdio()
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            os.close(saved[0])
+            os.close(saved[1])
+            captured.seek(0)
+            passed = filter_native_output(captured.read().decode("utf-8", errors="replace"), frame_links)
+            if passed:
+                if sys.stderr is not None:
+                    sys.stderr.write(passed)
+                    sys.stderr.flush()
+                else:
+                    os.write(2, passed.encode())
+
+
 extras.require("twin", what="the PyBullet helpers")
-import pybullet as pb  # noqa: E402
+with native_output_filtered():  # the "pybullet build time" banner
+    import pybullet as pb  # noqa: E402
 
 from sagrasp_jax.task.robot import BOX, CAPSULE, CYLINDER, SPHERE  # noqa: E402
+
+
+def connect(mode: int) -> int:
+    """``pybullet.connect(mode)`` (``pb.DIRECT`` or ``pb.GUI``) with its native output filtered; the client id, -1
+    when no server could be reached."""
+    with native_output_filtered():
+        return pb.connect(mode)
+
+
+def load_urdf(client: int, path: str, **kwargs: Any) -> int:
+    """``pybullet.loadURDF(path, **kwargs)`` on ``client``, its native warnings filtered: the frame-only links'
+    "No inertial data" warnings are dropped, anything else (a file not found) reaches stderr."""
+    with native_output_filtered(urdf_frame_links(path)):
+        return pb.loadURDF(path, physicsClientId=client, **kwargs)
 
 
 def rotation_to_quaternion(rot: np.ndarray) -> tuple[float, float, float, float]:

@@ -52,6 +52,7 @@ import numpy as np
 from sagrasp_jax.base import extras
 
 extras.require("twin", what="the PyBullet reference env")
+from sagrasp_jax.reference import bullet  # noqa: E402  (imports pybullet with its banner kept off the terminal)
 import pybullet as pb  # noqa: E402
 
 try:
@@ -66,7 +67,6 @@ from sagrasp_jax.task import collision
 from sagrasp_jax.task import config
 from sagrasp_jax.task import control
 from sagrasp_jax.task import episode
-from sagrasp_jax.base import fileio
 from sagrasp_jax.task import observation
 from sagrasp_jax.task import reward
 from sagrasp_jax.task import robot
@@ -219,7 +219,7 @@ class PyBulletGraspEnv(gym.Env if gym is not None else object):  # type: ignore[
         if render_mode == "human" and sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):
             # PyBullet's GUI would kill the whole process when it cannot open a window.
             raise RuntimeError("render_mode='human' needs a display (DISPLAY is not set); use 'rgb_array' or None")
-        self._client = pb.connect(pb.GUI if render_mode == "human" else pb.DIRECT)
+        self._client = bullet.connect(pb.GUI if render_mode == "human" else pb.DIRECT)
         if self._client < 0:
             raise RuntimeError("could not connect to a PyBullet physics server")
         self._obstacle_bodies: list[int] = []
@@ -276,8 +276,9 @@ class PyBulletGraspEnv(gym.Env if gym is not None else object):  # type: ignore[
         self.target_body, _ = self._static_body(BOX, half, (0.0, 0.0, -1.0), np.eye(3), SCENE.target_rgba)
 
         flags = pb.URDF_USE_INERTIA_FROM_FILE  # else PyBullet recomputes inertias from the collision shapes
-        with fileio.stdout_fd_to("devnull"):  # PyBullet prints a warning for each link without <inertial>, fixed below
-            self.robot_body = self._pb(pb.loadURDF, self.robot.urdf_path, basePosition=[0, 0, 0], useFixedBase=True, flags=flags)
+        # PyBullet warns about each link without <inertial> (fixed below); load_urdf keeps those warnings quiet
+        self.robot_body = bullet.load_urdf(self._client, self.robot.urdf_path, basePosition=[0, 0, 0], useFixedBase=True,
+                                           flags=flags)
         joints, links = {}, {}
         efforts = {}
         for j in range(self._pb(pb.getNumJoints, self.robot_body)):
