@@ -32,7 +32,7 @@ import sys
 import time
 from typing import Any, Callable, NamedTuple
 
-from sagrasp_jax.base import extras
+from sagrasp_jax.base import cli, extras
 
 if __name__ == "__main__":  # a missing extra ends in one line naming it (exit 2), not an import traceback
     extras.require_cli("train", prog="python -m sagrasp_jax.evaluate")
@@ -374,11 +374,13 @@ def format_table(results: dict[str, Any]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m sagrasp_jax.evaluate", description=__doc__.split("\n\n")[0])
+    from sagrasp_jax.task.policy_file import POLICY_HELP
+
+    p = cli.Parser(prog="python -m sagrasp_jax.evaluate", description=__doc__.split("\n\n")[0])
     p.add_argument("--run", default=None, help="run folder written by sagrasp_jax.train (required but with "
                    "--backend twin --policy)")
-    p.add_argument("--policy", default=None, help="--backend twin: an exported policy.npz or a pretrained policy's name "
-                   "(pretrained) instead of --run")
+    p.add_argument("--policy", default=None, help="--backend twin, instead of --run: " + POLICY_HELP[len("the policy: "):]
+                   + " (no result file unless --out)")
     p.add_argument("--episodes", type=int, default=1000)
     p.add_argument("--seed", type=int, default=None, help="evaluation seed (default eval.seed + 1)")
     p.add_argument("--max-steps", type=int, default=None, help="step cap per episode (default env.task.max_steps)")
@@ -386,8 +388,11 @@ def main(argv: list[str] | None = None) -> int:
                    help="mix: the task's evaluation mix (20 %% obstacle episodes); blocking: every episode has an obstacle "
                         "on the straight approach path (the file name says so)")
     p.add_argument("--out", default=None,
-                   help="result JSON (default RUN/evaluation-<EPISODES>ep-seed<SEED>[-<MAX_STEPS>steps].json)")
-    p.add_argument("--force", action="store_true", help="replace an existing result file that holds another evaluation")
+                   help="result JSON (default RUN/evaluation-<EPISODES>ep-seed<SEED>[-<MAX_STEPS>steps].json; --backend "
+                        "twin: RUN/evaluation-<EPISODES>ep-seed<SEED>-twin-<CONDITION>.json); an existing file is "
+                        "replaced only if it holds the same evaluation")
+    p.add_argument("--force", action="store_true", help="replace an existing result file that holds another evaluation "
+                   "(never a file that is no evaluation result, such as the run's config.json)")
     p.add_argument("--physical", action="store_true",
                    help="also replay each kinematic success through the MuJoCo physical grasp check (close, lift 5 cm)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="env.KEY=VALUE",
@@ -429,7 +434,17 @@ def main(argv: list[str] | None = None) -> int:
                     "scenes": args.scenes, **({"env_overrides": list(args.overrides)} if args.overrides else {})}
         folder = os.path.dirname(os.path.abspath(path))
         run_dir.check_output_file(path)  # a FIFO or device: refused before the lock file or anything is made
-        with run_dir.ResultLock(path, what="output folder"):  # the file: other results may go into its folder
+        lock = run_dir.ResultLock(path, what="output folder")  # the file: other results may go into its folder
+        written = [False]
+
+        def stopped() -> str:  # Ctrl-C: what was stopped, what was kept (the line is made at the exit)
+            kept = "nothing was written" + (f" ({path} left as it was)" if os.path.exists(path) else "")
+            return cli.interrupted_line(f"the evaluation of {args.run} was stopped",
+                                        f"its result was written to {path} before the exit" if written[0] else kept)
+
+        # No safe point inside jax's tracing, XLA's compile or the jitted evaluation: Ctrl-C ends the process at
+        # once, its lock file removed (cli.exit_on_interrupt); the result's write is finished first.
+        with cli.exit_on_interrupt(stopped, cleanup=lock.release), lock:
             run_dir.check_writable(folder, "output folder")  # before the evaluation, not after it
             run_dir.check_replace(path, identity, args.force)
             results = evaluate_run(args.run, args.episodes, seed, steps, scenes=args.scenes, overrides=args.overrides)
@@ -438,7 +453,9 @@ def main(argv: list[str] | None = None) -> int:
                 results["physical"] = evaluate_physical(args.run, args.episodes, seed, steps, overrides=args.overrides,
                                                         scenes=args.scenes)
             try:
-                write_results(path, results)
+                with cli.deferred():
+                    write_results(path, results)
+                    written[0] = True
             except OSError as exc:  # e.g. the disk filled up meanwhile: show what was evaluated, then refuse
                 print(format_table(results))
                 raise RunDirError(f"{exc}; the evaluation above was not saved") from None
@@ -455,12 +472,15 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _twin_backend(args: argparse.Namespace) -> int:
-    """``--backend twin``: the run's exported ``policy.npz`` through ``deploy.rehearse`` (no jax needed)."""
+    """``--backend twin``: the run's exported ``policy.npz`` (or ``--policy``) through ``deploy.rehearse`` (no jax
+    needed).  With ``--run`` the result goes into the run folder as the MJX evaluation's does
+    (``twin_result_file``), under the same rules: locked while it runs, replaced only when it holds the same
+    result (or another twin result, with ``--force``), written atomically."""
+    from sagrasp_jax.base import run_files
     from sagrasp_jax.deploy import rehearse
 
     unsupported = [flag for flag, on in (("--physical", args.physical), ("--set", args.overrides),
-                                         ("--config", args.config), ("--max-steps", args.max_steps),
-                                         ("--force", args.force)) if on]
+                                         ("--config", args.config), ("--max-steps", args.max_steps)) if on]
     if unsupported:
         print(f"error: --backend twin takes no {', '.join(unsupported)} (the twin judges the held cube itself; "
               "conditions are named with --condition)", file=sys.stderr)
@@ -470,7 +490,23 @@ def _twin_backend(args: argparse.Namespace) -> int:
     if (args.run is None) == (args.policy is None):
         print("error: --backend twin needs --run RUN (its policy.npz) or --policy FILE|NAME, not both", file=sys.stderr)
         return 2
-    return rehearse.run_cli(args.policy or os.path.join(args.run, "policy.npz"), args)
+    if args.policy is not None:
+        return rehearse.run_cli(args.policy, args)
+    try:
+        policy = run_files.policy_of_run(args.run)
+        out = args.out or run_dir.path(args.run, twin_result_file(args.episodes, args.seed, args.scenes, args.condition))
+        run_dir.check_output_file(out)
+        with run_dir.ResultLock(out, what="output folder"):
+            return rehearse.run_cli(policy, args, out=out)
+    except (run_files.RunFolderError, RunDirError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+
+
+def twin_result_file(episodes: int, seed: int, scenes: str, condition: str) -> str:
+    """The file name of a twin evaluation in its run folder: the MJX evaluation's scheme (``run_dir.
+    evaluation_file``) tagged with the backend and the condition, ``evaluation-500ep-seed0-twin-robot.json``."""
+    return run_dir.evaluation_file(episodes, seed, None, scenes, f"twin-{condition}")
 
 
 if __name__ == "__main__":

@@ -255,3 +255,101 @@ def test_deploy_modules_do_not_import_jax() -> None:
     code = ("import sys; import sagrasp_jax.deploy.loop, sagrasp_jax.deploy.twin, sagrasp_jax.deploy.__main__, "
             "sagrasp_jax.reference.grasp_check; sys.exit(any(m == 'jax' or m.startswith('jax.') for m in sys.modules))")
     assert subprocess.run([sys.executable, "-c", code], cwd=REPO, timeout=120).returncode == 0
+
+
+# ---- issue 54, "the first five minutes": what a newcomer meets first
+
+
+def _cam_top(world_top) -> list[str]:
+    return [f"{v:.6f}" for v in CameraCalibration.default().base_to_cam(np.asarray(world_top), units="mm")]
+
+
+def test_help_says_what_policy_target_cam_and_obstacle_take(capsys) -> None:
+    from sagrasp_jax.deploy.__main__ import main as deploy_main
+
+    with pytest.raises(SystemExit) as stop:
+        deploy_main(["--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert stop.value.code == 0
+    for said in ("a policy.npz file (export's output), a folder holding one (a finished run folder, or export's --out "
+                 "folder), or the name of a policy shipped in the package: pretrained",
+                 "a file or folder of that name in the working folder is given as a path, ./pretrained",
+                 "the centre of its top face, in the camera frame, in --units (default mm)",
+                 "X Y Z the top of the obstacle (the highest point the depth camera sees on it) in the camera frame",
+                 "sphere X Y Z R | cylinder X Y Z R H | box X Y Z LX LY LZ [YAW_DEG] | capsule X Y Z R L [YAW_DEG]; R "
+                 "radius, H height, LX LY LZ full side lengths", "L length tip to tip",
+                 "--dry-run check everything and stop before the first motion: print what would be done",
+                 "default the paper's printed calibration, built in"):
+        assert said in text, said
+
+
+def test_a_mistyped_option_is_named_with_the_nearest_one(capsys) -> None:
+    from sagrasp_jax.deploy.__main__ import main as deploy_main
+
+    argv = ["--polcy", "pretrained", "--target-cam", "-147", "-77", "1374"]
+    with pytest.raises(SystemExit) as stop:
+        deploy_main(argv)
+    err = capsys.readouterr().err
+    assert stop.value.code == 2
+    assert err.splitlines() == ["python -m sagrasp_jax.deploy: error: unknown option --polcy (did you mean --policy?)"]
+    with pytest.raises(SystemExit):
+        deploy_main([*argv, "--json"])
+    out, err = capsys.readouterr()
+    assert json.loads(out)["message"] == "unknown option --polcy (did you mean --policy?)"
+    with pytest.raises(SystemExit) as stop:  # --camera twin's and --dry-run's parsers too
+        deploy_main(["--camera", "twin", "--policy", "pretrained", "--scenez", "2"])
+    assert stop.value.code == 2 and "unknown option --scenez (did you mean --scenes?)" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        deploy_main(["--backend", "aubo", "--host", "h", "--dry-run", "--prot", "1"])
+    assert "unknown option --prot (did you mean --port?)" in capsys.readouterr().err
+
+
+def test_dry_run_added_to_a_deploy_line_stops_before_the_first_motion(capsys, monkeypatch) -> None:
+    """The README's advice, "run --dry-run first", on a whole deploy line: everything is checked, what would be
+    done is printed, no twin is built.  The calibration is named without citing a file the wheel lacks."""
+    from sagrasp_jax.deploy import twin
+    from sagrasp_jax.deploy.__main__ import main as deploy_main
+
+    monkeypatch.setattr(twin, "PyBulletTwin", lambda *a, **k: pytest.fail("a dry run built the twin"))
+    line = ["--policy", "pretrained", "--target-cam", *_cam_top(TARGET + [0, 0, 0.025]),
+            "--obstacle", "sphere", "-40", "-160", "1300", "30", "--dry-run"]
+    assert deploy_main([*line, "--json"]) == 0
+    out = capsys.readouterr().out
+    report = json.loads(out)
+    assert report["outcome"] == "dry_run" and report["commanded"] is False
+    plan = report["plan"]
+    np.testing.assert_allclose(plan["target_world"], TARGET, atol=1e-5)
+    assert plan["backend"] == "twin" and plan["policy"] == "pretrained" and len(plan["obstacles_world"]) == 1
+    assert plan["calibration"] == "the paper's printed calibration (built in)" and "docs/" not in out
+    assert CameraCalibration.default().source == "the paper's printed calibration (built in)"
+    assert deploy_main(line) == 0
+    text = capsys.readouterr().out
+    assert text.startswith("dry run: would deploy pretrained on the PyBullet twin; nothing was commanded")
+    assert "obstacle       sphere" in text and "at most        200 policy steps" in text
+    assert deploy_main([*line, "--target-cam", "500", "-77", "1374"]) == 2  # checked as a real run is
+    assert "x = -0.5445 m is outside" in capsys.readouterr().err
+
+
+def test_dry_run_of_an_aubo_deploy_line_connects_and_commands_nothing(capsys, monkeypatch) -> None:
+    """The same on the AUBO (through the FakeController test double of tests/test_hardware_adapters.py): the
+    plan, then the controller's read-only report; nothing commanded, the session closed."""
+    import socket
+
+    from test_hardware_adapters import COMMANDS, FakeController
+
+    from sagrasp_jax.deploy import aubo
+    from sagrasp_jax.deploy.__main__ import main as deploy_main
+
+    fake = FakeController()
+
+    class FakeSdk:
+        RpcClient = fake
+        AuboErrorCodes = type("Codes", (), {"__members__": {}})
+
+    monkeypatch.setattr(aubo, "import_sdk", lambda: FakeSdk)
+    with socket.create_server(("127.0.0.1", 0)) as listener:
+        code = deploy_main(["--policy", "pretrained", "--target-cam", *_cam_top(TARGET + [0, 0, 0.025]), "--backend",
+                            "aubo", "--host", "127.0.0.1", "--port", str(listener.getsockname()[1]), "--dry-run"])
+    out = capsys.readouterr().out
+    assert code == 0 and "would deploy pretrained on the AUBO-i5 at 127.0.0.1" in out and "AT HOME" in out, out
+    assert fake.named(*COMMANDS) == [] and [c[0] for c in fake.calls[-3:]] == ["logout", "disconnect", "setLogHandler"]

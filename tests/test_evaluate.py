@@ -53,3 +53,41 @@ def test_cli_errors_on_a_folder_that_is_not_a_run(tmp_path, capsys):
     assert evaluate.main(["--run", str(tmp_path), "--episodes", "10"]) == 2
     assert "config.json" in capsys.readouterr().err
     assert os.listdir(tmp_path) == []
+
+
+def test_a_twin_evaluation_of_a_run_writes_its_result_into_the_run_folder(tmp_path, capsys):
+    """Issue 54: as the MJX evaluation does, named by the same scheme with the backend and condition, atomically,
+    and replacing only the same result (another one with --force)."""
+    import hashlib
+    import shutil
+
+    pytest.importorskip("pybullet")
+    from sagrasp_jax.task.policy_file import pretrained_path
+
+    run = tmp_path / "run"
+    run.mkdir()
+    shutil.copy(pretrained_path("pretrained"), run / "policy.npz")
+    (run / "config.json").write_text("{}")
+    argv = ["--backend", "twin", "--run", str(run), "--episodes", "1", "--condition", "kinematic"]
+    assert evaluate.main(argv) == 0
+    path = run / "evaluation-1ep-seed0-twin-kinematic.json"
+    assert f"written {path}" in capsys.readouterr().out
+    assert sorted(os.listdir(run)) == ["config.json", path.name, "policy.npz"]  # no temp or lock file left
+    result = json.loads(path.read_text())
+    assert (result["backend"], result["episodes"], result["condition"], result["seed"]) == ("twin", 1, "kinematic", 0)
+    assert result["policy"] == str(run / "policy.npz")
+    assert result["policy_sha256"] == hashlib.sha256((run / "policy.npz").read_bytes()).hexdigest()
+    path.write_text(json.dumps(dict(result, seed=5)))  # another twin result under that name
+    assert evaluate.main(argv) == 2
+    assert f"{path} holds a different result (seed 5 -> 0); pass --force" in capsys.readouterr().err
+    assert json.loads(path.read_text())["seed"] == 5
+    assert evaluate.main([*argv, "--force"]) == 0
+    assert json.loads(path.read_text())["seed"] == 0
+
+
+def test_a_mistyped_option_is_named_with_the_nearest_one(capsys):
+    with pytest.raises(SystemExit) as stop:
+        evaluate.main(["--run", "r", "--episdes", "8"])
+    assert stop.value.code == 2
+    assert capsys.readouterr().err.splitlines() == [
+        "python -m sagrasp_jax.evaluate: error: unknown option --episdes (did you mean --episodes?)"]

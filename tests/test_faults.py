@@ -20,6 +20,7 @@ import json
 import math
 import os
 import random
+import re
 import shutil
 import subprocess
 import sys
@@ -1296,3 +1297,366 @@ def test_40_a_policy_file_without_its_clearance_key_is_refused(policy_file, tmp_
     assert code == 2 and message in err and json.loads(out)["outcome"] == "input_refused" and "Traceback" not in err
     legacy = runtime.load_policy(os.path.join(LEGACY_RUN, "policy_cpu_quick_3M.npz"))  # version 0.1 records it
     assert legacy.env_config().sampling.target_clearance == get_config("paper").env.sampling.target_clearance
+
+
+# ====================================================================== issue 54
+# The robot side's reliability: 1 calibration files beyond their bounds (deep JSON, a 401-digit integer, a
+# .npy header claiming 74.5 GiB, a 200 MB text file, a FIFO, a folder) and the other inputs' readers; 2 a policy
+# whose inputs are not its own config's; 3 outputs that name a file that is no result of their kind; 4 Ctrl-C;
+# 5 perception's refusals, calibrate --out "".
+
+def _npy_header_only(path: str, shape: tuple[int, ...]) -> str:
+    """A .npy file whose header claims ``shape`` float64s and which holds none of them."""
+    import io
+
+    head = io.BytesIO()
+    np.lib.format.write_array_header_1_0(head, {"descr": "<f8", "fortran_order": False, "shape": shape})
+    with open(path, "wb") as f:
+        f.write(head.getvalue())
+    return path
+
+
+CALIBRATION_CASES = [
+    ("deep.json", "[" * 100_000 + "]" * 100_000, "cannot read a 4×4 matrix (ValueError: nested deeper than 32 levels)"),
+    ("digits.json", "[[1" + "0" * 400 + ",0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]",
+     "cannot read a 4×4 matrix (ValueError: an integer of 401 digits (at most 64))"),
+    ("huge.npy", "NPY", "its .npy header claims float64[100000, 100000] (80000000000 bytes) but the file holds 0 bytes"),
+    ("big.txt", "SPARSE", "209715200 bytes, over the 1048576 bytes a calibration file may hold; not read"),
+    ("fifo.json", "FIFO", "fifo.json is a FIFO (named pipe), not a calibration file"),
+    ("folder.json", "FOLDER", "folder.json is a folder, not a calibration file"),
+]
+
+
+@pytest.mark.parametrize("name,content,message", CALIBRATION_CASES, ids=[c[0] for c in CALIBRATION_CASES])
+def test_54_1_calibration_files_beyond_their_bounds_are_refused(name, content, message, policy_file, tmp_path, capsys,
+                                                                 no_twin):
+    path = str(tmp_path / name)
+    with contextlib.ExitStack() as stack:
+        if content == "FIFO":
+            stack.enter_context(_fifo(path))
+        elif content == "FOLDER":
+            os.mkdir(path)
+        elif content == "NPY":
+            _npy_header_only(path, (100_000, 100_000))
+        elif content == "SPARSE":
+            with open(path, "wb") as f:
+                f.truncate(200 * 2**20)  # 200 MB that take no disk
+        else:
+            with open(path, "w") as f:
+                f.write(content)
+        t = time.monotonic()
+        code, out, err = call(deploy_cli.main, ["--policy", policy_file, "--target-cam", *TARGET_CAM,
+                                                "--calibration", path, "--json"], capsys)
+        assert code == 2 and message in err and "not found" not in err and "Traceback" not in err, err
+        assert json.loads(out)["outcome"] == "input_refused" and time.monotonic() - t < 5.0
+
+
+def test_54_1_the_other_inputs_of_the_robot_side_are_bounded_regular_files(tmp_path, capsys, no_twin):
+    """A policy file over its size cap is refused before it is read; a metrics log (plot) that is a FIFO is named,
+    never opened; the pairs file (calibrate) and the robot log (sysid) already were (issue 40)."""
+    from sagrasp_jax.base import run_files
+
+    big = str(tmp_path / "big.npz")
+    with open(big, "wb") as f:
+        f.truncate(runtime.MAX_POLICY_FILE_BYTES + 1)
+    with pytest.raises(runtime.PolicyFormatError, match="bytes a policy file may hold; not read"):
+        runtime.load_policy(big)
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / run_files.CONFIG_FILE).write_text("{}")
+    with _fifo(str(run / run_files.METRICS_FILE)):
+        t = time.monotonic()
+        with pytest.raises(run_files.RunFolderError, match="is a FIFO \\(named pipe\\), not a regular file"):
+            run_files.read_metrics(str(run))
+        assert time.monotonic() - t < 5.0
+
+
+def _cut_policy(path: str, names: list[str]) -> str:
+    """The packaged policy cut to the first ``len(names)`` inputs, renamed ``names``; its config unchanged."""
+    n = len(names)
+    with np.load(runtime.pretrained_path("pretrained")) as data:
+        arrays = {k: data[k] for k in data.files}
+    arrays.update(layer_0_w=arrays["layer_0_w"][:n], obs_mean=arrays["obs_mean"][:n], obs_std=arrays["obs_std"][:n],
+                  obs_size=np.asarray(n, np.int64), obs_layout=np.asarray(names))
+    with open(path, "wb") as f:
+        np.savez(f, **arrays)
+    return path
+
+
+def test_54_2_a_policy_whose_inputs_are_not_its_configs_is_refused_before_anything_connects(tmp_path, capsys,
+                                                                                            no_twin):
+    pytest.importorskip("pybullet")
+    layout = list(runtime.load_policy("pretrained").obs_layout)
+    cut = _cut_policy(str(tmp_path / "cut.npz"), [f"in_{i}" for i in range(17)])
+    renamed = _cut_policy(str(tmp_path / "renamed.npz"), layout[:3] + ["q_four"] + layout[4:])
+    message = {cut: "its 17 inputs (in_0, in_1, in_2, in_3, ...) do not match its own config, whose 'relative_lag' "
+                    "observation layout has 35",
+               renamed: "its inputs do not match its own config's 'relative_lag' observation layout: input 3 is "
+                        "'q_four' where the layout has 'q4'"}
+    for path, said in message.items():
+        with pytest.raises(runtime.PolicyFormatError, match=re.escape(f"{path}: {said}")):
+            runtime.load_policy(path)
+        code, out, err = call(deploy_cli.main, ["--policy", path, "--target-cam", *TARGET_CAM, "--json"], capsys)
+        assert code == 2 and said in err and json.loads(out)["outcome"] == "input_refused", err
+        code, out, err = call(evaluate.main, ["--backend", "twin", "--policy", path, "--episodes", "1"], capsys)
+        assert code == 2 and said in err and "cube held" not in out, err
+    # inputs named as export names another env's (the tests' toy env): the file loads, nothing runs it on the task
+    other = _cut_policy(str(tmp_path / "other.npz"), [f"obs_{i}" for i in range(17)])
+    assert runtime.load_policy(other).obs_size == 17
+    said = "not a grasp policy, refused before anything connects"
+    code, _, err = call(deploy_cli.main, ["--policy", other, "--target-cam", *TARGET_CAM], capsys)
+    assert code == 2 and said in err, err
+    code, _, err = call(evaluate.main, ["--backend", "twin", "--policy", other, "--episodes", "1"], capsys)
+    assert code == 2 and said in err, err
+    with pytest.raises(runtime.PolicyFormatError, match=said):
+        run_episode(Twinless(), runtime.load_policy(other), TARGET)
+
+
+def test_54_3_outputs_that_name_a_file_of_another_kind_are_refused_even_with_force(run_copy, tmp_path, capsys,
+                                                                                   monkeypatch):
+    """evaluate --backend twin, deploy.rehearse, deploy --camera twin and the MJX evaluate: an --out that names
+    the run's config, its policy or another kind of result is refused before any work, with --force too; the
+    run folder is unchanged.  (A twin result of another evaluation needs --force: tests/test_evaluate.py.)"""
+    pytest.importorskip("pybullet")
+    from sagrasp_jax.deploy import rehearse
+
+    monkeypatch.setattr(rehearse, "rehearse", lambda *a, **k: pytest.fail("ran before refusing"))
+    monkeypatch.setattr(evaluate, "evaluate_run", lambda *a, **k: pytest.fail("evaluated before refusing"))
+    run = str(tmp_path / "twin-run")
+    os.makedirs(run)
+    shutil.copy(runtime.pretrained_path("pretrained"), os.path.join(run, "policy.npz"))
+    run_dir.write_json(os.path.join(run, "config.json"), {"train": {"seed": 0}})
+    mjx_result = os.path.join(run, "mjx.json")
+    run_dir.write_json(mjx_result, {"episodes": 8, "overall": {"success_rate": 0.5}})
+    config, policy = os.path.join(run, "config.json"), os.path.join(run, "policy.npz")
+    expected = {config: f"{config} exists and is not a twin evaluation result (it lacks the 'backend', 'episodes', "
+                        "'summary' entries one has); --force replaces only a result",
+                policy: f"{policy} exists and holds binary data, not a twin evaluation result; --force replaces only",
+                mjx_result: f"{mjx_result} exists and is not a twin evaluation result (it lacks the 'backend', "
+                            "'summary' entries one has)"}
+    before = snapshot(run)
+    for out, message in expected.items():
+        for force in ([], ["--force"]):
+            for main, argv in [(evaluate.main, ["--backend", "twin", "--run", run, "--episodes", "1"]),
+                               (rehearse.main, ["--policy", policy, "--episodes", "1"]),
+                               (deploy_cli.main, ["--camera", "twin", "--policy", policy, "--scenes", "1"])]:
+                code, _, err = call(main, [*argv, "--out", out, *force], capsys)
+                assert code == 2 and message in err and "Traceback" not in err, (main, err)
+    assert snapshot(run) == before
+    before = snapshot(run_copy)
+    for out in (run_dir.path(run_copy, run_dir.CONFIG_FILE), run_dir.path(run_copy, run_dir.POLICY_FILE)):
+        code, _, err = call(evaluate.main, ["--run", run_copy, "--episodes", "8", "--out", out, "--force"], capsys)
+        assert code == 2 and f"{out} exists and " in err and "--force replaces only a result" in err, err
+    assert snapshot(run_copy) == before
+
+
+# ---------------------------------------------------------------------- 54.4: Ctrl-C
+
+def _interrupt(code: str, argv: list[str], marker: str, delay: float, env: dict[str, str] | None = None,
+               timeout: float = 240.0) -> tuple[int, str, str, float]:
+    """Run ``python -c code argv...`` (this checkout on its path), send it SIGINT ``delay`` s after it printed
+    a line holding ``marker``: (exit status, stdout, stderr, seconds from the signal to its exit)."""
+    import signal
+
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([REPO, *filter(None, [os.environ.get("PYTHONPATH")])]),
+               **(env or {}))
+    proc = subprocess.Popen([sys.executable, "-c", code, *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, cwd=REPO, env=env)
+    seen = []
+    deadline = time.monotonic() + timeout
+    try:
+        while time.monotonic() < deadline:
+            line = proc.stdout.readline()
+            if not line:
+                break
+            seen.append(line)
+            if marker in line:
+                break
+        assert seen and marker in seen[-1], f"no {marker} line: {''.join(seen)[-2000:]}{proc.stderr.read()[-3000:]}"
+        time.sleep(delay)
+        proc.send_signal(signal.SIGINT)
+        t = time.monotonic()
+        out, err = proc.communicate(timeout=timeout)
+        return proc.returncode, "".join(seen) + out, err, time.monotonic() - t
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+
+
+def _one_interrupted_line(err: str) -> str:
+    """The one line a command stopped by Ctrl-C prints (PyBullet's own chatter may end without a newline before
+    it), with no traceback around it."""
+    lines = [line[line.index("interrupted (Ctrl-C): "):] for line in err.splitlines() if "interrupted (Ctrl-C)" in line]
+    assert len(lines) == 1 and "Traceback" not in err and "KeyboardInterrupt" not in err, err[-3000:]
+    return lines[0]
+
+
+SLOW_TWIN = """
+import sys, time
+from sagrasp_jax.deploy import twin, __main__ as deploy
+real = twin.PyBulletTwin.command_joint_targets
+def slow(self, q):
+    print("MOVING", flush=True)
+    time.sleep(0.2)
+    return real(self, q)
+twin.PyBulletTwin.command_joint_targets = slow
+sys.exit(deploy.main(sys.argv[1:]))
+"""
+
+
+def test_54_4_ctrl_c_stops_a_twin_deploy_with_one_line_and_exit_130(policy_file, tmp_path):
+    pytest.importorskip("pybullet")
+    code, out, err, took = _interrupt(SLOW_TWIN, ["--policy", policy_file, "--target-cam", *TARGET_CAM,
+                                                  "--max-steps", "1000", "--json"], "MOVING", 0.3)
+    line = _one_interrupted_line(err)
+    assert code == 130 and took < 5.0, (code, took, err[-2000:])
+    assert "the episode on the twin was stopped before its next command and the twin closed" in line
+    assert "nothing was written" in line and '"outcome"' not in out
+
+
+def test_54_4_ctrl_c_on_the_aubo_stops_before_the_next_command_and_closes_the_session(policy_file, capsys,
+                                                                                       monkeypatch):
+    import signal
+    import socket
+    import threading
+
+    from test_hardware_adapters import FakeController
+
+    if threading.current_thread() is not threading.main_thread():
+        pytest.skip("signals reach only the main thread")
+
+    def unhandled(signum: int, frame: Any) -> typing.NoReturn:  # not a KeyboardInterrupt: it would end the session
+        raise AssertionError("the Ctrl-C reached the test: the deploy command did not handle it")
+
+
+    from sagrasp_jax.deploy import aubo
+
+    class Interrupting(FakeController):
+        def __getattr__(self, name: str) -> Any:
+            if name == "servoJoint":
+                def servo(*args: Any) -> int:
+                    self.calls.append(("servoJoint", *args))
+                    if len(self.named("servoJoint")) == 3:
+                        os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C while the third command is under way
+                    return 0
+                return servo
+            return super().__getattr__(name)
+
+    fake = Interrupting()
+
+    class FakeSdk:
+        RpcClient = fake
+        AuboErrorCodes = type("Codes", (), {"__members__": {}})
+
+    monkeypatch.setattr(aubo, "import_sdk", lambda: FakeSdk)
+    previous = signal.signal(signal.SIGINT, unhandled)
+    try:
+        with socket.create_server(("127.0.0.1", 0)) as listener:  # the TCP probe's controller
+            port = listener.getsockname()[1]
+            code, out, err = call(deploy_cli.main, ["--policy", policy_file, "--target-cam", *TARGET_CAM, "--backend",
+                                                    "aubo", "--host", "127.0.0.1", "--port", str(port), "--gripper-io",
+                                                    "settle=0", "--max-steps", "50"], capsys)
+        handler = signal.getsignal(signal.SIGINT)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    line = _one_interrupted_line(err)
+    assert code == 130 and "before its next command to the arm" in line and "controller session closed" in line
+    assert len(fake.named("servoJoint")) == 3  # nothing sent after the Ctrl-C
+    assert [c[0] for c in fake.calls[-4:]] == ["setServoModeSelect", "logout", "disconnect", "setLogHandler"]
+    assert fake.calls[-4] == ("setServoModeSelect", 0)  # servo mode left
+    assert handler is unhandled  # the CLI put the handler back
+
+
+SLOW_SCENES = """
+import os, sys, time
+from sagrasp_jax.deploy import rehearse
+def slow(*a, **k):
+    print(f"SCENE {os.getpid()}", flush=True)
+    time.sleep(60)  # a scene that would run on for a minute
+rehearse.run_scene = slow
+sys.exit(rehearse.main(sys.argv[1:]))
+"""
+
+
+def test_54_4_ctrl_c_to_a_twin_evaluation_terminates_its_workers_at_once(tmp_path):
+    """``evaluate --backend twin --workers 2`` left its workers running 34 s after a SIGINT to it.  Its scenes run
+    in ``deploy.rehearse.run_cli`` (as ``deploy --camera twin``'s do), driven here through deploy.rehearse's own
+    command, which spares the subprocess evaluate's jax import."""
+    pytest.importorskip("pybullet")
+    run = str(tmp_path / "run")
+    os.makedirs(run)
+    out_file = os.path.join(run, "twin.json")
+    code, out, err, took = _interrupt(SLOW_SCENES, ["--policy", "pretrained", "--episodes", "4", "--workers", "2",
+                                                    "--condition", "kinematic", "--out", out_file], "SCENE", 0.5)
+    line = _one_interrupted_line(err)
+    assert code == 130 and took < 10.0, (code, took, err[-2000:])
+    assert "the twin rehearsal was stopped after 0 of 4 scenes (its 2 worker processes terminated)" in line
+    assert line.endswith("no result was written") and os.listdir(run) == []
+    workers = {int(w.split()[1]) for w in out.splitlines() if w.startswith("SCENE ")}
+    assert workers
+    for pid in workers:  # gone, not running their scenes on
+        with pytest.raises(ProcessLookupError):
+            os.kill(pid, 0)
+
+
+MJX_EVALUATE = """
+import sys
+from sagrasp_jax import evaluate
+from sagrasp_jax.training import fixed_seed_eval
+make = fixed_seed_eval.make_evaluator
+def marked(*a, **k):
+    print("COMPILING", flush=True)  # what follows: tracing, then XLA's compile of the evaluator (seconds)
+    return make(*a, **k)
+fixed_seed_eval.make_evaluator = marked
+sys.exit(evaluate.main(sys.argv[1:]))
+"""
+
+
+def test_54_4_ctrl_c_during_the_mjx_evaluations_compile_exits_130_not_sigsegv(tmp_path):
+    """The compile of the real env's evaluator takes ≈ 20 s here with the compilation cache off; a Ctrl-C 2 s in
+    used to raise inside jax (a gc callback swallowed it, or the exit died of SIGSEGV with XLA's threads
+    running).  It now ends the process at once: exit 130, one line, no lock file, no result."""
+    run = shutil.copytree(LEGACY_RUN, str(tmp_path / "run"))
+    results = str(tmp_path / "results")
+    os.makedirs(results)
+    out_file = os.path.join(results, "e.json")
+    code, out, err, took = _interrupt(MJX_EVALUATE, ["--run", run, "--episodes", "8", "--out", out_file], "COMPILING",
+                                      2.0, env={"JAX_ENABLE_COMPILATION_CACHE": "false"})
+    line = _one_interrupted_line(err)
+    assert code == 130 and took < 5.0, (code, took, err[-2000:])
+    assert line == f"interrupted (Ctrl-C): the evaluation of {run} was stopped; nothing was written"
+    assert os.listdir(results) == []  # neither the result nor the lock file
+
+
+# ---------------------------------------------------------------------- 54.5
+
+def test_54_5_perception_refuses_bad_library_input_with_a_perception_error():
+    from test_perception import CAL, SCENE, cast
+
+    from sagrasp_jax.deploy import perception
+
+    cloud, rgb = cast(SCENE)
+    cases = [
+        (lambda: perception.detect_scene(cloud, np.full(rgb.shape, "a"), CAL), "RGB image must be uint8 or floats"),
+        (lambda: perception.detect_scene(cloud, [[1, 2], [3]], CAL), "RGB image is not an \\(H, W, 3\\) array"),
+        (lambda: perception.point_at_pixel(cloud, float("nan"), 3.0), "pixel \\(nan, 3.0\\) must be two finite"),
+        (lambda: perception.point_at_pixel(cloud, 3.0, 3.0, window=-1), "window -1 must be a whole number"),
+        (lambda: perception.detect_scene(cloud, rgb, CAL, target_size=["a", "b", "c"]), "target_size .* 3 full extents"),
+        (lambda: perception.detect_scene(cloud, rgb, CAL, target_size=[0.05]), "target_size .* 3 full extents"),
+        (lambda: perception.detect_scene(cloud, rgb, CAL, detections=[perception.Detection("target", (math.nan, 0, 1, 1))]),
+         "its box must be 4 finite pixel coordinates"),
+    ]
+    for fn, message in cases:
+        with pytest.raises(perception.PerceptionError, match=message):
+            fn()
+
+
+def test_54_5_an_empty_output_path_is_named_as_such(tmp_path, capsys):
+    from sagrasp_jax import calibrate
+
+    pairs = tmp_path / "pairs.csv"
+    pairs.write_text("1,2,3,4,5,6\n")
+    code, _, err = call(calibrate.main, ["--pairs", str(pairs), "--out", ""], capsys)
+    assert code == 2 and "the calibration output is an empty path '': name the file to write" in err, err
+    assert os.listdir(tmp_path) == ["pairs.csv"]

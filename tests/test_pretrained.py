@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
+import shutil
 import subprocess
 import sys
 
@@ -29,13 +31,23 @@ def test_pretrained_policy_by_name_is_the_file_its_provenance_names() -> None:
     assert action.shape == (6,) and np.all(np.abs(action) <= 1)
 
 
-def test_a_file_of_that_name_wins_and_an_unknown_name_says_what_exists(tmp_path, monkeypatch) -> None:
+def test_a_name_is_the_packaged_policy_whatever_the_folder_holds(tmp_path, monkeypatch) -> None:
+    """Issue 54: a file or folder named ``pretrained`` in the working folder no longer shadows the packaged
+    policy; it is read only when given as a path (``./pretrained``).  An unknown name says what exists."""
     monkeypatch.chdir(tmp_path)
     with pytest.raises(PolicyFormatError, match="pretrained policy's name: cpu-quick-s0, pretrained"):
         load_policy("no-such-policy")
     (tmp_path / "pretrained").write_bytes(b"not a zip")
+    assert load_policy("pretrained").path == pretrained_path("pretrained")
     with pytest.raises(PolicyFormatError, match="not a readable .npz"):
-        load_policy("pretrained")
+        load_policy("./pretrained")
+    os.unlink(tmp_path / "pretrained")
+    os.mkdir(tmp_path / "pretrained")  # a run folder of that name, say
+    assert load_policy("pretrained").path == pretrained_path("pretrained")
+    with pytest.raises(PolicyFormatError, match=r"^\./pretrained is a folder without a policy.npz"):
+        load_policy("./pretrained")
+    shutil.copy(pretrained_path("pretrained"), tmp_path / "pretrained" / "policy.npz")  # a folder means its policy
+    assert load_policy("./pretrained").path == os.path.join(".", "pretrained", "policy.npz")
 
 
 def test_deploy_runs_the_pretrained_policy_by_name() -> None:

@@ -82,7 +82,11 @@ def check_writable(path: str, what: str = "output folder", is_folder: bool = Tru
     bytes is written, synced and removed in the folder, or in its nearest existing parent when it
     does not exist yet (it would be made there), so read-only mounts, permissions and full disks
     all show (``OutOfSpace`` for the last); a file ``path`` must be a regular file or absent
-    (``check_output_file``)."""
+    (``check_output_file``).  An empty path (``--out ""``) is refused naming ``what``: it names no file or
+    folder, and the write would fail only after the work."""
+    if not os.fspath(path).strip():
+        raise NotWritable(f"the {what} is an empty path {os.fspath(path)!r}: name the {'folder' if is_folder else 'file'} "
+                          "to write")
     if not is_folder:
         check_output_file(path)
     folder = os.path.abspath(path if is_folder else os.path.dirname(os.path.abspath(path)))
@@ -226,6 +230,63 @@ def check_output_file(path: str) -> None:
     if not stat.S_ISREG(st.st_mode):
         raise NotWritable(f"cannot write {path}: it is {file_kind(st.st_mode)}; an output must be a regular file "
                           "or absent")
+
+
+MAX_RESULT_BYTES = 64 << 20  # an earlier result read back to compare (a few kB; bounded like every input)
+
+
+class ResultRefused(NotWritable):
+    """An output path that names an existing file this command must not replace (see ``check_result_output``)."""
+
+
+def check_result_output(path: str, identity: dict[str, Any], kind: dict[str, Any], what: str,
+                        force: bool = False) -> None:
+    """Refuse (``ResultRefused``) to write a result over an existing file unless that file is a result of the
+    same kind holding the same result (every ``identity`` entry equal: writing it again changes nothing), or
+    holds another result of this kind and ``force`` is set.
+
+    A file is a result of this kind when it is a JSON object with every key of ``kind`` (a value other than
+    None must match too: ``{"backend": "twin", "summary": None}``).  Anything else that is readable — a run's
+    ``config.json``, another kind of result, a binary file — is refused even with ``force``: ``--force``
+    replaces a result, never another file.  A result that is damaged (text that is no JSON object, or
+    cut short) is replaced only with ``force``.  A FIFO, device or folder is refused as an output
+    (``check_output_file``).  ``what`` names the kind in the messages ("twin evaluation result")."""
+    check_output_file(path)
+    if not os.path.exists(path):
+        return
+    try:
+        data = read_regular(path, MAX_RESULT_BYTES, what)
+    except FileTooLarge:
+        raise ResultRefused(f"{path} exists and is over {MAX_RESULT_BYTES} bytes, not a {what}; --force replaces "
+                            "only a result: choose another --out") from None
+    except OSError as exc:
+        raise ResultRefused(f"cannot read {path} to see what it holds ({exc}); choose another --out") from None
+    try:
+        text = data.decode("utf-8")
+        if "\0" in text:
+            raise UnicodeDecodeError("utf-8", data, 0, 1, "a NUL byte")
+    except UnicodeDecodeError:
+        raise ResultRefused(f"{path} exists and holds binary data, not a {what}; --force replaces only a result: "
+                            "choose another --out") from None
+    try:
+        old, _ = json.JSONDecoder().raw_decode(text.lstrip())
+        readable = isinstance(old, dict)
+    except (ValueError, RecursionError):  # cut short or garbled: maybe a damaged result
+        old, readable = None, False
+    if not readable:
+        if force:
+            return
+        raise ResultRefused(f"{path} exists and is not a readable {what}; pass --force to replace it, or choose "
+                            "another --out")
+    mismatch = [k for k, v in kind.items() if k not in old or (v is not None and old[k] != v)]
+    if mismatch:
+        raise ResultRefused(f"{path} exists and is not a {what} (it lacks the {', '.join(repr(k) for k in mismatch)} "
+                            f"{'entry' if len(mismatch) == 1 else 'entries'} one has); --force replaces only a result: "
+                            "choose another --out")
+    diffs = [f"{key} {old.get(key)!r} -> {value!r}" for key, value in identity.items() if old.get(key) != value]
+    if diffs and not force:
+        raise ResultRefused(f"{path} holds a different result ({'; '.join(diffs)}); pass --force to replace it, or "
+                            "choose another --out")
 
 
 def atomic_write_bytes(path: str, data: bytes) -> str:

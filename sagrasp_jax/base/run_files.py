@@ -13,10 +13,13 @@ import os
 import re
 from typing import Any
 
+from sagrasp_jax.base import fileio
+
 CONFIG_FILE = "config.json"
 METRICS_FILE = "metrics.jsonl"
 POLICY_FILE = "policy.npz"
 SEED_FOLDER = re.compile(r"seed\d+$")  # a seed group's folders (train --seeds: OUT/seed<S>/)
+MAX_METRICS_BYTES = 1 << 30  # a metrics log read for the plots (one row of ~1 kB per iteration): bounded like every input
 
 
 class RunFolderError(ValueError):
@@ -58,9 +61,10 @@ def read_metrics(folder: str) -> list[dict[str, Any]]:
     """The rows of the run's ``metrics.jsonl``.  A last line cut short by a kill is dropped (as
     ``run_dir.read_metrics`` does); any other damage raises RunFolderError naming the line."""
     file = os.path.join(check_run(folder), METRICS_FILE)
-    try:
-        with open(file, "rb") as f:
-            data = f.read()
+    try:  # bounded, and a FIFO or device named, not opened
+        data = fileio.read_regular(file, MAX_METRICS_BYTES, "metrics log")
+    except (fileio.NotRegularFile, fileio.FileTooLarge) as exc:
+        raise RunFolderError(f"{exc} (the metrics log)") from None
     except OSError as exc:
         raise RunFolderError(f"{file}: cannot read the metrics log ({exc.strerror or exc})") from None
     return parse_metrics(data, file, RunFolderError, need_env_steps=True)

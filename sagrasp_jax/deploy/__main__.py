@@ -2,9 +2,15 @@
 
     python -m sagrasp_jax.deploy --policy policy/policy.npz --target-cam X Y Z [--units mm|m]
         [--target-yaw DEG] [--obstacle KIND X Y Z SIZE... ]... [--calibration FILE]
-        [--backend twin] [--gui] [--json]
-    python -m sagrasp_jax.deploy ... --backend aubo --host IP [--port N] [--gripper-io SPEC]
+        [--backend twin] [--gui] [--json] [--dry-run]
+    python -m sagrasp_jax.deploy ... --backend aubo --host IP [--port N] [--gripper-io SPEC] [--dry-run]
     python -m sagrasp_jax.deploy --backend aubo --host IP [--port N] --dry-run [--policy P] [--json]
+
+``--policy`` takes a ``policy.npz``, a folder holding one (a finished run folder, export's ``--out``) or the
+name of a packaged policy, ``pretrained``; a name always means the packaged policy (``./pretrained`` for a
+file or folder of that name).  ``--dry-run`` added to any deploy line checks everything the line says and
+stops before the first motion, printing what it would do (the cube and obstacles in the world, the start
+pose, the step cap; on the AUBO it also connects and says whether the arm stands at that pose).
 
 Detections are camera-frame points as the depth camera reports them: the **top** of the cube
 (and of each obstacle), in ``--units`` (default mm, the Mech-Eye's and the calibration's
@@ -34,9 +40,10 @@ The real AUBO-i5 (``--backend aubo --host IP``, ``pip install "sagrasp_jax[aubo]
 controller's RPC service (``--port``, default 30004; the login from $AUBO_USER / $AUBO_PASSWORD, default the
 factory's), one ``servoJoint`` per control period, every target through the same safety layer.  The arm must
 stand within ``--home-tolerance`` rad of the policy's home pose (else exit 2, nothing moved); the gripper is
-driven by the tool outputs of ``--gripper-io`` (configurable, untested on hardware).  ``--dry-run`` only
-connects and reports the joints and whether the arm is at home (exit 0 at home, 1 not, 2 no connection).  A
-refused or silent controller exits 2 naming host and port.
+driven by the tool outputs of ``--gripper-io`` (configurable, untested on hardware).  ``--dry-run`` alone
+(no ``--target-cam``) only connects and reports the joints and whether the arm is at home (exit 0 at home, 1
+not, 2 no connection).  A refused or silent controller exits 2 naming host and port.  Ctrl-C stops the episode
+before its next command, closes the session (servo mode left, logged out) and exits 130 with one line saying so.
 
 Exit status: 0 the cube is held after the lift (with --no-grasp: the grasp pose reached), 1 not held
 (timeout, collision, a faulty approach, a dropped cube, or a backend that cannot tell: the JSON report's
@@ -64,14 +71,14 @@ from sagrasp_jax.deploy.calibration import (
     standing_cube_centre,
     validate_target,
 )
-from sagrasp_jax.base import extras
+from sagrasp_jax.base import cli, extras
 from sagrasp_jax.task import shapes
 from sagrasp_jax.deploy.loop import DeployError, Obstacle, format_report, run_episode, scene_spec, with_obstacle_kinds
 from sagrasp_jax.task.config import HOME_Q
 from sagrasp_jax.deploy import aubo
 from sagrasp_jax.deploy.safety import SafetyViolation, check_policy_constants, check_policy_scene, deployment_env
 from sagrasp_jax.deploy.transfer import TransferErrors
-from sagrasp_jax.task.policy_file import PolicyFormatError, load_policy
+from sagrasp_jax.task.policy_file import POLICY_HELP, PRETRAINED, PolicyFormatError, load_policy
 
 BACKENDS = ("twin", "aubo")
 UNITS = ("mm", "m")
@@ -154,8 +161,9 @@ def parse_obstacle(tokens: Sequence[str], cal: CameraCalibration, units: str, in
     return Obstacle(kind, tuple(float(v) for v in centre), size, yaw)
 
 
-class _Parser(argparse.ArgumentParser):
-    """With ``--json`` on the command line, argparse's own refusals are JSON refusals too."""
+class _Parser(cli.Parser):
+    """One-line refusals naming a mistyped option's nearest one (``cli.Parser``); with ``--json`` on the command
+    line, argparse's own refusals are JSON refusals too."""
 
     json_argv: list[str] | None = None
 
@@ -168,17 +176,34 @@ class _Parser(argparse.ArgumentParser):
         super().error(message)
 
 
+# What the sizes after --obstacle KIND X Y Z are (shapes.SHAPES's cli_lengths), for --help; "" = said with another.
+LENGTH_MEANING = {"R": "R radius", "H": "H height", "LX": "LX LY LZ full side lengths (LX along the camera's x axis "
+                  "turned by YAW_DEG about its optical axis)", "LY": "", "LZ": "",
+                  "L": "L length tip to tip (lying on the table, along the camera's x axis turned by YAW_DEG)"}
+
+
+def _obstacle_help() -> str:
+    kinds = " | ".join(f"{s.name} {s.cli_usage}" for s in shapes.SHAPES)
+    letters = dict.fromkeys(n for s in shapes.SHAPES for n in s.cli_lengths)
+    meaning = ", ".join(m for m in (LENGTH_MEANING.get(n, n) for n in letters) if m)
+    return ("a detected obstacle, repeatable (at most the policy's env.sampling.max_obstacles, 2): its kind, then X Y Z "
+            "the top of the obstacle (the highest point the depth camera sees on it) in the camera frame, then its "
+            f"sizes; every number but YAW_DEG (degrees) in --units: {kinds}; {meaning}")
+
+
 def _parser() -> argparse.ArgumentParser:
     p = _Parser(prog="python -m sagrasp_jax.deploy", description=__doc__.split("\n\n")[0],
                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n\n", 2)[2])
-    p.add_argument("--policy", required=True, help="exported policy.npz")
+    p.add_argument("--policy", required=True, help=POLICY_HELP)
     p.add_argument("--target-cam", nargs=3, type=float, required=True, metavar=("X", "Y", "Z"),
-                   help="detected top of the cube in the camera frame")
+                   help="the cube as the depth camera reports it: the centre of its top face, in the camera frame, in "
+                        "--units (default mm); its centre is taken half the cube's height below, standing on the table")
     p.add_argument("--target-yaw", type=float, default=0.0, metavar="DEG", help="cube yaw about the optical axis (default 0)")
     p.add_argument("--units", choices=UNITS, default="mm", help="units of the detections (default mm)")
-    p.add_argument("--obstacle", nargs="+", action="append", default=[], metavar="KIND_X_Y_Z_SIZE",
-                   help="detected obstacle: " + " | ".join(f"{s.name} {s.cli_usage}" for s in shapes.SHAPES))
-    p.add_argument("--calibration", default=None, help="4×4 camera->base matrix (.json/.npy/.txt; default docs/task.md §5)")
+    p.add_argument("--obstacle", nargs="+", action="append", default=[], metavar="VALUE",
+                   help=_obstacle_help())
+    p.add_argument("--calibration", default=None, help="4×4 camera->base matrix (.json/.npy/.txt, as python -m "
+                   "sagrasp_jax.calibrate writes it; default the paper's printed calibration, built in)")
     p.add_argument("--calibration-units", choices=UNITS, default="mm", help="translation units of --calibration")
     p.add_argument("--base-z-offset", type=float, default=0.0, help="controller base height in the URDF frame, m")
     p.add_argument("--base-yaw", type=float, default=0.0, help="controller base yaw about z relative to the URDF, rad")
@@ -187,7 +212,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--host", default=None, help="aubo: the controller's IP address or host name")
     p.add_argument("--port", type=int, default=None, help=f"aubo: its RPC port (default {aubo.DEFAULT_PORT})")
     p.add_argument("--dry-run", action="store_true",
-                   help="aubo: connect, report the joints and whether the arm is at home; command nothing")
+                   help="check everything and stop before the first motion: print what would be done (the cube and "
+                        "obstacles in the world, the start pose, the step cap); with --backend aubo also connect and "
+                        "report the joints and whether the arm is at home (exit 0 at home, 1 not); nothing is "
+                        "commanded.  Without --target-cam: the AUBO's read-only check alone")
     p.add_argument("--gripper-io", default=None, metavar="SPEC",
                    help=f"aubo: tool outputs that drive the gripper (default {aubo.GripperIO().describe()}; untested)")
     p.add_argument("--home-tolerance", type=float, default=None, metavar="RAD",
@@ -320,12 +348,14 @@ def _aubo_robot(args: argparse.Namespace, settings: aubo.AuboSettings, q_home: n
 def _dry_run_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="python -m sagrasp_jax.deploy",
                 description="Read-only check of the AUBO-i5: connect, report the joints and whether the arm is at the "
-                            "home pose; nothing is commanded.  Exit 0 at home, 1 not at home, 2 no connection.")
+                            "home pose; nothing is commanded.  Exit 0 at home, 1 not at home, 2 no connection.  (A "
+                            "whole deploy line with --dry-run added checks it all and stops before the first motion.)")
     p.add_argument("--dry-run", action="store_true", required=True)
-    p.add_argument("--backend", choices=("aubo",), required=True)
+    p.add_argument("--backend", choices=BACKENDS, required=True)
     p.add_argument("--host", required=True)
     p.add_argument("--port", type=int, default=None)
-    p.add_argument("--policy", default=None, help="its env.task.home_q is the home pose (default: the config's)")
+    p.add_argument("--policy", default=None, help="its env.task.home_q is the home pose (default: the config's); "
+                   + POLICY_HELP[len("the policy: "):])
     p.add_argument("--home-tolerance", type=float, default=None, metavar="RAD")
     p.add_argument("--gripper-io", default=None, metavar="SPEC",
                    help="only echoed: the dry run never touches the gripper")
@@ -338,12 +368,11 @@ def _camera_scenes(tokens: list[str]) -> int:
     random twin scenes (``deploy.rehearse`` with its camera): the held rate and perception's errors."""
     from sagrasp_jax.deploy import rehearse
 
-    p = argparse.ArgumentParser(prog="python -m sagrasp_jax.deploy --camera twin",
-                                description=_camera_scenes.__doc__.split("\n")[0])
+    p = cli.Parser(prog="python -m sagrasp_jax.deploy --camera twin", description=_camera_scenes.__doc__.split("\n")[0])
     p.add_argument("--camera", choices=("twin",), required=True, help="the twin's rendered Mech-Eye capture")
     p.add_argument("--backend", choices=("twin",), default="twin", help="only the twin (a real camera and arm "
                    "run one scene at a time)")
-    p.add_argument("--policy", required=True, help="exported policy.npz or a pretrained policy's name")
+    p.add_argument("--policy", required=True, help=POLICY_HELP)
     p.add_argument("--scenes", type=int, default=100, help="random scenes (default 100)")
     p.add_argument("--scene-set", dest="scenes_kind", choices=rehearse.SCENE_SETS, default="mix",
                    help="mix (default) or blocking")
@@ -354,7 +383,9 @@ def _camera_scenes(tokens: list[str]) -> int:
     p.add_argument("--camera-resolution", type=float, default=0.25, help="fraction of 1920 × 1200 (default 0.25)")
     p.add_argument("--seed", type=int, default=0, help="scene draws (default 0)")
     p.add_argument("--workers", type=int, default=1, help="processes (default 1)")
-    p.add_argument("--out", default=None, help="write the result as JSON here")
+    p.add_argument("--out", default=None, help="write the result as JSON here (an existing file only if it holds the "
+                   "same twin result, or another one with --force)")
+    p.add_argument("--force", action="store_true", help="replace an --out file that holds another twin result")
     args = p.parse_args(tokens)
     if not 1 <= args.scenes <= rehearse.MAX_EPISODES:
         print(f"error: --scenes must be in [1, {rehearse.MAX_EPISODES}], got {args.scenes}", file=sys.stderr)
@@ -363,35 +394,86 @@ def _camera_scenes(tokens: list[str]) -> int:
     return rehearse.run_cli(args.policy, args)
 
 
+def _home_of(policy_arg: str | None) -> np.ndarray:
+    if policy_arg is None:
+        return np.asarray(HOME_Q, dtype=float)
+    policy = load_policy(policy_arg)
+    policy.check_grasp_inputs()
+    return np.asarray(policy.env_config().task.home_q, dtype=float)
+
+
 def _aubo_dry_run(tokens: list[str]) -> int:
+    """``--backend aubo --host IP --dry-run`` without a detection: the controller's read-only check alone."""
     parser = _dry_run_parser()
     if "--json" in tokens:
         parser.json_argv = tokens
     args = parser.parse_args(tokens)
+    if args.backend != "aubo":
+        parser.error("--dry-run without --target-cam is the AUBO's read-only check (--backend aubo --host IP); to "
+                     "check a deploy line on the twin without running it, add --dry-run to the whole line")
     given = {"backend": "aubo", "host": args.host, "port": args.port, "dry_run": True}
-    try:
-        settings = _aubo_settings(args)
-        home = np.asarray(load_policy(args.policy).env_config().task.home_q if args.policy else HOME_Q, dtype=float)
-        with aubo.AuboRobot(args.host, settings=settings, log=lambda line: print(line, file=sys.stderr)) as robot:
-            report = robot.dry_run(home, aubo.HOME_TOLERANCE if args.home_tolerance is None else args.home_tolerance)
-    except (InputRefused, PolicyFormatError, ValueError, extras.MissingExtra, DeployError) as exc:
-        _emit(args, {"outcome": "input_refused", "message": str(exc), "input": given},
-              f"error: refused before moving: {exc}", error=True)
-        return 2
+    with cli.at_safe_points():
+        try:
+            settings = _aubo_settings(args)
+            home = _home_of(args.policy)
+            with aubo.AuboRobot(args.host, settings=settings, log=lambda line: print(line, file=sys.stderr)) as robot:
+                report = robot.dry_run(home, aubo.HOME_TOLERANCE if args.home_tolerance is None else args.home_tolerance)
+            cli.check()
+        except (InputRefused, PolicyFormatError, ValueError, extras.MissingExtra, DeployError) as exc:
+            _emit(args, {"outcome": "input_refused", "message": str(exc), "input": given},
+                  f"error: refused before moving: {exc}", error=True)
+            return 2
+        except cli.Interrupted:
+            print(cli.interrupted_line("the read-only check was stopped and the controller session closed",
+                                       "nothing was commanded or written"), file=sys.stderr)
+            return cli.INTERRUPTED
     _emit(args, report.to_dict(), report.format())
     return 0 if report.home.at_home else 1
+
+
+def _policy_name(arg: str) -> str:
+    return arg if arg in PRETRAINED else os.path.abspath(arg)
+
+
+def _plan(args: argparse.Namespace, given: dict[str, Any], q_home: np.ndarray, steps: int) -> tuple[dict[str, Any], str]:
+    """What a deploy line would do (``--dry-run``), as JSON and as text."""
+    where = "the PyBullet twin" if args.backend == "twin" else f"the AUBO-i5 at {args.host}"
+    plan = {"backend": args.backend, "policy": _policy_name(args.policy), "start_q": [float(v) for v in q_home],
+            "max_steps": steps, "grasp": not args.no_grasp, "calibration": given["calibration"],
+            "target_world": given["target_world"], "target_yaw_world": given["target_yaw_world"],
+            "obstacles_world": given["obstacles_world"]}
+    fmt = lambda v: "(" + ", ".join(f"{x:.4f}" for x in v) + ")"  # noqa: E731
+    lines = [f"dry run: would deploy {plan['policy']} on {where}; nothing was commanded",
+             f"  cube centre    {fmt(given['target_world'])} m (world), yaw {math.degrees(given['target_yaw_world']):.1f}°",
+             *(f"  obstacle       {o['kind']} at {fmt(o['centre'])} m, size {fmt(o['size'])} m, yaw "
+               f"{math.degrees(o['yaw']):.1f}°" for o in given["obstacles_world"]),
+             f"  start pose     [{', '.join(f'{math.degrees(v):.2f}' for v in q_home)}]° (the arm must stand there)",
+             f"  at most        {steps} policy steps, then " + ("stop at the grasp pose (--no-grasp)" if args.no_grasp
+                                                               else "slide over the cube, close and lift 5 cm"),
+             f"  calibration    {given['calibration']}"]
+    return plan, "\n".join(lines)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = _parser()
     tokens = list(sys.argv[1:] if argv is None else argv)
-    if "--dry-run" in tokens:  # the AUBO's read-only check: no policy or detection needed
-        return _aubo_dry_run(tokens)
     if "--camera" in tokens:  # end to end from the twin's camera over many scenes: deploy.rehearse
         return _camera_scenes(tokens)
+    if "--dry-run" in tokens and not any(t.split("=", 1)[0] == "--target-cam" for t in tokens):
+        return _aubo_dry_run(tokens)  # the AUBO's read-only check: no policy or detection needed
     if "--json" in tokens:
         parser.json_argv = tokens
     args = parser.parse_args(tokens)
+    with cli.at_safe_points():
+        try:
+            return _deploy(args)
+        except cli.Interrupted as exc:
+            print(exc.args[0] if exc.args else cli.interrupted_line("stopped before anything connected or moved",
+                                                                     "nothing was written"), file=sys.stderr)
+            return cli.INTERRUPTED
+
+
+def _deploy(args: argparse.Namespace) -> int:
     given: dict[str, Any] = {"target_cam": args.target_cam, "units": args.units, "target_yaw_cam_deg": args.target_yaw,
                              "obstacles_cam": args.obstacle, "backend": args.backend}
     try:
@@ -404,6 +486,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if not (math.isfinite(args.base_yaw) and abs(args.base_yaw) <= math.pi):
             raise InputRefused(f"--base-yaw {args.base_yaw} must be finite and within ±π rad")
         policy = load_policy(args.policy)
+        policy.check_grasp_inputs()  # inputs its own config names, before anything connects
         env_cfg = policy.env_config()
         check_policy_constants(env_cfg, source=args.policy)
         check_policy_scene(env_cfg, source=args.policy)
@@ -425,7 +508,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         spec = scene_spec(q_home, standing_cube_centre(centre, env_cfg.sampling), yaw, obstacles, env_cfg)
         twin_errors, detection_error = _twin_errors(args)
         detection = validate_target(centre + detection_error, env_cfg.sampling)
-        if args.backend == "twin":
+        if args.backend == "twin" and not args.dry_run:
             extras.require("twin", what="--backend twin (the PyBullet digital twin)")
         aubo_settings = _aubo_settings(args)
     except (InputRefused, TargetRejected, CalibrationError, PolicyFormatError, ValueError, extras.MissingExtra,
@@ -436,6 +519,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     given.update(calibration=cal.source, target_world=[float(v) for v in centre], target_yaw_world=yaw,
                  obstacles_world=[{"kind": o.kind, "centre": list(o.centre), "size": list(o.size), "yaw": o.yaw}
                                   for o in obstacles])
+    cli.check()  # Ctrl-C while the input was checked: stop before anything connects
+    if args.dry_run:
+        return _dry_run(args, given, q_home, env_cfg.task.max_steps if args.max_steps is None else args.max_steps,
+                        aubo_settings)
 
     if args.backend == "aubo":  # the real arm: connect, check it stands at home, open the gripper
         try:
@@ -444,20 +531,30 @@ def main(argv: Sequence[str] | None = None) -> int:
             _emit(args, {"outcome": "input_refused", "message": str(exc), "input": given},
                   f"error: refused before moving: {exc}", error=True)
             return 2
+        stopped = cli.interrupted_line(
+            "the episode was stopped before its next command to the arm (it holds its last target) and the "
+            "controller session closed (servo mode left, logged out)", "nothing was written")
     else:
         from sagrasp_jax.deploy.twin import PyBulletTwin  # PyBullet only when it is used
 
         given["twin_cube_world"] = [float(v) for v in spec.target_pos]
         robot_cm = PyBulletTwin(spec, env_cfg, q0=q_home, gui=args.gui, errors=twin_errors)
+        stopped = cli.interrupted_line("the episode on the twin was stopped before its next command and the twin "
+                                       "closed", "nothing was written")
     if args.twin_target_error is not None:
         given["detection_world"] = [float(v) for v in detection]
-    with robot_cm as robot:
-        try:
-            report = run_episode(robot, policy, detection, yaw, obstacles, max_steps=args.max_steps,
-                                 grasp=not args.no_grasp)
-        except (SafetyViolation, DeployError) as exc:
-            _emit(args, {"outcome": "refused", "message": str(exc), "input": given}, f"error: stopped: {exc}", error=True)
-            return 3
+    try:
+        with robot_cm as robot:
+            try:
+                cli.check()
+                report = run_episode(robot, policy, detection, yaw, obstacles, max_steps=args.max_steps,
+                                     grasp=not args.no_grasp)
+            except (SafetyViolation, DeployError) as exc:
+                _emit(args, {"outcome": "refused", "message": str(exc), "input": given}, f"error: stopped: {exc}",
+                      error=True)
+                return 3
+    except cli.Interrupted:
+        raise cli.Interrupted(stopped) from None  # the session is closed by now: say so
     payload = report.to_dict() | {"input": given}
     _emit(args, payload, format_report(report))
     if report.outcome == "refused":
@@ -465,6 +562,26 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.no_grasp:
         return 0 if report.success else 1
     return 0 if report.held is True else 1
+
+
+def _dry_run(args: argparse.Namespace, given: dict[str, Any], q_home: np.ndarray, steps: int,
+             aubo_settings: aubo.AuboSettings | None) -> int:
+    """``--dry-run`` on a whole deploy line: everything above was checked; say what would be done and, on the
+    AUBO, connect and report whether the arm stands at the start pose.  Nothing is commanded."""
+    plan, text = _plan(args, given, q_home, steps)
+    payload: dict[str, Any] = {"outcome": "dry_run", "commanded": False, "plan": plan, "input": given}
+    if args.backend == "aubo":
+        try:
+            with aubo.AuboRobot(args.host, settings=aubo_settings, log=lambda line: print(line, file=sys.stderr)) as robot:
+                report = robot.dry_run(q_home, aubo.HOME_TOLERANCE if args.home_tolerance is None else args.home_tolerance)
+        except (DeployError, extras.MissingExtra) as exc:
+            _emit(args, {"outcome": "input_refused", "message": str(exc), "input": given},
+                  f"error: refused before moving: {exc}", error=True)
+            return 2
+        _emit(args, payload | report.to_dict(), text + "\n" + report.format())
+        return 0 if report.home.at_home else 1
+    _emit(args, payload, text)
+    return 0
 
 
 if __name__ == "__main__":

@@ -22,7 +22,7 @@ Everything here is NumPy; lengths are metres unless a ``units`` argument says "m
 
 from __future__ import annotations
 
-import json
+import io
 import math
 import os
 from dataclasses import dataclass, field
@@ -30,7 +30,8 @@ from typing import Any
 
 import numpy as np
 
-from sagrasp_jax.task.config import SamplingConfig
+from sagrasp_jax.base import fileio
+from sagrasp_jax.task.config import SamplingConfig, parse_json
 from sagrasp_jax.task.shapes import footprint_gap
 
 # The paper's printed hand-eye matrix (mm) lives once, in the cell description; re-exported here.
@@ -102,29 +103,67 @@ def checked_rotation(rot: Any, source: str = "calibration") -> tuple[np.ndarray,
     return u @ vt, err
 
 
+MAX_CALIBRATION_BYTES = 1 << 20  # a calibration file: a 4×4 matrix and how it was measured (calibrate: a few kB)
+DEFAULT_SOURCE = "the paper's printed calibration (built in)"  # CameraCalibration.default()'s source (docs/task.md §5)
+
+
+def _npy_matrix(data: bytes, path: str) -> np.ndarray:
+    """The array of a ``.npy`` file's bytes, its header checked against the bytes it holds before anything is
+    allocated (a header claiming 100000 × 100000 floats is refused, not allocated)."""
+    stream = io.BytesIO(data)
+    version = np.lib.format.read_magic(stream)
+    if version == (1, 0):
+        shape, fortran, dtype = np.lib.format.read_array_header_1_0(stream)
+    elif version == (2, 0):
+        shape, fortran, dtype = np.lib.format.read_array_header_2_0(stream)
+    else:
+        raise CalibrationError(f"{path}: .npy format version {version} is not read")
+    if dtype.hasobject:
+        raise CalibrationError(f"{path}: the .npy file holds Python objects (pickles are not read)")
+    size = int(np.prod(shape, dtype=object)) * dtype.itemsize
+    stored = len(data) - stream.tell()
+    if size != stored:
+        raise CalibrationError(f"{path}: its .npy header claims {dtype}{list(shape)} ({size} bytes) but the file holds "
+                               f"{stored} bytes; not read")
+    arr = np.frombuffer(data, dtype=dtype, offset=stream.tell())
+    return arr.reshape(shape[::-1]).T if fortran else arr.reshape(shape)
+
+
 def _read_matrix(path: str) -> np.ndarray:
+    """The matrix a calibration file holds, read in bounded time and memory: through ``fileio.read_regular``
+    (a FIFO, device or folder is named and refused before it is opened, a file over ``MAX_CALIBRATION_BYTES``
+    before it is read), JSON within the config files' bounds (``config.parse_json``: nesting, digits), a
+    ``.npy`` header checked against its bytes; every parse error a ``CalibrationError`` naming the file."""
     ext = os.path.splitext(path)[1].lower()
-    if not os.path.isfile(path):
-        raise CalibrationError(f"{path}: calibration file not found")
+    if ext not in (".json", ".npy", ".txt", ".csv", ".dat"):
+        raise CalibrationError(f"{path}: unknown calibration file type {ext!r}; use .json, .npy or .txt")
     try:
+        data = fileio.read_regular(path, MAX_CALIBRATION_BYTES, "calibration file")
+    except fileio.NotRegularFile as exc:
+        raise CalibrationError(f"{path} is {exc.kind}, not a calibration file") from None
+    except fileio.FileTooLarge as exc:
+        raise CalibrationError(f"{exc} (a calibration is a 4×4 matrix)") from None
+    except FileNotFoundError:
+        raise CalibrationError(f"{path}: calibration file not found") from None
+    except OSError as exc:
+        raise CalibrationError(f"{path}: cannot read the calibration file ({exc.strerror or exc})") from None
+    try:
+        if ext == ".npy":
+            return np.asarray(_npy_matrix(data, path), dtype=float)
+        text = data.decode("utf-8")
         if ext == ".json":
-            with open(path) as f:
-                data = json.load(f)
-            if isinstance(data, dict):
-                keys = [k for k in ("T_cam_base", "matrix", "T") if k in data]
+            parsed = parse_json(text)
+            if isinstance(parsed, dict):
+                keys = [k for k in ("T_cam_base", "matrix", "T") if k in parsed]
                 if not keys:
                     raise CalibrationError(f"{path}: JSON object needs a 'T_cam_base' 4×4 list")
-                data = data[keys[0]]
-            return np.asarray(data, dtype=float)
-        if ext == ".npy":
-            return np.asarray(np.load(path, allow_pickle=False), dtype=float)
-        if ext in (".txt", ".csv", ".dat"):
-            return np.loadtxt(path, delimiter="," if ext == ".csv" else None, dtype=float)
+                parsed = parsed[keys[0]]
+            return np.asarray(parsed, dtype=float)
+        return np.loadtxt(io.StringIO(text), delimiter="," if ext == ".csv" else None, dtype=float, ndmin=2)
     except CalibrationError:
         raise
-    except (ValueError, OSError, TypeError) as exc:
-        raise CalibrationError(f"{path}: cannot read a 4×4 matrix ({exc})") from None
-    raise CalibrationError(f"{path}: unknown calibration file type {ext!r}; use .json, .npy or .txt")
+    except (ValueError, OverflowError, TypeError, RecursionError, MemoryError, EOFError) as exc:
+        raise CalibrationError(f"{path}: cannot read a 4×4 matrix ({type(exc).__name__}: {exc})") from None
 
 
 @dataclass(frozen=True)
@@ -136,7 +175,7 @@ class CameraCalibration:
     base_z_offset: float = 0.0  # m, see module docstring
     base_yaw: float = 0.0  # rad, see module docstring
     orthonormality_error: float = 0.0  # max|RᵀR − I| of the matrix as given
-    source: str = "docs/task.md §5 default"
+    source: str = DEFAULT_SOURCE
     matrix: np.ndarray = field(init=False, repr=False)  # 4×4 camera -> world, metres, corrections included
 
     def __post_init__(self) -> None:
@@ -181,8 +220,9 @@ class CameraCalibration:
 
     @classmethod
     def default(cls, base_z_offset: float = 0.0, base_yaw: float = 0.0) -> "CameraCalibration":
-        """The paper's printed calibration (docs/task.md §5)."""
-        return cls.from_matrix(T_CAM_BASE_MM, "mm", base_z_offset, base_yaw, "docs/task.md §5 default")
+        """The paper's printed calibration (docs/task.md §5); its ``source`` says so without citing a file an
+        installed package does not ship."""
+        return cls.from_matrix(T_CAM_BASE_MM, "mm", base_z_offset, base_yaw, DEFAULT_SOURCE)
 
     @classmethod
     def from_file(

@@ -44,6 +44,7 @@ from typing import Any, Callable, NamedTuple, Protocol, Sequence, runtime_checka
 
 import numpy as np
 
+from sagrasp_jax.base import cli
 from sagrasp_jax.task import collision
 from sagrasp_jax.task import control
 from sagrasp_jax.task import observation
@@ -223,8 +224,10 @@ class DeployReport:
 def send_checked(robot: RobotInterface, safety: SafetyLayer, q_cmd: Any, q_prev: Any) -> np.ndarray:
     """The one path by which the loop moves the arm: the safety layer first, then the robot.
 
-    Raises ``SafetyViolation`` (and sends nothing) for a refused command.
+    Raises ``SafetyViolation`` (and sends nothing) for a refused command, and ``cli.Interrupted`` (sending
+    nothing) when Ctrl-C was pressed under ``cli.at_safe_points``: every command is a safe point to stop at.
     """
+    cli.check()
     q = safety.check(q_cmd, q_prev)
     robot.command_joint_targets(q.copy())
     return q
@@ -259,6 +262,7 @@ def run_episode(
     this scene; its limits never come from the policy.
     """
     t0 = time.perf_counter()
+    policy.check_grasp_inputs()  # a policy of another env would fail at its first observation
     env_cfg = with_obstacle_kinds(policy.env_config(), obstacles)
     model = load_robot()
     settings = safety.settings if safety is not None else None

@@ -181,15 +181,40 @@ def check_cloud(cloud_mm: Any) -> np.ndarray:
 
 
 def _check_rgb(rgb: Any, shape: tuple[int, int]) -> np.ndarray:
-    image = np.asarray(rgb)
+    try:
+        image = np.asarray(rgb)
+    except (TypeError, ValueError) as exc:  # ragged nested lists
+        raise PerceptionError(f"RGB image is not an (H, W, 3) array: {exc}") from None
     if image.shape != (*shape, 3):
         raise PerceptionError(f"RGB image must be (H, W, 3) = {(*shape, 3)} like the cloud, got {image.shape}")
     if image.dtype == np.uint8:
         return image.astype(np.float64) / 255.0
+    if image.dtype.kind not in "biuf":
+        raise PerceptionError(f"RGB image must be uint8 or floats in [0, 1], got dtype {image.dtype}")
     image = image.astype(np.float64)
     if not np.isfinite(image).all() or image.min() < 0 or image.max() > 1.0 + 1e-9:
         raise PerceptionError("RGB image must be uint8 or floats in [0, 1]")
     return image
+
+
+def _check_target_size(target_size: Any) -> np.ndarray:
+    try:
+        size = np.asarray(target_size, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise PerceptionError(f"target_size {target_size!r} must be the cube's 3 full extents in m: {exc}") from None
+    if size.shape != (3,) or not np.isfinite(size).all() or (size <= 0).any():
+        raise PerceptionError(f"target_size {target_size!r} must be the cube's 3 full extents in m (finite, > 0)")
+    return size
+
+
+def _check_box(det: Any) -> None:
+    box = getattr(det, "box", None)
+    try:
+        ok = len(box) == 4 and all(math.isfinite(float(x)) for x in box)
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise PerceptionError(f"detection {det!r}: its box must be 4 finite pixel coordinates (u0, v0, u1, v1)")
 
 
 def _intrinsics_from_cloud(cam: np.ndarray, valid: np.ndarray) -> tuple[float, float]:
@@ -674,6 +699,10 @@ def point_at_pixel(cloud_mm: Any, u: float, v: float, window: int = 2) -> np.nda
     valid points in a (2·window + 1)² neighbourhood; ``PerceptionError`` if none is valid."""
     cloud = check_cloud(cloud_mm)
     h, w = cloud.shape[:2]
+    if not all(isinstance(x, (int, float, np.integer, np.floating)) and math.isfinite(x) for x in (u, v)):
+        raise PerceptionError(f"pixel ({u!r}, {v!r}) must be two finite numbers (u, v)")
+    if not isinstance(window, (int, np.integer)) or window < 0:
+        raise PerceptionError(f"window {window!r} must be a whole number of pixels ≥ 0")
     r, c = int(round(v)), int(round(u))
     if not (0 <= r < h and 0 <= c < w):
         raise PerceptionError(f"pixel ({u:.1f}, {v:.1f}) is outside the {w} × {h} image")
@@ -734,7 +763,9 @@ def detect_scene(cloud_mm: Any, rgb: Any = None, calibration: CameraCalibration 
     t0 = time.perf_counter()
     settings = settings or PerceptionSettings()
     calibration = calibration or CameraCalibration.default()
-    size = np.asarray(target_size if target_size is not None else SamplingConfig().target_size, dtype=float)
+    size = _check_target_size(target_size if target_size is not None else SamplingConfig().target_size)
+    for det in detections or ():
+        _check_box(det)
     data = _prepare(cloud_mm, calibration, settings)
     image = _check_rgb(rgb, data.shape) if rgb is not None else None
     mask = _object_mask(data, settings, robot_q, robot_model)

@@ -21,22 +21,24 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
+import multiprocessing
 import os
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
 from typing import Any, NamedTuple, Sequence
 
 import numpy as np
 
-from sagrasp_jax.base import extras
+from sagrasp_jax.base import cli, extras, fileio
 from sagrasp_jax.task import robot
 from sagrasp_jax.task import sampling
 from sagrasp_jax.task.config import EVAL_CONDITIONS, Config, ConfigError, EnvConfig, apply_overrides, blocking_sampling
 from sagrasp_jax.deploy import transfer
 from sagrasp_jax.deploy.calibration import ObstacleRejected, TargetRejected
 from sagrasp_jax.deploy.loop import DeployReport, obstacles_from_spec, run_episode
-from sagrasp_jax.task.policy_file import NumpyPolicy, PolicyFormatError, load_policy, resolve_policy
+from sagrasp_jax.task.policy_file import (
+    POLICY_HELP, PRETRAINED, NumpyPolicy, PolicyFormatError, load_policy, resolve_policy,
+)
 
 SCENE_SETS = ("mix", "blocking")
 MAX_EPISODES = 100_000
@@ -166,14 +168,17 @@ _POLICIES: dict[str, NumpyPolicy] = {}
 
 
 def _policy(path: str) -> NumpyPolicy:
+    """The policy at ``path``, loaded once per process and refused unless its inputs are the grasp task's."""
     if path not in _POLICIES:
-        _POLICIES[path] = load_policy(path)
+        policy = load_policy(path)
+        policy.check_grasp_inputs()
+        _POLICIES[path] = policy
     return _POLICIES[path]
 
 
-def _chunk(args: tuple[str, EnvConfig, EnvConfig, int, Sequence[int], CameraSettings | None]) -> list[dict[str, Any]]:
-    path, env_cfg, scene_cfg, seed, indices, camera = args
-    return [run_scene(path, env_cfg, scene_cfg, seed, i, camera) for i in indices]
+def _scene(args: tuple[str, EnvConfig, EnvConfig, int, int, CameraSettings | None]) -> dict[str, Any]:
+    path, env_cfg, scene_cfg, seed, index, camera = args
+    return run_scene(path, env_cfg, scene_cfg, seed, index, camera)
 
 
 def wilson(k: int, n: int, z: float = 1.959964) -> tuple[float, float]:
@@ -205,6 +210,11 @@ def summarise(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
+def policy_name(policy_path: str) -> str:
+    """A policy as a result names it: a pretrained policy's name, else the absolute path of its file."""
+    return policy_path if policy_path in PRETRAINED else os.path.abspath(resolve_policy(policy_path))
+
+
 def rehearse(policy_path: str, episodes: int, condition: str, scenes: str = "mix", seed: int = 0,
              workers: int = 1, progress: bool = True, camera: CameraSettings | None = None) -> dict[str, Any]:
     """Run ``episodes`` twin scenes; the summary per episode kind and every episode's record."""
@@ -212,24 +222,28 @@ def rehearse(policy_path: str, episodes: int, condition: str, scenes: str = "mix
     env_cfg = condition_env(policy.env_config(), condition)
     scene_cfg = scene_env(env_cfg, scenes)
     workers = max(1, min(workers, episodes))
-    chunks = [list(range(episodes))[w::workers] for w in range(workers)]
     t0 = time.perf_counter()
-    if workers == 1:
-        records = []
-        for i in range(episodes):
-            records.append(run_scene(policy_path, env_cfg, scene_cfg, seed, i, camera))
-            if progress and (i + 1) % 50 == 0:
-                print(f"  {i + 1}/{episodes} scenes, held {sum(r['held'] for r in records) / len(records):.1%}",
-                      file=sys.stderr, flush=True)
-    else:
-        with ProcessPoolExecutor(workers) as pool:
-            parts = list(pool.map(_chunk, [(policy_path, env_cfg, scene_cfg, seed, c, camera) for c in chunks]))
-        records = sorted((r for part in parts for r in part), key=lambda r: r["index"])
+    records: list[dict[str, Any]] = []
+    try:
+        if workers == 1:
+            for i in range(episodes):
+                cli.check()  # a safe point for Ctrl-C: between scenes (and before every command, deploy.loop)
+                records.append(run_scene(policy_path, env_cfg, scene_cfg, seed, i, camera))
+                if progress and (i + 1) % 50 == 0:
+                    print(f"  {i + 1}/{episodes} scenes, held {sum(r['held'] for r in records) / len(records):.1%}",
+                          file=sys.stderr, flush=True)
+        else:
+            records = _in_workers(workers, [(policy_path, env_cfg, scene_cfg, seed, i, camera) for i in range(episodes)])
+    except cli.Interrupted as exc:
+        exc.done = exc.done or (len(records), episodes)
+        raise
+    records.sort(key=lambda r: r["index"])
     groups = {"all": records} | {k: [r for r in records if r["kind"] == k] for k in ("obstacle", "blocking", "no obstacle")}
     groups["obstacle"] = [r for r in records if r["kind"] in ("obstacle", "blocking")]  # every obstacle scene
     return {
         "backend": "twin",
-        "policy": policy_path if policy_path != resolve_policy(policy_path) else os.path.abspath(policy_path),
+        "policy": policy_name(policy_path),
+        "policy_sha256": policy.file_sha256,
         "condition": condition,
         "condition_overrides": list(EVAL_CONDITIONS[condition]),
         "scenes": scenes,
@@ -242,6 +256,31 @@ def rehearse(policy_path: str, episodes: int, condition: str, scenes: str = "mix
         "perception": perception_summary(records) if camera is not None else None,
         "records": records,
     }
+
+
+def _in_workers(workers: int, tasks: list[tuple[Any, ...]]) -> list[dict[str, Any]]:
+    """The scenes over ``workers`` processes, each taking the next scene when it is done; Ctrl-C (``cli.check``,
+    polled while waiting) or any error terminates the workers at once, whatever scene they are in (they ignore
+    Ctrl-C themselves: the parent stops them)."""
+    records: list[dict[str, Any]] = []
+    pool = multiprocessing.get_context().Pool(workers, initializer=cli.ignore_interrupts)
+    try:
+        results = pool.imap_unordered(_scene, tasks)
+        while len(records) < len(tasks):
+            cli.check()
+            try:
+                records.append(results.next(timeout=0.1))
+            except multiprocessing.TimeoutError:
+                continue
+        pool.close()
+    except BaseException as exc:
+        if isinstance(exc, cli.Interrupted):
+            exc.done = (len(records), len(tasks))
+        pool.terminate()
+        raise
+    finally:
+        pool.join()
+    return records
 
 
 def perception_summary(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
@@ -295,7 +334,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "scene has an obstacle on the straight approach path")
     p.add_argument("--seed", type=int, default=0, help="scene and error draws (default 0)")
     p.add_argument("--workers", type=int, default=1, help="processes (default 1; one per core)")
-    p.add_argument("--out", default=None, help="write the result as JSON here")
+    p.add_argument("--out", default=None, help="write the result as JSON here (an existing file only if it holds the "
+                   "same twin result, or another one with --force)")
+    p.add_argument("--force", action="store_true", help="replace an --out file that holds another twin result")
     p.add_argument("--camera", choices=("none", "twin"), default="none",
                    help="twin: end to end from the twin's rendered camera through deploy.perception (default none: "
                         "the sampler's scene with the condition's detection error)")
@@ -320,32 +361,68 @@ def check_arguments(args: argparse.Namespace) -> None:
             raise ValueError(f"--camera-resolution must be in [0.05, 1], got {args.camera_resolution}")
 
 
-def run_cli(policy_path: str, args: argparse.Namespace) -> int:
-    """Shared by this module's CLI and ``evaluate --backend twin``: validate, run, print, write; exit status."""
-    from sagrasp_jax.base import fileio
+RESULT_KIND = {"backend": "twin", "episodes": None, "summary": None}  # what makes a file a twin result
+RESULT_IDENTITY = ("backend", "policy", "policy_sha256", "condition", "scenes", "seed", "episodes", "camera")
 
-    try:
-        check_arguments(args)
-        extras.require("twin", what="the twin rehearsal (--backend twin)")
-        _policy(policy_path)
-        if args.out:
-            fileio.check_output_file(args.out)
-            fileio.check_writable(os.path.dirname(os.path.abspath(args.out)))
-    except (ValueError, PolicyFormatError, ConfigError, extras.MissingExtra, OSError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+
+def result_identity(policy: NumpyPolicy, policy_path: str, args: argparse.Namespace,
+                    camera: CameraSettings | None) -> dict[str, Any]:
+    """What a twin result is of (the entries of ``rehearse``'s result that fix its numbers): the same identity
+    gives the same result, whatever the number of workers."""
+    return {"backend": "twin", "policy": policy_name(policy_path), "policy_sha256": policy.file_sha256,
+            "condition": args.condition, "scenes": args.scenes, "seed": args.seed, "episodes": args.episodes,
+            "camera": camera._asdict() if camera is not None else None}
+
+
+def check_output(path: str, identity: dict[str, Any], force: bool) -> None:
+    """Refuse, before any scene runs, an output that would replace anything but the same twin result (or, with
+    ``--force``, another twin result), and a folder that cannot be written (``fileio.check_result_output``)."""
+    fileio.check_result_output(path, identity, RESULT_KIND, "twin evaluation result", force)
+    fileio.check_writable(os.path.dirname(os.path.abspath(path)))
+
+
+def run_cli(policy_path: str, args: argparse.Namespace, out: str | None = None) -> int:
+    """Shared by this module's CLI, ``deploy --camera twin`` and ``evaluate --backend twin``: validate, run, print,
+    write (to ``out``, default ``args.out``); the exit status.  Ctrl-C stops the scenes (the workers at once),
+    writes nothing and exits 130 with one line saying so."""
+    out = args.out if out is None else out
     camera = CameraSettings(args.depth_noise, args.camera_resolution) if getattr(args, "camera", "none") == "twin" else None
-    result = rehearse(policy_path, args.episodes, args.condition, args.scenes, args.seed, args.workers, camera=camera)
+    with cli.at_safe_points():
+        try:
+            try:
+                check_arguments(args)
+                extras.require("twin", what="the twin rehearsal (--backend twin)")
+                policy = _policy(policy_path)
+                if out:
+                    check_output(out, result_identity(policy, policy_path, args, camera), getattr(args, "force", False))
+            except (ValueError, PolicyFormatError, ConfigError, extras.MissingExtra, OSError) as exc:
+                print(f"error: {exc}", file=sys.stderr)
+                return 2
+            result = rehearse(policy_path, args.episodes, args.condition, args.scenes, args.seed, args.workers,
+                              camera=camera)
+            cli.check()  # the last safe point: a Ctrl-C from here on lets the result be written
+        except cli.Interrupted as exc:
+            done, total = exc.done or (0, args.episodes)
+            workers = f" (its {args.workers} worker processes terminated)" if args.workers > 1 else ""
+            print(cli.interrupted_line(f"the twin rehearsal was stopped after {done} of {total} scenes{workers}",
+                                       "no result was written" + (f" ({out} left as it was)" if out and
+                                                                   os.path.exists(out) else "")),
+                  file=sys.stderr)
+            return cli.INTERRUPTED
     print(format_table(result))
-    if args.out:
-        fileio.atomic_write_json(args.out, result, indent=1)
-        print(f"written {args.out}")
+    if out:
+        try:
+            fileio.atomic_write_json(out, result, indent=1)
+        except OSError as exc:  # e.g. the disk filled up meanwhile: the table above is the result
+            print(f"error: {exc}; the result above was not saved", file=sys.stderr)
+            return 2
+        print(f"written {out}")
     return 0
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m sagrasp_jax.deploy.rehearse", description=__doc__.split("\n\n")[0])
-    p.add_argument("--policy", required=True, help="exported policy.npz, or a pretrained policy's name (pretrained)")
+    p = cli.Parser(prog="python -m sagrasp_jax.deploy.rehearse", description=__doc__.split("\n\n")[0])
+    p.add_argument("--policy", required=True, help=POLICY_HELP)
     add_arguments(p)
     args = p.parse_args(argv)
     return run_cli(args.policy, args)

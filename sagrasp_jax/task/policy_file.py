@@ -38,6 +38,9 @@ of ``NumpyPolicy.env_config()``.
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
+import io
 import json
 import os
 import zipfile
@@ -106,6 +109,7 @@ class NumpyPolicy:
     config_hash: str
     package_version: str
     path: str = "<memory>"
+    file_sha256: str = ""  # of the file as read (load_policy): which policy a result was made with
 
     def normalise(self, obs: Any) -> np.ndarray:
         """clip((obs − mean)/std, ±clip): exactly the training normaliser, frozen."""
@@ -138,6 +142,15 @@ class NumpyPolicy:
         """The env config of training: the control-step constants the deployment loop must reuse."""
         return self.config().env
 
+    def check_grasp_inputs(self) -> None:
+        """Refuse (``PolicyFormatError``) a policy whose inputs are not the observation layout its config names:
+        one exported from another env than the grasp task (``placeholder_layout``'s names), which
+        ``load_policy`` lets through for inspection but nothing may run on the grasp task (the deploy loop,
+        the twin, a rehearsal) — it would fail mid-episode, after the robot session is up."""
+        if self.obs_layout != observation.layout_of(self.env_config()):
+            raise PolicyFormatError(f"{self.path}: {input_mismatch(self.obs_layout, self.env_config())}; not a grasp "
+                                    "policy, refused before anything connects")
+
     def _check_obs(self, obs: Any) -> np.ndarray:
         obs = np.asarray(obs, dtype=np.float64)
         if obs.ndim not in (1, 2) or obs.shape[-1] != self.obs_size:
@@ -150,6 +163,25 @@ class NumpyPolicy:
             names = ", ".join(self.obs_layout[c] for c in cols)
             raise ValueError(f"observation has non-finite entries ({names}); refusing to act on it")
         return obs
+
+
+def placeholder_layout(obs_size: int) -> tuple[str, ...]:
+    """The input names of a policy exported from another env than the grasp task (``obs_0`` .. ``obs_N-1``: the
+    tests' toy env, whose run config is a grasp config): such a file loads, and ``check_grasp_inputs`` keeps it
+    off the grasp task."""
+    return tuple(f"obs_{i}" for i in range(obs_size))
+
+
+def input_mismatch(names: Sequence[str], env: EnvConfig) -> str:
+    """What differs between a policy's input names and the observation layout its env config names."""
+    expected = observation.layout_of(env)
+    if len(names) != len(expected):
+        head = f"{len(names)} inputs ({', '.join(names[:4])}{', ...' if len(names) > 4 else ''})"
+        return (f"its {head} do not match its own config, whose {env.task.obs_layout!r} observation layout has "
+                f"{len(expected)} ({', '.join(expected[:4])}, ...)")
+    i = next(i for i, (a, b) in enumerate(zip(names, expected)) if a != b)
+    return (f"its inputs do not match its own config's {env.task.obs_layout!r} observation layout: input {i} is "
+            f"{names[i]!r} where the layout has {expected[i]!r}")
 
 
 def _config_json(config: Config | Mapping[str, Any] | str) -> tuple[str, str]:
@@ -339,12 +371,8 @@ def _policy_from_arrays(arrays: Mapping[str, np.ndarray], path: str) -> NumpyPol
             f"{path}: config_hash {stored_hash} does not match its config_json ({actual_hash}): file edited?"
         )
     names = tuple(str(s) for s in layout)
-    expected = observation.layout_of(cfg.env)
-    if names[:1] == expected[:1] and names != expected:  # a grasp policy must see its config's layout
-        raise PolicyFormatError(
-            f"{path}: obs_layout ({obs_size} entries) is not the {cfg.env.task.obs_layout!r} layout its config names "
-            f"({len(expected)} entries)"
-        )
+    if names != observation.layout_of(cfg.env) and names != placeholder_layout(obs_size):
+        raise PolicyFormatError(f"{path}: {input_mismatch(names, cfg.env)}")
     if not np.isclose(scale, cfg.env.control.q_max, rtol=1e-9, atol=0.0):
         raise PolicyFormatError(
             f"{path}: action_scale {scale} differs from the config's env.control.q_max {cfg.env.control.q_max}"
@@ -387,46 +415,72 @@ def pretrained_provenance(name: str) -> dict[str, Any]:
         return json.load(fh)
 
 
+POLICY_FILE_NAME = "policy.npz"  # what export writes into its --out folder and a training into its run folder
+# What every command's --policy takes (resolve_policy), for their --help.
+POLICY_HELP = ("the policy: a policy.npz file (export's output), a folder holding one (a finished run folder, or "
+               "export's --out folder), or the name of a policy shipped in the package: pretrained (the README's "
+               "policy, also named cpu-quick-s0). A name always means the packaged policy; a file or folder of that "
+               "name in the working folder is given as a path, ./pretrained")
+
+
 def resolve_policy(path: str | os.PathLike[str]) -> str:
-    """A policy argument as a file path: a pretrained policy's name (``PRETRAINED``) unless a file of that name exists."""
+    """A ``--policy`` argument as a file path.  A pretrained policy's name (``PRETRAINED``: ``pretrained``,
+    ``cpu-quick-s0``) always means the packaged policy, whatever the working folder holds (a file or folder of
+    that name is ``./pretrained``); a folder means its ``policy.npz`` (a run folder, or export's ``--out``);
+    anything else is the policy file itself."""
     path = os.fspath(path)
-    if path in PRETRAINED and not os.path.exists(path):
+    if path in PRETRAINED:
         return pretrained_path(path)
+    if os.path.isdir(path):
+        return os.path.join(path, POLICY_FILE_NAME)
     return path
 
 
+MAX_POLICY_FILE_BYTES = 2 * 256 * 2**20  # a policy file's own size: its unpacked arrays' cap and the zip's headers
+
+
 def load_policy(path: str | os.PathLike[str]) -> NumpyPolicy:
-    """Read and validate ``policy.npz`` (or a pretrained policy by name, ``PRETRAINED``); raises
-    PolicyFormatError naming the file and the problem."""
-    path = resolve_policy(path)
+    """Read and validate ``policy.npz`` (or a pretrained policy by name, ``PRETRAINED``, or a folder holding a
+    ``policy.npz``); raises PolicyFormatError naming the file and the problem.  The file is read whole through
+    ``fileio.read_regular`` (a FIFO, device or folder refused before it is opened, the size bounded), then its
+    members as ``_read_npz`` allows."""
+    given = os.fspath(path)
+    path = resolve_policy(given)
     try:
-        fileio.check_regular(path)  # a FIFO or device is refused before it is opened
+        data = fileio.read_regular(path, MAX_POLICY_FILE_BYTES, "policy file")
     except fileio.NotRegularFile as exc:
         raise PolicyFormatError(f"{path} is {exc.kind}, not a policy file") from None
-    except OSError:
+    except fileio.FileTooLarge as exc:
+        raise PolicyFormatError(str(exc)) from None
+    except FileNotFoundError:
         names = ", ".join(sorted(PRETRAINED))
+        if path != given:  # a folder without a policy file
+            raise PolicyFormatError(f"{given} is a folder without a {POLICY_FILE_NAME} (a training writes one into its "
+                                    "run folder when it finishes; export writes one into its --out folder)") from None
         raise PolicyFormatError(f"{path}: policy file not found (or a pretrained policy's name: {names})") from None
+    except OSError as exc:
+        raise PolicyFormatError(f"{path}: cannot read the policy file ({exc.strerror or exc})") from None
     try:
-        arrays = _read_npz(path)
+        arrays = _read_npz(path, io.BytesIO(data))
     except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, ValueError, EOFError, NotImplementedError,
             RuntimeError) as exc:
         if isinstance(exc, PolicyFormatError):
             raise
         raise PolicyFormatError(f"{path}: not a readable .npz archive ({type(exc).__name__}: {exc})") from None
-    return _policy_from_arrays(arrays, path)
+    return dataclasses.replace(_policy_from_arrays(arrays, path), file_sha256=hashlib.sha256(data).hexdigest())
 
 
 MAX_POLICY_BYTES = 256 * 2**20  # unpacked arrays of one policy file (a 4-layer 2048-wide float64 MLP is ≈ 100 MB)
 MAX_POLICY_MEMBERS = 1024
 
 
-def _read_npz(path: str) -> dict[str, np.ndarray]:
+def _read_npz(path: str, source: Any = None) -> dict[str, np.ndarray]:
     """The arrays of an ``np.savez`` archive, reading no more than its sizes allow: the members'
     unpacked sizes (zip directory) and each ``.npy`` header's shape are checked against
     ``MAX_POLICY_BYTES`` and against each other before any array is allocated, so a header claiming
     gigabytes or a zip bomb is refused (PolicyFormatError) instead of filling the memory."""
     arrays: dict[str, np.ndarray] = {}
-    with zipfile.ZipFile(path) as zf:
+    with zipfile.ZipFile(path if source is None else source) as zf:
         infos = zf.infolist()
         total = sum(info.file_size for info in infos)
         if len(infos) > MAX_POLICY_MEMBERS or total > MAX_POLICY_BYTES:

@@ -61,7 +61,7 @@ from sagrasp_jax.base.run_files import CONFIG_FILE, METRICS_FILE, POLICY_FILE  #
 CHECKPOINT_FILE = "checkpoint.ckpt"
 TB_DIR = "tb"
 EVALUATION_PREFIX = "evaluation-"
-MAX_RESULT_BYTES = 64 << 20  # an earlier evaluation read back to compare (a few kB; bounded like every input)
+MAX_RESULT_BYTES = fileio.MAX_RESULT_BYTES  # an earlier evaluation read back to compare (bounded like every input)
 # What a training writes; the other files of a run folder are evaluations.
 TRAINING_FILES = (CONFIG_FILE, METRICS_FILE, CHECKPOINT_FILE, POLICY_FILE, TB_DIR)
 _WHAT = {CONFIG_FILE: "run config file", METRICS_FILE: "metrics log", CHECKPOINT_FILE: "checkpoint file",
@@ -478,22 +478,19 @@ def evaluation_file(episodes: int, seed: int, max_steps: int | None = None, scen
             + (f"-{variant}" if variant else "") + ".json")
 
 
+# What makes a file an evaluation result of ``evaluate`` (``fileio.check_result_output``'s ``kind``).
+EVALUATION_KIND = {"episodes": None, "overall": None}
+
+
 def check_replace(file: str, identity: dict[str, Any], force: bool = False) -> None:
     """Refuse to replace ``file`` unless it holds the same evaluation (every ``identity`` entry
-    equal: re-running it gives the same numbers) or ``force`` is set."""
-    check_output_file(file)
-    if not os.path.exists(file) or force:
-        return
+    equal: re-running it gives the same numbers), or another (or a damaged) evaluation and ``force``
+    is set; a file that is no evaluation result (the run's config, a policy) is never replaced
+    (``fileio.check_result_output``)."""
     try:
-        old = json.loads(fileio.read_regular(file, MAX_RESULT_BYTES, "result file").decode("utf-8"))
-        if not isinstance(old, dict):
-            raise ValueError("not a JSON object")
-    except (OSError, ValueError, RecursionError) as exc:  # UnicodeDecodeError is a ValueError
-        raise RunDirError(f"{file} exists and is not a readable result ({exc}); pass --force to replace it") from None
-    diffs = [f"{key} {old.get(key)!r} -> {value!r}" for key, value in identity.items() if old.get(key) != value]
-    if diffs:
-        raise RunDirError(f"{file} holds a different result ({'; '.join(diffs)}); pass --force to replace it, "
-                          "or choose another --out")
+        fileio.check_result_output(file, identity, EVALUATION_KIND, "evaluation result", force)
+    except fileio.NotWritable as exc:
+        raise RunDirError(str(exc)) from None
 
 
 def check_output_file(file: str) -> None:
