@@ -413,55 +413,29 @@ def main(argv: list[str] | None = None) -> int:
         return _twin_backend(args)
     if args.run is None or args.policy is not None:
         p.error("--run RUN is required (--policy only with --backend twin)")
-    try:
-        if args.config is not None:
-            args.overrides = file_overrides(args.config) + list(args.overrides)
-        if args.condition:  # the named condition first, then the file, then --set
-            args.overrides = [*EVAL_CONDITIONS[args.condition], *args.overrides]
-        check_options(args.episodes, args.seed, args.max_steps)
-        cfg = run_dir.load_config(args.run)
-        ckpt = run_dir.load_checkpoint(args.run, cfg)
-        counters = run_dir.checkpoint_counters(ckpt)
-        env_overrides(cfg, args.overrides)  # refused before any work
-        seed, steps = resolve_options(cfg, args.seed, args.max_steps)
-        path = args.out or run_dir.path(args.run, run_dir.evaluation_file(
-            args.episodes, seed, None if steps == cfg.env.task.max_steps else steps, args.scenes,
-            overrides_tag(args.overrides)))
-        identity = {"run": os.path.abspath(args.run), "episodes": args.episodes, "seed": seed, "max_steps": steps,
-                    "checkpoint_iteration": counters.get("iteration"),
-                    "checkpoint_env_steps": counters.get("env_steps"), **trained_identity(cfg, ckpt),
-                    "physical_check": args.physical,
-                    "scenes": args.scenes, **({"env_overrides": list(args.overrides)} if args.overrides else {})}
-        folder = os.path.dirname(os.path.abspath(path))
-        run_dir.check_output_file(path)  # a FIFO or device: refused before the lock file or anything is made
-        lock = run_dir.ResultLock(path, what="output folder")  # the file: other results may go into its folder
-        written = [False]
+    # What Ctrl-C stopped and what it kept: the line is made at the exit (cli.exit_on_interrupt).
+    state: dict[str, Any] = {"path": None, "lock": None, "written": False}
 
-        def stopped() -> str:  # Ctrl-C: what was stopped, what was kept (the line is made at the exit)
-            kept = "nothing was written" + (f" ({path} left as it was)" if os.path.exists(path) else "")
-            return cli.interrupted_line(f"the evaluation of {args.run} was stopped",
-                                        f"its result was written to {path} before the exit" if written[0] else kept)
+    def stopped() -> str:
+        path = state["path"]
+        if state["written"]:
+            kept = f"its result was written to {path} before the exit"
+        else:
+            kept = "nothing was written" + (f" ({path} left as it was)" if path and os.path.exists(path) else "")
+        return cli.interrupted_line(f"the evaluation of {args.run} was stopped", kept)
 
-        # No safe point inside jax's tracing, XLA's compile or the jitted evaluation: Ctrl-C ends the process at
-        # once, its lock file removed (cli.exit_on_interrupt); the result's write is finished first.
-        with cli.exit_on_interrupt(stopped, cleanup=lock.release), lock:
-            run_dir.check_writable(folder, "output folder")  # before the evaluation, not after it
-            run_dir.check_replace(path, identity, args.force)
-            results = evaluate_run(args.run, args.episodes, seed, steps, scenes=args.scenes, overrides=args.overrides)
-            results["physical_check"] = args.physical
-            if args.physical:
-                results["physical"] = evaluate_physical(args.run, args.episodes, seed, steps, overrides=args.overrides,
-                                                        scenes=args.scenes)
-            try:
-                with cli.deferred():
-                    write_results(path, results)
-                    written[0] = True
-            except OSError as exc:  # e.g. the disk filled up meanwhile: show what was evaluated, then refuse
-                print(format_table(results))
-                raise RunDirError(f"{exc}; the evaluation above was not saved") from None
-    except (ConfigError, CheckpointError, RunDirError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    def cleanup() -> None:  # the result's lock file; the flocks go with the process
+        if state["lock"] is not None:
+            state["lock"].release()
+
+    # No safe point inside jax's tracing, XLA's compile or the jitted evaluation: from here on Ctrl-C ends the
+    # process at once, its lock file removed; the result's write is finished first (cli.deferred).
+    with cli.exit_on_interrupt(stopped, cleanup):
+        try:
+            results, path = _evaluate_cli(args, state)
+        except (ConfigError, CheckpointError, RunDirError) as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
     print(format_table(results))
     if "physical" in results:
         ph = results["physical"]
@@ -469,6 +443,49 @@ def main(argv: list[str] | None = None) -> int:
               f"the cube when lifted {ph['lift'] * 100:.0f} cm ({100 * ph['physical_success_rate']:.1f} % of all episodes)")
     print(f"written to {path}")
     return 0
+
+
+def _evaluate_cli(args: argparse.Namespace, state: dict[str, Any]) -> tuple[dict[str, Any], str]:
+    """The MJX evaluation of the command line: checks, lock, evaluate, write; (results, the file written).
+    ``state`` tells ``main``'s Ctrl-C line and cleanup where it got (the result file, its lock, written)."""
+    if args.config is not None:
+        args.overrides = file_overrides(args.config) + list(args.overrides)
+    if args.condition:  # the named condition first, then the file, then --set
+        args.overrides = [*EVAL_CONDITIONS[args.condition], *args.overrides]
+    check_options(args.episodes, args.seed, args.max_steps)
+    cfg = run_dir.load_config(args.run)
+    ckpt = run_dir.load_checkpoint(args.run, cfg)
+    counters = run_dir.checkpoint_counters(ckpt)
+    env_overrides(cfg, args.overrides)  # refused before any work
+    seed, steps = resolve_options(cfg, args.seed, args.max_steps)
+    path = args.out or run_dir.path(args.run, run_dir.evaluation_file(
+        args.episodes, seed, None if steps == cfg.env.task.max_steps else steps, args.scenes,
+        overrides_tag(args.overrides)))
+    identity = {"run": os.path.abspath(args.run), "episodes": args.episodes, "seed": seed, "max_steps": steps,
+                "checkpoint_iteration": counters.get("iteration"),
+                "checkpoint_env_steps": counters.get("env_steps"), **trained_identity(cfg, ckpt),
+                "physical_check": args.physical,
+                "scenes": args.scenes, **({"env_overrides": list(args.overrides)} if args.overrides else {})}
+    folder = os.path.dirname(os.path.abspath(path))
+    run_dir.check_output_file(path)  # a FIFO or device: refused before the lock file or anything is made
+    state["path"] = path
+    lock = state["lock"] = run_dir.ResultLock(path, what="output folder")  # other results may go into its folder
+    with lock:
+        run_dir.check_writable(folder, "output folder")  # before the evaluation, not after it
+        run_dir.check_replace(path, identity, args.force)
+        results = evaluate_run(args.run, args.episodes, seed, steps, scenes=args.scenes, overrides=args.overrides)
+        results["physical_check"] = args.physical
+        if args.physical:
+            results["physical"] = evaluate_physical(args.run, args.episodes, seed, steps, overrides=args.overrides,
+                                                    scenes=args.scenes)
+        try:
+            with cli.deferred():
+                write_results(path, results)
+                state["written"] = True
+        except OSError as exc:  # e.g. the disk filled up meanwhile: show what was evaluated, then refuse
+            print(format_table(results))
+            raise RunDirError(f"{exc}; the evaluation above was not saved") from None
+    return results, path
 
 
 def _twin_backend(args: argparse.Namespace) -> int:
