@@ -602,7 +602,7 @@ def test_2_6_9_kills_at_random_points_then_resume_equals_the_uninterrupted_run(t
 # lock their result file, not its folder; 11 an empty hidden-layer list.
 
 TWO_CPU_DEVICES = {"JAX_PLATFORMS": "cpu",
-                   "XLA_FLAGS": "--xla_cpu_use_fusion_emitters=false --xla_force_host_platform_device_count=2"}
+                   "XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
 
 
 def _checkpoints_equal(a: str, b: str) -> None:
