@@ -104,3 +104,26 @@ def test_task_sections_cited_exist():
         for m in re.finditer(r"task\.md`{0,2} (§[\d.§\-–, ]+)", text):
             cited |= {s.rstrip(".") for s in re.findall(r"§(\d+(?:\.\d+)?)", m.group(1))}
     assert cited and cited <= sections, f"cited but missing: {sorted(cited - sections)}"
+
+
+def _readme_bash_lines() -> list[str]:
+    return [line.strip() for info, body in blocks("README.md") if info.startswith("bash") for line in body.splitlines()]
+
+
+def test_ci_runs_the_readmes_commands_on_every_python():
+    """``.ci/run`` runs ``.ci/python_matrix.sh`` (3.11, 3.12, 3.13) before the suite, and the matrix installs with
+    the README's own install commands: the pretrained try's and the training line's."""
+    with open(os.path.join(REPO, ".ci", "run"), encoding="utf-8") as f:
+        ci = f.read()
+    with open(os.path.join(REPO, ".ci", "python_matrix.sh"), encoding="utf-8") as f:
+        matrix = f.read()
+    assert ci.index("python_matrix.sh") < ci.index("python -m pytest -q")
+    assert 'pythons="${SAGRASP_PYTHONS:-3.11 3.12 3.13}"' in matrix
+    lines = _readme_bash_lines()
+    try_line = next(line for line in lines if line.startswith("python3 -m venv") and "[twin]" in line)
+    train_line = next(line for line in lines if line.startswith("python3 -m venv") and "sagrasp_jax.train" in line)
+    twin_install = try_line.split("&&")[-1].strip()
+    train_install = train_line.split("&&")[2].strip()
+    assert twin_install.startswith("pip install") and f"step install-twin {twin_install.replace('pip install', 'pip install -q', 1)}" in matrix
+    assert train_install.startswith("pip install") and f"step install-train {train_install.replace('pip install', 'pip install -q', 1)}" in matrix
+    assert "sagrasp_jax.deploy --policy pretrained" in matrix and "sagrasp_jax.export --run runs/quick" in matrix
