@@ -41,6 +41,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from sagrasp_jax.base import cli
 from sagrasp_jax.deploy.calibration import CalibrationError, CameraCalibration
 from sagrasp_jax.deploy.handeye import (
     DEFAULT_MAX_MM,
@@ -124,7 +125,7 @@ def calibration_record(fit: HandEyeFit, source: str) -> dict[str, Any]:
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m sagrasp_jax.calibrate", description=__doc__.split("\n\n")[0],
+    p = cli.Parser(prog="python -m sagrasp_jax.calibrate", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n\n", 2)[2])
     p.add_argument("--pairs", help="CSV of point pairs: cam_x,cam_y,cam_z,tcp_x,tcp_y,tcp_z (required unless --plan)")
     p.add_argument("--out", help="calibration JSON to write (deploy --calibration reads it; required unless --plan); "

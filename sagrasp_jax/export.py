@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import sagrasp_jax  # noqa: F401  (sets XLA_FLAGS before jax is imported)
 
-import argparse
 import hashlib
 import json
 import os
@@ -35,6 +34,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from sagrasp_jax import __version__
+from sagrasp_jax.base import cli
 from sagrasp_jax.base import extras
 from sagrasp_jax.base import fileio
 from sagrasp_jax.task import policy_file as runtime
@@ -251,7 +251,7 @@ def _export(run: str, out_dir: str, cfg: Any, params: Any, normaliser: Any, coun
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m sagrasp_jax.export", description=__doc__.split("\n\n")[0])
+    p = cli.Parser(prog="python -m sagrasp_jax.export", description=__doc__.split("\n\n")[0])
     p.add_argument("--run", required=True, help="run folder written by sagrasp_jax.train")
     p.add_argument("--out", required=True, help="output folder (created; existing export files are replaced)")
     p.add_argument("--no-onnx", action="store_true", help="write only policy.npz")

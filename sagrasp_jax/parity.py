@@ -6,9 +6,9 @@ its command line.
 
 from __future__ import annotations
 
-import argparse
 import sys
 
+from sagrasp_jax.base import cli
 from sagrasp_jax.base import extras
 
 if __name__ == "__main__":  # a missing extra ends in one line naming it (exit 2), not an import traceback
@@ -20,7 +20,7 @@ from sagrasp_jax.task.config import ConfigError, check_range  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m sagrasp_jax.parity", description=harness.__doc__.split("\n\n")[0])
+    parser = cli.Parser(prog="python -m sagrasp_jax.parity", description=harness.__doc__.split("\n\n")[0])
     parser.add_argument("--episodes", type=int, default=None, help="episodes per action source (default 1000; --quick 50)")
     parser.add_argument("--quick", action="store_true", help="50 episodes of at most 100 steps: a CI-sized check")
     parser.add_argument("--mode", choices=tuple(harness.TOLERANCES), default="kinematic")

@@ -26,7 +26,6 @@ the studies' figures too (``experiments/reproduce_paper.py``, ``experiments/comp
 
 from __future__ import annotations
 
-import argparse
 import math
 import os
 import sys
@@ -35,6 +34,7 @@ from typing import Any, NamedTuple, Sequence
 
 import numpy as np
 
+from sagrasp_jax.base import cli
 from sagrasp_jax.base import extras
 from sagrasp_jax.base import fileio
 from sagrasp_jax.base import run_files
@@ -387,7 +387,7 @@ def plot_runs(runs: Sequence[Run], out: str, smooth_window: int = 1) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m sagrasp_jax.plot", description=__doc__.split("\n\n")[0])
+    p = cli.Parser(prog="python -m sagrasp_jax.plot", description=__doc__.split("\n\n")[0])
     p.add_argument("--run", action="append", required=True, help="run folder (or seed group); repeat to overlay runs")
     p.add_argument("--out", required=True, help="PNG file")
     p.add_argument("--smooth", type=int, default=1, help="moving average over N logged rows of the training curves")

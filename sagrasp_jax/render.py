@@ -33,7 +33,6 @@ import os
 
 os.environ.setdefault("MUJOCO_GL", "egl")  # before anything imports mujoco: it picks the GL backend on import
 
-import argparse
 import dataclasses
 import math
 import sys
@@ -41,6 +40,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from sagrasp_jax.base import cli
 from sagrasp_jax.base import extras
 from sagrasp_jax.base import fileio
 from sagrasp_jax.base import run_files
@@ -581,7 +581,7 @@ def write_png(path: str, frame: np.ndarray) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m sagrasp_jax.render", description=__doc__.split("\n\n")[0])
+    p = cli.Parser(prog="python -m sagrasp_jax.render", description=__doc__.split("\n\n")[0])
     source = p.add_mutually_exclusive_group(required=True)
     source.add_argument("--run", help="a finished run folder (python -m sagrasp_jax.train --out): its policy.npz")
     source.add_argument("--policy", help="exported policy.npz (or a pretrained policy's name)")

@@ -25,6 +25,7 @@ import os
 import sys
 from typing import Any
 
+from sagrasp_jax.base import cli
 from sagrasp_jax.base import extras
 
 if __name__ == "__main__":  # a missing extra ends in one line naming it (exit 2), not an import traceback
@@ -65,7 +66,7 @@ class _ListKeys(argparse.Action):
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m sagrasp_jax.train", description=__doc__.split("\n\n")[0],
+    p = cli.Parser(prog="python -m sagrasp_jax.train", description=__doc__.split("\n\n")[0],
                                 epilog="--list-keys shows every KEY for --set with its meaning, value and valid values.")
     p.add_argument("--preset", default=None, help=f"one of {', '.join(PRESETS)} (default cpu-quick)")
     p.add_argument("--algo", default=None,

@@ -34,7 +34,6 @@ identified, and nothing is written.  Nothing here imports jax: it runs on the ro
 
 from __future__ import annotations
 
-import argparse
 import csv
 import io
 import math
@@ -45,6 +44,7 @@ import numpy as np
 
 from sagrasp_jax.task import config
 from sagrasp_jax.task import control
+from sagrasp_jax.base import cli
 from sagrasp_jax.base import fileio
 from sagrasp_jax.task.config import ControlConfig
 
@@ -287,7 +287,7 @@ def to_dict(result: SysIdResult, control_cfg: ControlConfig | None = None) -> di
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m sagrasp_jax.sysid", description=__doc__.split("\n\n")[0])
+    p = cli.Parser(prog="python -m sagrasp_jax.sysid", description=__doc__.split("\n\n")[0])
     p.add_argument("--log", required=True, help="robot log CSV: time,cmd_q1..cmd_q6,q1..q6 (see the module docstring)")
     p.add_argument("--out", required=True, help="result JSON (written atomically)")
     args = p.parse_args(argv)

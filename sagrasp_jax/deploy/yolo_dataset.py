@@ -35,6 +35,7 @@ from typing import Sequence
 
 import numpy as np
 
+from sagrasp_jax.base import cli
 from sagrasp_jax.base import extras
 
 MIN_PIXELS = 12  # visible pixels an object needs to be labelled
@@ -67,7 +68,7 @@ def yolo_labels(segmentation: np.ndarray, bodies: Sequence[tuple[int, int]], min
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m sagrasp_jax.deploy.yolo_dataset", description=__doc__.split("\n\n")[0],
+    p = cli.Parser(prog="python -m sagrasp_jax.deploy.yolo_dataset", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n\n", 2)[2])
     p.add_argument("--out", required=True, help="dataset folder to create (must be absent or empty)")
     p.add_argument("--images", type=int, required=True, help="number of images")
