@@ -127,3 +127,16 @@ def test_ci_runs_the_readmes_commands_on_every_python():
     assert twin_install.startswith("pip install") and f"step install-twin {twin_install.replace('pip install', 'pip install -q', 1)}" in matrix
     assert train_install.startswith("pip install") and f"step install-train {train_install.replace('pip install', 'pip install -q', 1)}" in matrix
     assert "sagrasp_jax.deploy --policy pretrained" in matrix and "sagrasp_jax.export --run runs/quick" in matrix
+
+
+def test_readme_leads_with_the_pretrained_try_and_installs_what_its_commands_need():
+    """The first commands a newcomer meets run the packaged policy (no training); no line asks pip for a package
+    the index does not have; the block after training installs the extras its commands import."""
+    bash = [body for info, body in blocks("README.md") if info.startswith("bash")]
+    assert "sagrasp_jax.deploy --policy pretrained" in bash[0] and "sagrasp_jax.train" not in bash[0]
+    with open(os.path.join(REPO, "README.md"), encoding="utf-8") as f:
+        text = f.read()
+    assert not re.search(r"pip install sagrasp_jax(?![\w\[-])", text), "the package is not on the index"
+    after = next(body for body in bash if "sagrasp_jax.render" in body)
+    first = after.splitlines()[0]
+    assert first.startswith("pip install") and all(x in first for x in ("train", "twin", "render", "plots"))
