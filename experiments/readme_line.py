@@ -12,8 +12,10 @@ where the training command's start-up and the evaluation command's seconds go.
   run's own log (compile, training seconds); the policy's success from the evaluation file.  pip's cache is
   the user's (warm on a machine that installed before; say so when it is not).
 * ``startup``: the README preset's ``Trainer`` built and compiled in this process on an empty compilation
-  cache (``--repeats`` fresh processes), then ``--cycles`` cycles: build and compile seconds, the compile's parts,
-  and a digest of the parameters after them (equal digests: the same program and numbers).
+  cache (``--repeats`` fresh processes), then ``--cycles`` cycles: build and compile seconds (wall and process
+  CPU), the compile's parts, the jax / jaxlib / mujoco versions and XLA flags, and a digest of the parameters
+  after them (equal digests: the same program and numbers).  Run it with another interpreter's python (its
+  venv holding another jax) to compare jax versions on one machine: ``docs/results.md`` §19.
 * ``eval-slots``: the evaluation command's program on ``--run``'s policy (``--condition``, 1,000 episodes) at
   several episode-slot counts: compile and run seconds, and how far each one's per-episode results are from
   all episodes at once.
@@ -25,8 +27,10 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import importlib.metadata
 import json
 import os
+import platform
 import shutil
 import subprocess
 import sys
@@ -125,7 +129,7 @@ def measure_startup(repeats: int, cycles: int) -> list[dict[str, Any]]:
 
 def _startup_once(tmp: str, cycles: int) -> dict[str, Any]:
     """One process: import, build the README preset's trainer, compile, run ``cycles`` cycles."""
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     from sagrasp_jax import train  # first: it sets XLA_FLAGS before jax starts
 
     import jax
@@ -135,19 +139,24 @@ def _startup_once(tmp: str, cycles: int) -> dict[str, Any]:
 
     cfg = get_config("cpu-quick")
     train.use_cpu_devices(cfg)
-    t1 = time.perf_counter()
+    t1, c1 = time.perf_counter(), time.process_time()
     tr = train.Trainer(cfg, os.path.join(tmp, "run"), progress=False)
-    t2 = time.perf_counter()
+    t2, c2 = time.perf_counter(), time.process_time()
     parts = tr.compile()
-    t3 = time.perf_counter()
+    t3, c3 = time.perf_counter(), time.process_time()
     for _ in range(cycles):
         tr.run_iterations(tr.schedule.iterations_per_cycle)
-    t4 = time.perf_counter()
+    jax.block_until_ready(tr.train_state.params)
+    t4, c4 = time.perf_counter(), time.process_time()
     leaves = jax.tree_util.tree_leaves(jax.device_get(tr.train_state.params))
     digest = hashlib.sha256(b"".join(np.asarray(x).tobytes() for x in leaves)).hexdigest()[:16]
     return {"imports_s": t1 - t0, "trainer_build_s": t2 - t1, "compile_s": t3 - t2, "compile_parts": parts,
             "cycles": cycles, "cycles_s": t4 - t3, "params_digest": digest, "devices": tr.mesh.size,
-            "load": os.getloadavg()}
+            # process CPU seconds of each part (all threads): under a loaded machine they move far less than the wall
+            "cpu_s": {"imports": c1 - c0, "build": c2 - c1, "compile": c3 - c2, "cycles": c4 - c3},
+            "versions": {"python": platform.python_version(), "jax": jax.__version__,
+                         "jaxlib": importlib.metadata.version("jaxlib"), "mujoco": importlib.metadata.version("mujoco")},
+            "xla_flags": os.environ.get("XLA_FLAGS", ""), "load": os.getloadavg()}
 
 
 def measure_eval_slots(run: str, condition: str, episodes: int, slot_counts: list[int | None]) -> list[dict[str, Any]]:
