@@ -7,6 +7,7 @@ needed.  The rendered ones come from ``deploy.twin_camera`` (skipped without the
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import zlib
 
@@ -16,6 +17,7 @@ import pytest
 from sagrasp_jax.deploy import perception as P
 from sagrasp_jax.deploy.calibration import CameraCalibration
 from sagrasp_jax.deploy.loop import Obstacle
+from sagrasp_jax.task.config import EnvConfig, SamplingConfig
 
 CAL = CameraCalibration.default()
 # the Mech-Eye Pro M's intrinsics (deploy.twin_camera.MECH_EYE_PRO_M) scaled to 480 × 300
@@ -60,10 +62,26 @@ def _sphere_hits(o, d, centre, radius) -> np.ndarray:
     return np.where(disc >= 0, (-b - np.sqrt(np.maximum(disc, 0))) / (2 * a), np.inf)
 
 
-def cast(objects, cal=CAL, size=(W, H), fx=FX, fy=FY, cx=CX, cy=CY):
+def _capsule_hits(o, d, centre, radius, half_axis, yaw) -> np.ndarray:
+    """A capsule lying with its axis along ``yaw``: its two end spheres and the round body between them."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    axis = np.array([c, s, 0.0])
+    ends = [_sphere_hits(o, d, np.asarray(centre) + k * half_axis * axis, radius) for k in (-1, 1)]
+    rot = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])  # world -> capsule frame, axis along x
+    ol, dl = rot @ (o - np.asarray(centre)), d @ rot.T
+    a = dl[..., 1] ** 2 + dl[..., 2] ** 2
+    b = 2 * (ol[1] * dl[..., 1] + ol[2] * dl[..., 2])
+    disc = b**2 - 4 * a * (ol[1] ** 2 + ol[2] ** 2 - radius**2)
+    t = np.where(disc >= 0, (-b - np.sqrt(np.maximum(disc, 0))) / (2 * a), np.inf)
+    t = np.where(np.abs(ol[0] + t * dl[..., 0]) <= half_axis, t, np.inf)
+    return np.minimum(t, np.minimum(*ends))
+
+
+def cast(objects, cal=CAL, size=(W, H), fx=FX, fy=FY, cx=CX, cy=CY, labels=False):
     """(cloud_mm, rgb) of the table and ``objects``: ("box", centre, half, yaw, rgb) | ("cylinder", centre,
-    radius, half_height, rgb) | ("sphere", centre, radius, rgb), world frame, m.  Rays have camera z = 1, so
-    each hit's parameter is the camera-frame depth."""
+    radius, half_height, rgb) | ("sphere", centre, radius, rgb) | ("capsule", centre, radius, half_axis, yaw,
+    rgb), world frame, m; with ``labels`` also (H, W) the index of the object each pixel sees (−1: the table).
+    Rays have camera z = 1, so each hit's parameter is the camera-frame depth."""
     w, h = size
     rays = np.ones((h, w, 3))
     rays[..., 0] = ((np.arange(w) - cx) / fx)[None, :]
@@ -72,20 +90,24 @@ def cast(objects, cal=CAL, size=(W, H), fx=FX, fy=FY, cx=CX, cy=CY):
     d = rays @ rot.T
     t = np.where(d[..., 2] < 0, -origin[2] / d[..., 2], np.inf)  # the table, z = 0
     rgb = np.broadcast_to(np.array(TABLE, np.uint8), (h, w, 3)).copy()
-    for obj in objects:
+    seen = np.full((h, w), -1)
+    for i, obj in enumerate(objects):
         kind = obj[0]
         if kind == "box":
             hit = _box_hits(origin, d, obj[1], obj[2], obj[3])
         elif kind == "cylinder":
             hit = _cylinder_hits(origin, d, obj[1], obj[2], obj[3])
+        elif kind == "capsule":
+            hit = _capsule_hits(origin, d, obj[1], obj[2], obj[3], obj[4])
         else:
             hit = _sphere_hits(origin, d, obj[1], obj[2])
         nearer = hit < t
         t = np.where(nearer, hit, t)
         rgb[nearer] = obj[-1]
+        seen[nearer] = i
     cloud = (rays * (1000.0 * t)[..., None]).astype(np.float32)
     cloud[~np.isfinite(t)] = np.nan
-    return cloud, rgb
+    return (cloud, rgb, seen) if labels else (cloud, rgb)
 
 
 def cube(x=0.05, y=-0.45, yaw=0.3, lying=False, z0=0.0, colour=RED):
@@ -142,15 +164,15 @@ def test_without_colour_the_cube_is_the_region_of_its_size(scene_cloud):
         assert len(det.obstacles) == 3
 
 
+CAPSULE = ("capsule", (0.1, -0.35, 0.03), 0.03, 0.08, 0.5, WHITE)  # lying, r 30 mm, 220 mm tip to tip
+
+
 def test_a_capsule_lying_on_the_table():
     half, r, yaw = 0.08, 0.03, 0.5
-    c, s = math.cos(yaw), math.sin(yaw)
-    caps = [("sphere", (0.1 + k * half * c, -0.35 + k * half * s, r), r, WHITE) for k in (-1, 1)]
-    body = ("box", (0.1, -0.35, r), (half, r * 0.999, r), yaw, WHITE)  # the round body, approximated below
-    cloud, rgb = cast([cube(-0.2, -0.5, 0.0), *caps, body])
+    cloud, rgb = cast([cube(-0.2, -0.5, 0.0), CAPSULE])
     det = P.detect_scene(cloud, rgb, CAL, settings=P.PerceptionSettings(kinds=("capsule", "sphere", "cylinder")))
     (ob,) = det.obstacles
-    assert ob.kind == "capsule", det.diagnostics["obstacles"]
+    assert ob.kind == "capsule" and not det.diagnostics["obstacles"][0]["conservative"], det.diagnostics["obstacles"]
     np.testing.assert_allclose(ob.centre[:2], (0.1, -0.35), atol=4e-3)
     assert abs(P.wrap(ob.yaw - yaw, math.pi)) < math.radians(3)
     assert abs(ob.size[0] - r) < 2e-3 and abs(ob.size[1] - half) < 0.012
@@ -163,6 +185,8 @@ def test_a_capsule_lying_on_the_table():
     ([("box", (0.05, -0.45, 0.03), (0.04, 0.04, 0.03), 0.0, WHITE), cube(z0=0.06)],
      "cube not standing on the table: .* red pixels are part of an object whose top is 110 mm"),
     ([cube(), ("sphere", (0.038, -0.447, 0.2), 0.012, WHITE)], "the cube's top face is partly hidden"),
+    ([cube(0.51, -0.45, 0.0)],  # a third of its top face beyond the image's left edge
+     r"the cube's top face is cut by the image border \(left edge\); move the camera or the cube"),
 ])
 def test_scenes_without_exactly_one_standing_cube_are_refused(objects, message):
     cloud, rgb = cast(objects)
@@ -177,7 +201,10 @@ def test_bad_clouds_are_refused(scene_cloud):
         (np.zeros((0, 0, 3)), r"organized, shape \(H, W, 3\)"),
         (cloud.reshape(-1, 3), r"organized, shape \(H, W, 3\).*got \(144000, 3\)"),
         (cloud[..., :2], r"got \(300, 480, 2\)"),
-        (cloud / 1000.0, r"median depth is 1\.4\d* \(as mm\).*looks like metres"),
+        (cloud / 1000.0, r"median depth is 1\.4\d* \(as mm\).*looks like metres: give the cloud in millimetres "
+                         r"\(multiply it by 1000\)"),
+        (cloud / 10.0, r"median depth is 14\d\.\d \(as mm\).*looks like centimetres: give the cloud in millimetres "
+                       r"\(multiply it by 10\)"),
         (cloud * 1000.0, "looks like micrometres"),
         (np.where(np.arange(W)[None, :, None] < 10, cloud, np.nan), r"only \d+ valid points .* \(< 5 %\)"),
         ([["a"]], "not numeric|organized"),
@@ -230,6 +257,122 @@ def test_a_sphere_hiding_part_of_a_box_below():
     np.testing.assert_allclose(found["sphere"].centre, (0.16, -0.375, 0.16), atol=1e-3)
 
 
+def held_share(obstacles: list[Obstacle], points: np.ndarray, tol: float = 0.003) -> float:
+    """The share of ``points`` (N, 3) inside some obstacle grown by ``tol``."""
+    inside = np.zeros(len(points), bool)
+    for ob in obstacles:
+        kind = P.shapes.BY_NAME[ob.kind].id
+        inside |= P.shapes.sdf(np, kind, np.asarray(ob.centre), np.asarray(ob.yaw), np.asarray(ob.size), points) <= tol
+    return float(inside.mean())
+
+
+def seen_points(cloud: np.ndarray, labels: np.ndarray, index: int) -> np.ndarray:
+    """World points of what the camera sees of object ``index``, more than 10 mm above the table (lower ones
+    are the table's to the perception)."""
+    pts = CAL.cam_to_base(cloud[labels == index].astype(float), "mm")
+    return pts[pts[:, 2] > 0.01]
+
+
+def test_an_obstacle_whose_top_a_sphere_hides_is_kept():
+    """A sphere floating over a cylinder hides its top and 83 % of it: the strips of its side that are seen are
+    an obstacle (not fragments, not noise), one that holds every point seen of the cylinder."""
+    objects = [cube(-0.2, -0.5), ("cylinder", (0.1, -0.4, 0.075), 0.03, 0.075, WHITE),
+               ("sphere", (0.1, -0.4, 0.22), 0.05, WHITE)]
+    cloud, rgb, labels = cast(objects, labels=True)
+    seen = seen_points(cloud, labels, 1)
+    assert len(seen) > 100
+    det = P.detect_scene(cloud, rgb, CAL)
+    assert len(det.obstacles) == 2 and sorted(o.kind for o in det.obstacles)[-1] == "sphere", det.obstacles
+    below = [o for o in det.obstacles if o.kind != "sphere"]
+    assert held_share(below, seen) == 1.0
+    assert max(o.centre[2] + P.shapes.BY_NAME[o.kind].half_height(np.asarray(o.size)) for o in below) < 0.13
+    rng = np.random.default_rng(3)  # and with a depth camera's noise and dropped pixels
+    noisy = cloud * (1 + rng.normal(0, 0.5, cloud.shape[:2]) / cloud[..., 2])[..., None]
+    noisy[rng.random(cloud.shape[:2]) < 0.05] = np.nan
+    assert held_share(P.detect_scene(noisy, rgb, CAL).obstacles, seen, 0.004) == 1.0
+
+
+def test_pieces_of_a_box_cut_by_a_sphere_are_one_obstacle():
+    """A sphere over a box's middle cuts its top in two pieces that alone look like a box and a cylinder; they
+    are one box, fitted on both pieces' own edges."""
+    box = ("box", (-0.205, -0.24, 0.04), (0.046, 0.0225, 0.04), 0.1, WHITE)
+    objects = [cube(-0.35, -0.45), box, ("sphere", (-0.205, -0.2485, 0.235), 0.0355, WHITE)]
+    cloud, rgb, labels = cast(objects, labels=True)
+    det = P.detect_scene(cloud, rgb, CAL)
+    found = by_kind(det.obstacles)
+    assert sorted(found) == ["box", "sphere"] and len(det.obstacles) == 2, det.obstacles
+    info = next(d for d in det.diagnostics["obstacles"] if d["kind"] == "box")
+    assert info["pieces"] >= 2 and not info["conservative"], info
+    np.testing.assert_allclose(found["box"].centre, box[1], atol=1.5e-3)
+    np.testing.assert_allclose(found["box"].size, box[2], rtol=0.06)
+    assert held_share(det.obstacles, seen_points(cloud, labels, 1)) == 1.0
+
+
+def test_hidden_obstacles_are_held_whole():
+    """Random scenes of floating spheres in front of boxes and cylinders (partly or mostly hidden, some cut by
+    the image border): every point seen of every obstacle lies in a returned obstacle, none returned holds
+    nothing of one."""
+    rng = np.random.default_rng(7)
+    for _ in range(6):
+        objects = [cube(-0.3, -0.3)]
+        x, y = rng.uniform(-0.1, 0.45), rng.uniform(-0.7, -0.45)
+        if rng.random() < 0.5:
+            half = rng.uniform(0.02, 0.06, 3)
+            objects.append(("box", (x, y, half[2]), tuple(half), rng.uniform(-math.pi, math.pi), WHITE))
+            top, reach = 2 * half[2], math.hypot(half[0], half[1])
+        else:
+            r, h = rng.uniform(0.02, 0.05), rng.uniform(0.1, 0.3)
+            objects.append(("cylinder", (x, y, h / 2), r, h / 2, WHITE))
+            top, reach = h, r
+        r = rng.uniform(0.03, 0.06)
+        a, d = rng.uniform(0, 2 * math.pi), rng.uniform(0, reach)
+        centre = (x + d * math.cos(a), y + d * math.sin(a), top + r + rng.uniform(0.01, 0.1))
+        objects.append(("sphere", centre, r, WHITE))
+        cloud, rgb, labels = cast(objects, labels=True)
+        det = P.detect_scene(cloud, rgb, CAL)
+        seen = [seen_points(cloud, labels, k) for k in (1, 2)]
+        for pts in seen:
+            assert len(pts) < 30 or held_share(det.obstacles, pts) == 1.0, (objects, det.obstacles)
+        every = np.concatenate(seen)
+        assert all(held_share([o], every) > 0 for o in det.obstacles), (objects, det.obstacles)
+
+
+def test_only_the_policys_obstacle_kinds_are_returned():
+    """The kinds are the policy's (env.sampling.obstacle_kinds; default the paper's): a lying capsule seen by a
+    paper-mix policy is a covering obstacle of a paper kind, holding all of it; unknown kinds are refused."""
+    assert P.PerceptionSettings().kinds == SamplingConfig().obstacle_kinds == ("sphere", "cylinder", "box")
+    env = EnvConfig(sampling=dataclasses.replace(SamplingConfig(), obstacle_kinds=("sphere", "capsule")))
+    assert P.PerceptionSettings.for_policy(env, use_colour=False).kinds == ("sphere", "capsule")
+    cloud, rgb, labels = cast([cube(-0.2, -0.5, 0.0), CAPSULE], labels=True)
+    seen = seen_points(cloud, labels, 1)
+    for kinds in (None, ("sphere",)):
+        settings = P.PerceptionSettings(kinds=kinds) if kinds else None
+        det = P.detect_scene(cloud, rgb, CAL, settings=settings)
+        (ob,) = det.obstacles
+        assert ob.kind in (kinds or ("cylinder", "box")) and det.diagnostics["obstacles"][0]["conservative"]
+        assert held_share(det.obstacles, seen) == 1.0
+    for kinds in (("cone",), (), "box"):
+        with pytest.raises(P.PerceptionError, match="obstacle kinds .* must be some of sphere, cylinder, box, capsule"):
+            P.detect_scene(cloud, rgb, CAL, settings=P.PerceptionSettings(kinds=kinds))
+
+
+def test_zero_points_are_no_return(scene_cloud):
+    """(0, 0, 0), the RealSense's and Open3D's "no return", reads as NaN everywhere: the same scene."""
+    cloud, rgb = scene_cloud
+    drop = np.random.default_rng(4).random(cloud.shape[:2]) < 0.1
+    zeros, nans = cloud.copy(), cloud.copy()
+    zeros[drop], nans[drop] = 0.0, np.nan
+    kept = zeros.copy()
+    a, b = P.detect_scene(zeros, rgb, CAL), P.detect_scene(nans, rgb, CAL)
+    assert np.array_equal(zeros, kept)  # the caller's array is left as it was
+    np.testing.assert_allclose(a.target_centre, b.target_centre)
+    assert a.obstacles == b.obstacles and a.diagnostics["valid_points"] == b.diagnostics["valid_points"]
+    v, u = np.argwhere(drop[5:-5, 5:-5])[0] + 5
+    np.testing.assert_allclose(P.point_at_pixel(zeros, u, v, 1), P.point_at_pixel(nans, u, v, 1))
+    with pytest.raises(P.PerceptionError, match="no valid point"):
+        P.detect_scene(np.zeros_like(cloud), None, CAL)
+
+
 def test_point_at_pixel_is_the_papers_step(scene_cloud):
     cloud, _ = scene_cloud
     u, v = 100.0, 50.0
@@ -274,6 +417,16 @@ def test_regions_join_across_a_dropped_pixel_only():
     assert len(np.unique(P.label_regions(mask, far, 0.03, valid))) == 6  # the far column splits off; (1, 4), 5 cm from it, stands alone
 
 
+def test_border_edges():
+    valid = np.ones((6, 8), bool)
+    assert P.border_edges(np.array([[2, 3], [3, 4]]), valid) == []
+    assert P.border_edges(np.array([[2, 0], [5, 4]]), valid) == ["left", "bottom"]
+    assert P.border_edges(np.array([[1, 3]]), valid) == []
+    valid[0, 3] = False  # one in from the top edge, the border pixel dropped: what lies beyond is unseen
+    assert P.border_edges(np.array([[1, 3], [2, 6]]), valid) == ["top"]
+    assert P.border_edges(np.array([[2, 7]]), valid) == ["right"]
+
+
 def test_minimum_area_rectangle_and_hull():
     rng = np.random.default_rng(1)
     u, v = rng.uniform(-0.03, 0.03, 400), rng.uniform(-0.01, 0.01, 400)
@@ -292,7 +445,7 @@ def test_minimum_area_rectangle_and_hull():
 pytest.importorskip("pybullet")
 from sagrasp_jax.task import robot  # noqa: E402
 from sagrasp_jax.task import sampling  # noqa: E402
-from sagrasp_jax.task.config import EnvConfig, blocking_sampling  # noqa: E402
+from sagrasp_jax.task.config import blocking_sampling  # noqa: E402
 from sagrasp_jax.deploy import twin_camera as tc  # noqa: E402
 from sagrasp_jax.deploy.twin import PyBulletTwin  # noqa: E402
 

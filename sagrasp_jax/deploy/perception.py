@@ -6,9 +6,11 @@ the deployment loop validates: the cube centre and yaw in the world (URDF base) 
 as a ``deploy.loop.Obstacle`` (kind, centre, MuJoCo size, yaw).  Steps (``detect_scene``):
 
 1. **Check the input.** An organized cloud (H, W, 3) in the camera frame, millimetres, NaN where the
-   camera had no return (the Mech-Eye's format).  Refused with ``PerceptionError``: another shape, no
-   valid point, too few valid points, depths that are not a depth camera's in millimetres (a cloud in
-   metres read as millimetres lies 1.4 mm from the camera; the message says which unit it looks like).
+   camera had no return (the Mech-Eye's format); a point at depth 0, (0, 0, 0) (the RealSense's and
+   Open3D's "no return"), is no return too, wherever the cloud is read.  Refused with ``PerceptionError``:
+   another shape, no valid point, too few valid points, depths that are not a depth camera's in
+   millimetres (a cloud in metres read as millimetres lies 1.4 mm from the camera, one in centimetres
+   140 mm; the message says which unit it looks like and the factor that gives millimetres).
 2. **Table plane.** Points within ``plane_band_m`` of the table top (z = 0 through the calibration) are
    fitted by least squares, the band narrowed to 3 σ of the fit's residuals (robust MAD) and refitted;
    the plane must hold a fair share of the points and lie within ``max_plane_tilt_deg`` of level, else
@@ -18,10 +20,12 @@ as a ``deploy.loop.Obstacle`` (kind, centre, MuJoCo size, yaw).  Steps (``detect
    the arm itself (``robot.primitive_poses``, ``robot_margin_m``).
 4. **Regions.** Connected regions on the image grid (``label_regions``: 4-neighbours within
    ``max_gap_m`` in 3-D whose depth steps by at most ``max_slope`` pixel pitches, joined across a
-   dropped pixel); regions smaller than ``min_region_m2`` are noise, those whose top is narrower than
-   ``min_top_side_m`` fragments; a side broken off its top at a depth step rejoins it
+   dropped pixel); regions smaller than ``min_region_m2`` and those whose top is narrower than
+   ``min_top_side_m`` (fragments) are left over; a side broken off its top at a depth step rejoins it
    (``_merge_sides``).  Where a nearer object borders a region (``occluder_dirs``) its outline is hidden
-   there: fits use the outline's own edges.
+   there: fits use the outline's own edges.  The left-over pixels are clustered again by 3-D gaps alone
+   (``_leftovers``): a side seen nearly edge-on breaks into strips, and under a floating sphere those
+   strips may be all that is seen of an obstacle.
 5. **The cube.** With RGB: the region whose pixels are mostly red (r − max(g, b) ≥ ``red_margin``).
    Without RGB (or ``use_colour=False``): the region whose flat top is the cube's top face (height and
    both sides within tolerance).  None → "no cube found"; two → "two cube candidates"; a red region
@@ -30,15 +34,28 @@ as a ``deploy.loop.Obstacle`` (kind, centre, MuJoCo size, yaw).  Steps (``detect
    each point weighted by its pixel's footprint on the top's plane) and the yaw (minimum-area rectangle
    of the face's outline, wrapped to [−45°, 45°): a square looks the same turned by 90°); the centre is
    the top-face centre 25 mm lower (``calibration.detected_top_to_cube_centre``).  A top face partly
-   hidden behind a nearer object (the arm, an obstacle) is refused: its centroid would be off.
-6. **Obstacles.** Every other region is fitted as each kind of ``shapes.SHAPES`` as it rests in the cell
-   (sphere: least-squares sphere; cylinder: upright, top disc's area and centroid; box: top face's
-   minimum-area rectangle with its area matched to the measured one; capsule: lying, radius half the
-   height, axis along the outline's long side), and the kind whose exact surface (``shapes.sdf``) lies
-   nearest the region's points wins, box against cylinder by the top's outline (``outline_kind``); two
-   regions fitted as one obstacle are joined (``_merge_duplicates``).  A region taller or wider than any
-   obstacle the sampler draws is refused (the arm in view without its joints, or something that is not
-   part of the task).
+   hidden behind a nearer object (the arm, an obstacle) or cut by the image border is refused: its
+   centroid would be off.
+6. **Obstacles.** What is seen of an obstacle is never dropped, and every obstacle returned holds every
+   point seen of it (to the noise): the safety layer keeps the arm out of the obstacles, so it needs an
+   over-approximation, never a miss.  Every other region is fitted as each allowed kind (``kinds``: the
+   policy's ``env.sampling.obstacle_kinds``) as it rests in the cell (sphere: least-squares sphere;
+   cylinder: upright, top disc's area and centroid; box: top face's minimum-area rectangle with its area
+   matched to the measured one; capsule: lying, radius half the height, axis along the outline's long
+   side), and the kind whose exact surface (``shapes.sdf``) lies nearest the region's points wins, box
+   against cylinder by the top's outline (``outline_kind``).  A fit that does not hold the region's points
+   (``_uncovered``: a partly hidden obstacle whose visible part does not fix its shape, an object of a kind
+   the policy was not trained with) is replaced by a covering shape of an allowed kind (``_cover``: the
+   visible points' footprint from the table up to their highest point).  Why covering and not refusing a
+   kind the policy does not know: the cover holds everything seen, so the arm keeps out of it, and the
+   policy observes a kind it was trained with; a cover nearer the cube than training put an obstacle is
+   refused by the loop's scene check (``loop.scene_spec``: ``calibration.validate_obstacle_clearance``).
+   A left-over cluster the cube or an obstacle holds is dropped (a side's strips), one mostly held joins
+   that obstacle, any other is an obstacle.  Pieces of one obstacle are joined and fitted again
+   (``_obstacle_parts``): two parts cut apart by a nearer object (nothing but it seen between them), two
+   partly hidden parts whose footprints overlap or touch, or two fits of one kind with near centres.  A
+   region taller or wider than any obstacle the sampler draws is refused (the arm in view without its
+   joints, or something that is not part of the task).
 
 A detector (the YOLO option, ``deploy.yolo``) may replace the colour test: its target boxes choose the
 cube region (``detections=``), and ``point_at_pixel`` is the paper's own pixel → camera point.
@@ -65,6 +82,11 @@ from sagrasp_jax.task.scene import SCENE
 DEPTH_RANGE_MM = (300.0, 3000.0)  # where a depth camera over the table reports anything (deploy's DETECTION_RANGE)
 PLANE_POINTS = 20_000  # table points the plane is fitted to (evenly strided)
 OCCLUDER_JUMP_M = 0.01  # a neighbour this much nearer (camera z) and not of the region hides part of it
+# a fit holds a region when at most this share of its points lies outside it (_uncovered): of a whole region (its
+# fit is the object, a few points off by more than the noise allowance are noise), of one partly hidden or cut by
+# the image border (its fit rests on part of it, and a point it misses may be a part it failed to reach)
+COVER_SHARE, COVER_SHARE_HIDDEN = 0.02, 0.002
+LEFTOVER_HELD = 0.05  # a leftover cluster an obstacle holds all but this share of is part of it (_obstacle_parts)
 MIN_RED_PIXELS = 12  # red pixels in a region that is not mostly red: a cube on or against something
 BOX_FILL = 0.89  # hull area / minimum-area rectangle: a disc's π/4 = 0.785, a rectangle's 1
 
@@ -108,8 +130,17 @@ class PerceptionSettings:
     static_margin_m: float = 0.01  # ... and this near the cell's static parts
     max_obstacle_radius_m: float = MAX_OBSTACLE_REACH_M  # a region reaching farther from its centre is no trained obstacle
     max_obstacle_top_m: float = MAX_OBSTACLE_TOP_M  # ... and one whose top is higher above the table
-    kinds: tuple[str, ...] = shapes.NAMES  # obstacle kinds considered
+    # the obstacle kinds returned: the policy's env.sampling.obstacle_kinds (``for_policy``; default the paper's
+    # sphere, cylinder, box).  A region no fit of these holds becomes the covering shape of one of them (``_cover``)
+    kinds: tuple[str, ...] = SamplingConfig().obstacle_kinds
     use_colour: bool = True  # with RGB, the cube is the red region
+
+    @classmethod
+    def for_policy(cls, env_cfg: Any, **changes: Any) -> "PerceptionSettings":
+        """The settings for a policy: its env config's obstacle kinds (``policy.env_config()``, an ``EnvConfig``
+        or its ``sampling``), the defaults or ``changes`` otherwise."""
+        sampling = getattr(env_cfg, "sampling", env_cfg)
+        return cls(**{"kinds": tuple(sampling.obstacle_kinds), **changes})
 
 
 class Detection(NamedTuple):
@@ -148,6 +179,8 @@ class _Cloud:
     area: Any = None  # (H, W) footprint on a plane parallel to the table, m²
     normal: Any = None  # table normal, world
     sigma: float = 0.0  # table noise (robust σ), m
+    camera: Any = None  # (3,) the camera's position, world
+    pitch: float = 0.002  # m, the median pixel footprint's side on the table
 
 
 # ---------------------------------------------------------------------------------------------- input checks
@@ -163,18 +196,25 @@ def check_cloud(cloud_mm: Any) -> np.ndarray:
         raise PerceptionError(
             f"point cloud must be organized, shape (H, W, 3) with H, W ≥ 8 (the camera's pixel grid), got {cloud.shape}")
     finite = np.isfinite(cloud).all(axis=2)
+    zero = finite & (cloud[..., 2] == 0.0)  # depth 0, (0, 0, 0): the RealSense / Open3D "no return"
+    if zero.any():
+        cloud = np.where(zero[..., None], np.nan, cloud)  # a copy: the caller's array stays as it was
+        finite &= ~zero
     n = int(finite.sum())
     if n == 0:
-        raise PerceptionError(f"point cloud {cloud.shape} has no valid point (all NaN/inf): no return from the camera")
+        raise PerceptionError(f"point cloud {cloud.shape} has no valid point (all NaN/inf or (0, 0, 0)): no return "
+                              "from the camera")
     if n < 0.05 * finite.size:
         raise PerceptionError(f"point cloud has only {n} valid points of {finite.size} (< 5 %): camera blocked or "
                               "over/under-exposed")
     depth = float(np.median(cloud[finite][:, 2]))
     lo, hi = DEPTH_RANGE_MM
     if not lo <= depth <= hi:
-        guess = next((name for name, f in (("metres", 1e-3), ("centimetres", 10.0), ("micrometres", 1e3))
-                      if lo <= depth / f <= hi), None)
-        hint = f"; it looks like {guess}: convert to millimetres" if guess else ""
+        # (unit, millimetres per unit): a cloud in that unit, read as mm, has its depth × 1/(mm per unit)
+        guess = next(((name, f) for name, f in (("metres", 1000.0), ("centimetres", 10.0), ("micrometres", 1e-3))
+                      if lo <= depth * f <= hi), None)
+        hint = (f"; it looks like {guess[0]}: give the cloud in millimetres (multiply it by {guess[1]:g})"
+                if guess else "")
         raise PerceptionError(f"point cloud's median depth is {depth:.4g} (as mm), outside a depth camera's "
                               f"[{lo:g}, {hi:g}] mm over the table{hint}")
     return cloud
@@ -205,6 +245,12 @@ def _check_target_size(target_size: Any) -> np.ndarray:
     if size.shape != (3,) or not np.isfinite(size).all() or (size <= 0).any():
         raise PerceptionError(f"target_size {target_size!r} must be the cube's 3 full extents in m (finite, > 0)")
     return size
+
+
+def _check_kinds(kinds: Any) -> None:
+    if isinstance(kinds, str) or not kinds or any(k not in shapes.BY_NAME for k in kinds):
+        raise PerceptionError(f"obstacle kinds {kinds!r} must be some of {', '.join(shapes.NAMES)} (the policy's "
+                              "env.sampling.obstacle_kinds)")
 
 
 def _check_box(det: Any) -> None:
@@ -292,15 +338,16 @@ def _robot_primitives(model: RobotModel, q: Any) -> tuple[np.ndarray, np.ndarray
 
 def label_regions(mask: np.ndarray, points: np.ndarray, max_gap: float, valid: np.ndarray | None = None,
                   cam_z: np.ndarray | None = None, pitch: np.ndarray | None = None, max_slope: float = math.inf,
-                  noise: float = 0.0) -> np.ndarray:
+                  noise: float = 0.0, skip_gap: float | None = None) -> np.ndarray:
     """Connected regions of ``mask`` (H, W) on the image grid.  4-neighbours are joined when their points
     (H, W, 3) are within ``max_gap`` and, given their camera depths ``cam_z`` and pixel pitches ``pitch``
     (m per pixel at that depth), when the depth changes by at most ``max_slope`` pitches plus 4·√2 σ of
     ``noise``: a steeper step is an occluding edge (a sphere over a box below) or a side seen edge-on,
     whose strip then falls apart into fragments.  Pixels two apart in a row or column are joined the same
     way when the one between them has no return (``valid`` False: a pixel the camera dropped does not
-    split a surface).  Labels (H, W), −1 outside, regions numbered 0.. in order of their smallest pixel
-    index.  Union-find by hooking roots and pointer jumping, all in NumPy array operations."""
+    split a surface), within ``skip_gap`` (default ``max_gap``).  Labels (H, W), −1 outside, regions
+    numbered 0.. in order of their smallest pixel index.  Union-find by hooking roots and pointer jumping,
+    all in NumPy array operations."""
     h, w = mask.shape
     index = np.full((h, w), -1, dtype=np.int64)
     n = int(mask.sum())
@@ -312,7 +359,8 @@ def label_regions(mask: np.ndarray, points: np.ndarray, max_gap: float, valid: n
         ok = (da >= 0) & (db >= 0)
         if dy + dx == 2:
             ok &= dropped[dy // 2 : h - dy // 2, dx // 2 : w - dx // 2]
-        near = np.linalg.norm(points[: h - dy, : w - dx][ok] - points[dy:, dx:][ok], axis=-1) < max_gap
+        gap = max_gap if dy + dx == 1 or skip_gap is None else skip_gap
+        near = np.linalg.norm(points[: h - dy, : w - dx][ok] - points[dy:, dx:][ok], axis=-1) < gap
         if cam_z is not None and pitch is not None and math.isfinite(max_slope):
             step = np.abs(cam_z[: h - dy, : w - dx][ok] - cam_z[dy:, dx:][ok])
             near &= step <= max_slope * (dy + dx) * pitch[: h - dy, : w - dx][ok] + 4.0 * math.sqrt(2.0) * noise
@@ -460,6 +508,20 @@ def _region(cloud: _Cloud, label: int, rows: np.ndarray, cols: np.ndarray, top_t
                    height >= top - top_tol, border, occluded)
 
 
+def border_edges(pixels: np.ndarray, valid: np.ndarray) -> list[str]:
+    """The image edges ("left", "right", "top", "bottom") that a set of pixels (N, 2) (row, col) touches: a
+    pixel on the border row or column, or one pixel in from it with the border pixel dropped (the camera's
+    image ends there, so what lies beyond is unseen).  Left and right are the image's (columns 0 and W − 1)."""
+    h, w = valid.shape
+    r, c = pixels[:, 0], pixels[:, 1]
+    out = []
+    for name, at, inner, line in (("left", c == 0, c == 1, (r, 0)), ("right", c == w - 1, c == w - 2, (r, w - 1)),
+                                  ("top", r == 0, r == 1, (0, c)), ("bottom", r == h - 1, r == h - 2, (h - 1, c))):
+        if at.any() or (inner & ~valid[line]).any():
+            out.append(name)
+    return out
+
+
 def _top_height(height: np.ndarray, tol: float) -> float:
     """A region's top above the table, robust to noise: the median of the points within 4/3·tol below
     its 98th height percentile (noise-free: the top face itself; with noise σ and tol = 3 σ, nearly all
@@ -548,6 +610,7 @@ class ObstacleFit(NamedTuple):
     size: np.ndarray  # (3,) MuJoCo convention
     yaw: float
     residual: float  # m: RMS distance of the region's points to the fitted surface (trimmed)
+    conservative: bool = False  # a covering shape of the visible points (``_cover``), not a fit of the object
 
 
 def _fit_sphere(pts: np.ndarray) -> tuple[np.ndarray, float]:
@@ -669,7 +732,7 @@ def _prepare(cloud_mm: Any, calibration: CameraCalibration, settings: Perception
     fx, fy = _intrinsics_from_cloud(cam, valid)
     world = calibration.cam_to_base(np.where(valid[..., None], cam, 0.0))
     world[~valid] = np.nan
-    data = _Cloud(valid.shape, valid, cam, world, fx, fy)
+    data = _Cloud(valid.shape, valid, cam, world, fx, fy, camera=np.asarray(calibration.camera_position, float))
     normal, offset, sigma, _ = fit_table(world, valid, settings)
     data.normal, data.sigma = normal, sigma
     data.height = world @ normal - offset
@@ -679,6 +742,7 @@ def _prepare(cloud_mm: Any, calibration: CameraCalibration, settings: Perception
     with np.errstate(invalid="ignore", divide="ignore"):
         cos = np.abs((cam / z[..., None]) @ n_cam)
         data.area = z**2 / (fx * fy * cos)
+    data.pitch = math.sqrt(float(np.median(data.area[valid])))
     return data
 
 
@@ -764,6 +828,7 @@ def detect_scene(cloud_mm: Any, rgb: Any = None, calibration: CameraCalibration 
     settings = settings or PerceptionSettings()
     calibration = calibration or CameraCalibration.default()
     size = _check_target_size(target_size if target_size is not None else SamplingConfig().target_size)
+    _check_kinds(settings.kinds)
     for det in detections or ():
         _check_box(det)
     data = _prepare(cloud_mm, calibration, settings)
@@ -792,6 +857,11 @@ def detect_scene(cloud_mm: Any, rgb: Any = None, calibration: CameraCalibration 
     face = _top_face(cube)
     sides = face.sides
     side, height = float(max(size[0], size[1])), float(size[2])
+    cut = border_edges(cube.pixels[cube.top_mask], data.valid)
+    if cut:
+        edges = f"{' and '.join(cut)} edge{'s' if len(cut) > 1 else ''}"
+        raise PerceptionError(f"the cube's top face is cut by the image border ({edges}); move the camera or the cube "
+                              "(its centre and yaw need the whole face)")
     if face.occluded:
         raise PerceptionError(
             f"the cube's top face is partly hidden ({int(face.outline_hidden.sum())} of its outline pixels border a "
@@ -810,8 +880,11 @@ def detect_scene(cloud_mm: Any, rgb: Any = None, calibration: CameraCalibration 
     target = detected_top_to_cube_centre(top_point, height / 2)
     yaw = wrap(face.angle, math.pi / 2)
     obstacles, fits = [], []
-    parts = _merge_duplicates(data, [reg for i, reg in enumerate(regions) if i != found[0]], top_tol, settings.kinds)
-    for reg, fit in parts:
+    leftovers, strays = _leftovers(data, mask, regions, settings, top_tol, int(labels.max()) + 1)
+    cube_fit = ObstacleFit("box", np.asarray(target, float), size / 2, yaw, 0.0)
+    parts, held = _obstacle_parts(data, [reg for i, reg in enumerate(regions) if i != found[0]], leftovers, strays,
+                                  cube_fit, top_tol, settings)
+    for reg, fit, pieces in parts:
         reach = float(np.max(np.linalg.norm(reg.world[:, :2] - reg.world[:, :2].mean(axis=0), axis=1)))
         if reg.top > settings.max_obstacle_top_m:
             raise PerceptionError(
@@ -824,12 +897,14 @@ def detect_scene(cloud_mm: Any, rgb: Any = None, calibration: CameraCalibration 
                 f"{reg.world[:, 1].mean():.2f}) m) is larger than any trained obstacle: the arm in view without "
                 "robot_q, or something that does not belong in the cell")
         fits.append({"kind": fit.kind, "residual_mm": 1000 * fit.residual, "points": len(reg.world),
-                     "touches_border": reg.touches_border, "occluded_px": int(reg.occluded.any(axis=1).sum())})
+                     "touches_border": reg.touches_border, "occluded_px": int(reg.occluded.any(axis=1).sum()),
+                     "conservative": fit.conservative, "pieces": pieces})
         obstacles.append(Obstacle(fit.kind, tuple(float(v) for v in fit.centre), tuple(float(v) for v in fit.size),
                                   float(fit.yaw)))
     diagnostics = {
         "plane_normal": data.normal.tolist(), "plane_sigma_mm": 1000 * data.sigma, "valid_points": int(data.valid.sum()),
-        "regions": len(regions), "fragments": fragments, "cube_by": how, "cube_points": len(cube.world), "cube_top_points": int(cube.top_mask.sum()),
+        "regions": len(regions), "fragments": fragments, "leftovers": len(leftovers), "leftovers_held": held,
+        "cube_by": how, "cube_points": len(cube.world), "cube_top_points": int(cube.top_mask.sum()),
         "cube_top_mm": 1000 * cube.top, "cube_face_mm": [1000 * sides[0], 1000 * sides[1]],
         "cube_touches_border": cube.touches_border, "cube_outline_hidden_px": int(face.outline_hidden.sum()),
         "obstacles": fits, "seconds": time.perf_counter() - t0,
@@ -878,24 +953,253 @@ def _merge_sides(data: _Cloud, regions: list[_Region], top_tol: float) -> list[_
     return regions
 
 
-def _merge_duplicates(data: _Cloud, regions: list[_Region], top_tol: float,
-                      kinds: Sequence[str]) -> list[tuple[_Region, ObstacleFit]]:
-    """Each obstacle region with its fit; two regions fitted as the same kind with centres within half their
-    smaller size are one object cut in two (a cylinder's top crossed by a sphere above it): joined and refitted."""
-    parts = [(reg, fit_obstacle(reg, _plane_height(data, reg), kinds)) for reg in regions]
+def _leftovers(data: _Cloud, mask: np.ndarray, kept: Sequence[_Region], settings: PerceptionSettings,
+               top_tol: float, first_label: int) -> tuple[list[_Region], np.ndarray]:
+    """The object pixels no kept region holds (regions under ``min_region_m2``, fragments) clustered again by
+    3-D gaps alone (``max_gap_m``, twice that across a dropped pixel; no depth-step test): a steep side seen
+    nearly edge-on falls apart into strips a few pixels high (a camera drops many of them: depth edges), and
+    where a nearer object hides the top those strips are all that is seen of an obstacle.  The clusters
+    reaching ``min_region_m2``, or a quarter of it where the image border or a nearer object cuts them (a
+    top's thin rim beyond a sphere; labels from ``first_label`` on), and the pixels (M, 2) of the smaller
+    ones (strays: what a fit or cover of a region they belong to must hold too)."""
+    rest = mask.copy()
+    for reg in kept:
+        rest[reg.pixels[:, 0], reg.pixels[:, 1]] = False
+    if not rest.any():
+        return [], np.zeros((0, 2), int)
+    labels = label_regions(rest, np.nan_to_num(data.world), settings.max_gap_m, data.valid,
+                           skip_gap=2.0 * settings.max_gap_m)
+    clusters = [reg._replace(label=reg.label + first_label)
+                for reg in _regions(data, np.where(rest, labels, -1), settings.min_region_m2 / 4, top_tol)
+                if reg.area.sum() >= settings.min_region_m2 or reg.touches_border or reg.occluded.any()]
+    for reg in clusters:
+        rest[reg.pixels[:, 0], reg.pixels[:, 1]] = False
+    return clusters, np.argwhere(rest)
+
+
+def _uncovered(data: _Cloud, fits: Sequence[ObstacleFit], pts: np.ndarray) -> np.ndarray:
+    """(N,) bool: the points (N, 3) that none of ``fits`` holds.  A point is held when some point of its
+    ray within 4 σ of the depth noise (at least 1 mm) lies inside the shape grown by a pixel's footprint
+    (the noise moves points along their rays; pixel centres fall up to half a pitch from an outline)."""
+    ray = pts - data.camera
+    ray /= np.maximum(np.linalg.norm(ray, axis=1, keepdims=True), 1e-9)
+    slack = max(4.0 * data.sigma, 0.001)
+    tol = max(data.pitch, 0.001)
+    out = np.ones(len(pts), bool)
+    for fit in fits:
+        shape = shapes.BY_NAME[fit.kind]
+        for t in np.linspace(-slack, slack, 7):
+            with np.errstate(invalid="ignore"):
+                d = shapes.sdf(np, shape.id, fit.centre, np.asarray(fit.yaw), fit.size, pts + t * ray)
+            out &= ~(d <= tol)  # NaN (a failed fit) holds nothing
+    return out
+
+
+def _cover(data: _Cloud, region: _Region, plane_z: float, settings: PerceptionSettings,
+           strays: np.ndarray) -> ObstacleFit:
+    """A conservative obstacle of one of ``settings.kinds`` holding every visible point of ``region`` and of the strays
+    that belong with it (``_strays_of``): the points' minimum-area rectangle grown by half a pixel and the
+    noise, from the table up to the highest point (what a nearer object hides of it may reach down to the
+    table anywhere under what is seen).  Each kind's shape around that box: the box itself, the upright
+    cylinder round it, the sphere or the lying capsule through its corners (these two reach into the table,
+    which holds nothing anyway); the smallest allowed one (by volume) is returned."""
+    pts = np.r_[region.world, _strays_of(data, strays, region, settings)]
+    xy = pts[:, :2]
+    pitch = math.sqrt(float(np.median(region.area)))
+    margin = pitch / 2 + data.sigma
+    n, offset = data.normal, float((region.world @ data.normal - region.height).mean())
+    top = float(np.max(pts @ n - offset)) + data.sigma
+    centre_xy, (a, b), angle = min_area_rect(xy)
+    if a == 0.0 and b == 0.0:  # fewer than three distinct points
+        centre_xy = xy.mean(axis=0)
+        a = b = 2.0 * float(np.max(np.linalg.norm(xy - centre_xy, axis=1)))
+    a, b = a + 2 * margin, b + 2 * margin
+    half = top / 2
+    centre = np.array([centre_xy[0], centre_xy[1], plane_z + half])
+    long_axis = angle if a >= b else angle + math.pi / 2
+    r_caps = math.hypot(min(a, b) / 2, half)
+    r_cyl = float(np.max(np.linalg.norm(xy - centre_xy, axis=1))) + margin
+    r_sph = math.sqrt((a / 2) ** 2 + (b / 2) ** 2 + half**2)
+    options = {  # kind: (size, yaw, volume)
+        "box": (np.array([a / 2, b / 2, half]), wrap(angle, math.pi), a * b * top),
+        "cylinder": (np.array([r_cyl, half, 0.0]), 0.0, math.pi * r_cyl**2 * top),
+        "sphere": (np.array([r_sph, 0.0, 0.0]), 0.0, 4.0 / 3.0 * math.pi * r_sph**3),
+        "capsule": (np.array([r_caps, max(a, b) / 2, 0.0]), wrap(long_axis, math.pi),
+                    math.pi * r_caps**2 * max(a, b) + 4.0 / 3.0 * math.pi * r_caps**3),
+    }
+    kind = min((k for k in settings.kinds if k in options), key=lambda k: options[k][2])
+    size, yaw, _ = options[kind]
+    return ObstacleFit(kind, centre, size, yaw, _surface_residual(kind, centre, size, yaw, region.world), True)
+
+
+def _strays_of(data: _Cloud, strays: np.ndarray, region: _Region, settings: PerceptionSettings) -> np.ndarray:
+    """World points (K, 3) of the strays (pixels (M, 2)) that belong with ``region``: no higher than its top
+    (a side's strips lie under it; a flying pixel under a floating sphere's rim is not the sphere's) and
+    within ``max_gap_m`` of its points in 3-D or next to one of its pixels (8-neighbours: a side seen edge-on
+    beyond its top's edge); or, where a nearer object borders it, cut off from it by that object alone (an
+    image line from the stray to one of its four nearest such pixels of the region crosses nothing else:
+    ``_occluder_between``), no farther from its points than one obstacle reaches (``max_obstacle_radius_m``)
+    and as high as it may be (a top's rim seen beyond a sphere that hides the rest of it)."""
+    gap = settings.max_gap_m
+    if len(strays) == 0:
+        return np.zeros((0, 3))
+    world = data.world[strays[:, 0], strays[:, 1]]
+    pts = region.world
+    sample = pts[:: max(1, len(pts) // 2000)]
+    near = np.zeros(len(strays), bool)
+    flat = np.zeros(len(strays))
+    low = data.height[strays[:, 0], strays[:, 1]] <= region.top + max(0.003, 3.0 * data.sigma)
+    for a in range(0, len(strays), 500):
+        diff = world[a : a + 500][:, None] - sample[None]
+        near[a : a + 500] = (diff**2).sum(-1).min(axis=1) <= gap**2
+        flat[a : a + 500] = (diff[..., :2] ** 2).sum(-1).min(axis=1)
+    lo = region.pixels.min(axis=0) - 1
+    grid = np.zeros(tuple(region.pixels.max(axis=0) - lo + 2), bool)
+    grid[region.pixels[:, 0] - lo[0], region.pixels[:, 1] - lo[1]] = True
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            r, c = strays[:, 0] + dy - lo[0], strays[:, 1] + dx - lo[1]
+            inside = (r >= 0) & (c >= 0) & (r < grid.shape[0]) & (c < grid.shape[1])
+            near[inside] |= grid[r[inside], c[inside]]
+    near &= low
+    edge = region.pixels[region.occluded.any(axis=1)]
+    edge = edge[:: max(1, len(edge) // 300)]
+    if len(edge) and not near.all():
+        far = np.nonzero(~near)[0]
+        k = min(4, len(edge))  # lines to its four nearest such pixels: one of them may graze the table
+        nearest = np.argpartition(((strays[far][:, None] - edge[None]) ** 2).sum(-1), k - 1, axis=1)[:, :k]
+        own = np.zeros(data.shape, bool)
+        own[region.pixels[:, 0], region.pixels[:, 1]] = True
+        cut_off = _occluder_between(data, own, np.repeat(strays[far], k, axis=0), edge[nearest.reshape(-1)])
+        near[far] = cut_off.reshape(-1, k).any(axis=1) & (flat[far] <= settings.max_obstacle_radius_m**2)
+    return world[near]
+
+
+def _fit_part(data: _Cloud, region: _Region, settings: PerceptionSettings, strays: np.ndarray) -> ObstacleFit:
+    """The region's obstacle of an allowed kind: the best fit of ``settings.kinds`` (``fit_obstacle``) when it holds
+    the visible points (``_uncovered``: all but ``COVER_SHARE`` of them, ``COVER_SHARE_HIDDEN`` of a partly
+    hidden one; where a nearer object hides part of it, also the strays that belong with it, ``_strays_of``),
+    else the conservative ``_cover``.
+    A fit falls short where a nearer object or the image border hides part of the obstacle and what is seen
+    does not fix its shape (a side without its top, a rim's short arc), or where the obstacle is of a kind
+    the policy was not trained with (a lying capsule fitted as a flat-topped kind)."""
+    plane_z = _plane_height(data, region)
+    try:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            fit = fit_obstacle(region, plane_z, settings.kinds)
+    except ValueError:  # PerceptionError, LinAlgError: no allowed kind can be fitted to it
+        fit = None
+    pts = region.world
+    if region.occluded.any():
+        pts = np.r_[pts, _strays_of(data, strays, region, settings)]
+    share = COVER_SHARE_HIDDEN if region.occluded.any() or region.touches_border else COVER_SHARE
+    if fit is not None and np.isfinite(fit.centre).all() and np.isfinite(fit.size).all() \
+            and _uncovered(data, [fit], pts).mean() <= share:
+        return fit
+    return _cover(data, region, plane_z, settings, strays)
+
+
+def _occluder_between(data: _Cloud, own: np.ndarray, pa: np.ndarray, pb: np.ndarray) -> np.ndarray:
+    """(K,) bool for pixel pairs (K, 2) (row, col): whether the straight image line from ``pa`` to ``pb`` crosses
+    only ``own`` pixels (H, W), pixels the camera dropped and pixels nearer than both ends by ``OCCLUDER_JUMP_M``,
+    at least one of these: nothing but a nearer object lies between the two."""
+    if len(pa) == 0:
+        return np.zeros(0, bool)
+    cam_z = data.cam[..., 2]
+    steps = int(min(np.max(np.abs(pb - pa)), 400))
+    if steps < 2:
+        return np.zeros(len(pa), bool)
+    t = np.linspace(0.0, 1.0, steps + 1)[1:-1]
+    line = np.rint(pa[:, None, :] + (pb - pa)[:, None, :] * t[None, :, None]).astype(int)  # (K, S, 2)
+    r, c = line[..., 0], line[..., 1]
+    skip = own[r, c] | ((r == pa[:, None, 0]) & (c == pa[:, None, 1])) | ((r == pb[:, None, 0]) & (c == pb[:, None, 1]))
+    valid = data.valid[r, c]
+    z_ref = np.minimum(cam_z[pa[:, 0], pa[:, 1]], cam_z[pb[:, 0], pb[:, 1]])[:, None] - OCCLUDER_JUMP_M
+    with np.errstate(invalid="ignore"):
+        nearer = valid & (cam_z[r, c] < z_ref) & ~skip
+    return (nearer | ~valid | skip).all(axis=1) & nearer.any(axis=1)
+
+
+def _pieces_of_one(data: _Cloud, a: _Region, b: _Region, tries: int = 12) -> bool:
+    """Whether two regions are pieces of one obstacle that a nearer object cuts in two: both border a nearer
+    object, and a straight image line between some of the nearest pairs of such pixels crosses nothing but
+    the occluder (``_occluder_between``).  Table or another object seen between them keeps them apart."""
+    ea, eb = a.pixels[a.occluded.any(axis=1)], b.pixels[b.occluded.any(axis=1)]
+    if len(ea) == 0 or len(eb) == 0:
+        return False
+    ea, eb = ea[:: max(1, len(ea) // 300)], eb[:: max(1, len(eb) // 300)]
+    own = np.zeros(data.shape, bool)
+    own[a.pixels[:, 0], a.pixels[:, 1]] = True
+    own[b.pixels[:, 0], b.pixels[:, 1]] = True
+    d2 = ((ea[:, None, :] - eb[None, :, :]) ** 2).sum(-1)
+    flat = np.argsort(d2, axis=None)[:tries]
+    return bool(_occluder_between(data, own, ea[flat // len(eb)], eb[flat % len(eb)]).any())
+
+
+def _footprints_touch(data: _Cloud, ra: _Region, fa: ObstacleFit, rb: _Region, fb: ObstacleFit) -> bool:
+    """Whether either fit's horizontal footprint reaches (within a pixel and the noise) a point of the other."""
+    tol = math.sqrt(float(np.median(np.r_[ra.area, rb.area]))) + data.sigma
+    for reg, fit in ((ra, fb), (rb, fa)):
+        gap = shapes.footprint_gap(np, shapes.BY_NAME[fit.kind].id, fit.centre, np.asarray(fit.yaw), fit.size,
+                                   reg.world[:, :2])
+        if np.min(gap) <= tol:
+            return True
+    return False
+
+
+def _obstacle_parts(data: _Cloud, regions: list[_Region], leftovers: list[_Region], strays: np.ndarray,
+                    cube: ObstacleFit, top_tol: float,
+                    settings: PerceptionSettings) -> tuple[list[tuple[_Region, ObstacleFit, int]], int]:
+    """Each obstacle with the region it was fitted to and how many pieces that region joins, and the number of
+    leftover clusters dropped as parts of something already held.  Strays (``_leftovers``) that the cube or
+    a region's own fit holds are theirs; the others are held by the obstacles they belong with (``_strays_of``).
+
+    Every region is fitted (``_fit_part``: a fit of an allowed kind that holds its points, else a covering
+    shape).  A leftover cluster (``_leftovers``) is dropped when the cube and the obstacles hold all of its
+    points (a side's strips: ``_uncovered``), joins the obstacle holding nearly all of them (its region grows
+    and is fitted again), and is otherwise the visible part of an obstacle of its own.  Two parts are then
+    one obstacle, joined and fitted again, when (a) a nearer object cuts them apart (``_pieces_of_one``),
+    (b) both border a nearer object and their footprints overlap or touch, or (c) they are fitted as the
+    same kind with centres within half their smaller size (a cylinder's top crossed by a sphere above it);
+    never into something larger than any trained obstacle (the joined region's reach and top)."""
+    if len(strays):  # those the cube or a region's own fit holds are theirs (a sphere's rim, a box's side)
+        fits = [_fit_part(data, reg, settings, np.zeros((0, 2), int)) for reg in regions]
+        world = data.world[strays[:, 0], strays[:, 1]]
+        strays = strays[_uncovered(data, [cube, *(f for f in fits if not f.conservative)], world)]
+    parts = [(reg, _fit_part(data, reg, settings, strays), 1) for reg in regions]
+    dropped = 0
+    for reg in leftovers:
+        if _uncovered(data, [cube, *(fit for _, fit, _ in parts)], reg.world).mean() <= COVER_SHARE_HIDDEN:
+            dropped += 1  # the cube's or an obstacle's side
+            continue
+        share = [1.0 - _uncovered(data, [fit], reg.world).mean() for _, fit, _ in parts]
+        k = int(np.argmax(share)) if share else -1
+        if k >= 0 and share[k] >= 1.0 - LEFTOVER_HELD:  # mostly an obstacle's side: it joins that obstacle
+            joined = _merged(data, parts[k][0], reg, top_tol)
+            parts[k] = (joined, _fit_part(data, joined, settings, strays), parts[k][2])
+            dropped += 1
+            continue
+        parts.append((reg, _fit_part(data, reg, settings, strays), 1))
     merged = True
     while merged:
         merged = False
         for i, j in ((i, j) for i in range(len(parts)) for j in range(i + 1, len(parts))):
-            (ra, fa), (rb, fb) = parts[i], parts[j]
+            (ra, fa, na), (rb, fb, nb) = parts[i], parts[j]
             scale = 0.5 * min(float(np.max(fa.size[:2])), float(np.max(fb.size[:2])))
-            if fa.kind == fb.kind and np.linalg.norm(fa.centre[:2] - fb.centre[:2]) < scale:
-                reg = _merged(data, ra, rb, top_tol)
-                parts[i] = (reg, fit_obstacle(reg, _plane_height(data, reg), kinds))
-                del parts[j]
-                merged = True
-                break
-    return parts
+            hidden = ra.occluded.any() and rb.occluded.any()
+            if not ((fa.kind == fb.kind and np.linalg.norm(fa.centre[:2] - fb.centre[:2]) < scale)
+                    or (hidden and (_footprints_touch(data, ra, fa, rb, fb) or _pieces_of_one(data, ra, rb)))):
+                continue
+            reg = _merged(data, ra, rb, top_tol)
+            xy = reg.world[:, :2]
+            if reg.top > settings.max_obstacle_top_m \
+                    or np.max(np.linalg.norm(xy - xy.mean(axis=0), axis=1)) > settings.max_obstacle_radius_m:
+                continue
+            parts[i] = (reg, _fit_part(data, reg, settings, strays), na + nb)
+            del parts[j]
+            merged = True
+            break
+    return parts, dropped
 
 
 def _plane_height(data: _Cloud, region: _Region) -> float:
