@@ -427,6 +427,24 @@ def test_border_edges():
     assert P.border_edges(np.array([[2, 7]]), valid) == ["right"]
 
 
+def test_a_cover_holds_the_fitted_shape_too():
+    """``_shape_points`` (what a cover adds of the fit it replaces): their horizontal hull holds each kind's
+    footprint and their highest is its top."""
+    rng = np.random.default_rng(0)
+    centre = np.array([0.1, -0.3, 0.2])
+    for kind, size in (("box", (0.04, 0.02, 0.03)), ("cylinder", (0.03, 0.08, 0)), ("sphere", (0.05, 0, 0)),
+                       ("capsule", (0.03, 0.08, 0))):
+        fit = P.ObstacleFit(kind, centre, np.array(size, float), 0.7, 0.0)
+        pts = P._shape_points(fit)
+        hull = P.convex_hull(pts[:, :2])
+        samples = centre + rng.uniform(-0.15, 0.15, (20000, 3))
+        inside = samples[P.shapes.sdf(np, P.shapes.BY_NAME[kind].id, centre, np.asarray(0.7), fit.size, samples) <= 0]
+        a, b = hull, np.roll(hull, -1, axis=0)
+        cross = ((b[:, 0] - a[:, 0])[None] * (inside[:, None, 1] - a[None, :, 1])
+                 - (b[:, 1] - a[:, 1])[None] * (inside[:, None, 0] - a[None, :, 0]))
+        assert len(inside) > 40 and (cross >= -1e-12).all() and inside[:, 2].max() <= pts[:, 2].max(), kind
+
+
 def test_minimum_area_rectangle_and_hull():
     rng = np.random.default_rng(1)
     u, v = rng.uniform(-0.03, 0.03, 400), rng.uniform(-0.01, 0.01, 400)

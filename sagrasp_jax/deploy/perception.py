@@ -46,10 +46,11 @@ as a ``deploy.loop.Obstacle`` (kind, centre, MuJoCo size, yaw).  Steps (``detect
    against cylinder by the top's outline (``outline_kind``).  A fit that does not hold the region's points
    (``_uncovered``: a partly hidden obstacle whose visible part does not fix its shape, an object of a kind
    the policy was not trained with) is replaced by a covering shape of an allowed kind (``_cover``: the
-   visible points' footprint from the table up to their highest point).  Why covering and not refusing a
-   kind the policy does not know: the cover holds everything seen, so the arm keeps out of it, and the
-   policy observes a kind it was trained with; a cover nearer the cube than training put an obstacle is
-   refused by the loop's scene check (``loop.scene_spec``: ``calibration.validate_obstacle_clearance``).
+   visible points' footprint, with the fit's own guess of it, from the table up to their highest point).
+   Why covering and not refusing a kind the policy does not know: the cover holds everything seen, so the
+   arm keeps out of it, and the policy observes a kind it was trained with; a cover nearer the cube than
+   training put an obstacle is refused by the loop's scene check (``loop.scene_spec``:
+   ``calibration.validate_obstacle_clearance``).
    A left-over cluster the cube or an obstacle holds is dropped (a side's strips), one mostly held joins
    that obstacle, any other is an obstacle.  Pieces of one obstacle are joined and fitted again
    (``_obstacle_parts``): two parts cut apart by a nearer object (nothing but it seen between them), two
@@ -995,15 +996,40 @@ def _uncovered(data: _Cloud, fits: Sequence[ObstacleFit], pts: np.ndarray) -> np
     return out
 
 
-def _cover(data: _Cloud, region: _Region, plane_z: float, settings: PerceptionSettings,
-           strays: np.ndarray) -> ObstacleFit:
-    """A conservative obstacle of one of ``settings.kinds`` holding every visible point of ``region`` and of the strays
-    that belong with it (``_strays_of``): the points' minimum-area rectangle grown by half a pixel and the
-    noise, from the table up to the highest point (what a nearer object hides of it may reach down to the
-    table anywhere under what is seen).  Each kind's shape around that box: the box itself, the upright
-    cylinder round it, the sphere or the lying capsule through its corners (these two reach into the table,
-    which holds nothing anyway); the smallest allowed one (by volume) is returned."""
+def _shape_points(fit: ObstacleFit) -> np.ndarray:
+    """Points (K, 3) whose horizontal convex hull holds the fitted shape's footprint and whose highest is its top:
+    a box's corners, polygons circumscribing the circles of the other kinds' horizontal extremes."""
+    c, s = math.cos(fit.yaw), math.sin(fit.yaw)
+    axis, across = np.array([c, s]), np.array([-s, c])
+    r, h = float(fit.size[0]), float(fit.size[1])
+    if fit.kind == "box":
+        hx, hy, hz = (float(v) for v in fit.size)
+        xy = np.array([fit.centre[:2] + i * hx * axis + j * hy * across for i in (-1, 1) for j in (-1, 1)])
+        return np.c_[np.r_[xy, xy], np.r_[[fit.centre[2] - hz] * 4, [fit.centre[2] + hz] * 4]]
+    turn = np.arange(16) * math.pi / 8
+    ring = np.stack([np.cos(turn), np.sin(turn)], axis=1) / math.cos(math.pi / 16)  # holds the unit circle
+    ends = [fit.centre[:2] + k * h * axis for k in (-1, 1)] if fit.kind == "capsule" else [fit.centre[:2]]
+    xy = np.concatenate([e + r * ring for e in ends])
+    z_half = h if fit.kind == "cylinder" else r
+    return np.c_[np.r_[xy, xy], np.r_[[fit.centre[2] - z_half] * len(xy), [fit.centre[2] + z_half] * len(xy)]]
+
+
+def _cover(data: _Cloud, region: _Region, plane_z: float, settings: PerceptionSettings, strays: np.ndarray,
+           fit: ObstacleFit | None = None) -> ObstacleFit:
+    """A conservative obstacle of one of ``settings.kinds`` holding every visible point of ``region``, of the
+    strays that belong with it (``_strays_of``) and the shape ``fit`` guessed for it (its best guess of what
+    is hidden) where that is no larger than a trained obstacle: the points' minimum-area rectangle grown by
+    half a pixel and the noise, from the table up to the highest point (what a nearer object hides of it may
+    reach down to the table anywhere under what is seen).  Each kind's shape around that box: the box itself,
+    the upright cylinder round it, the sphere or the lying capsule through its corners (these two reach into
+    the table, which holds nothing anyway); the smallest allowed one (by volume) is returned."""
     pts = np.r_[region.world, _strays_of(data, strays, region, settings)]
+    if fit is not None:
+        corners = _shape_points(fit)
+        reach = np.max(np.linalg.norm(corners[:, :2] - fit.centre[:2], axis=1))
+        if np.isfinite(corners).all() and reach <= settings.max_obstacle_radius_m \
+                and np.max(corners[:, 2]) - plane_z <= settings.max_obstacle_top_m:
+            pts = np.r_[pts, corners]
     xy = pts[:, :2]
     pitch = math.sqrt(float(np.median(region.area)))
     margin = pitch / 2 + data.sigma
@@ -1096,7 +1122,7 @@ def _fit_part(data: _Cloud, region: _Region, settings: PerceptionSettings, stray
     if fit is not None and np.isfinite(fit.centre).all() and np.isfinite(fit.size).all() \
             and _uncovered(data, [fit], pts).mean() <= share:
         return fit
-    return _cover(data, region, plane_z, settings, strays)
+    return _cover(data, region, plane_z, settings, strays, fit)
 
 
 def _occluder_between(data: _Cloud, own: np.ndarray, pa: np.ndarray, pb: np.ndarray) -> np.ndarray:
