@@ -32,6 +32,7 @@ import numpy as np
 
 from sagrasp_jax.base import fileio
 from sagrasp_jax.task.config import SamplingConfig, parse_json
+from sagrasp_jax.task.policy_file import npy_header
 from sagrasp_jax.task.shapes import footprint_gap
 
 # The paper's printed hand-eye matrix (mm) lives once, in the cell description; re-exported here.
@@ -111,20 +112,10 @@ def _npy_matrix(data: bytes, path: str) -> np.ndarray:
     """The array of a ``.npy`` file's bytes, its header checked against the bytes it holds before anything is
     allocated (a header claiming 100000 × 100000 floats is refused, not allocated)."""
     stream = io.BytesIO(data)
-    version = np.lib.format.read_magic(stream)
-    if version == (1, 0):
-        shape, fortran, dtype = np.lib.format.read_array_header_1_0(stream)
-    elif version == (2, 0):
-        shape, fortran, dtype = np.lib.format.read_array_header_2_0(stream)
-    else:
-        raise CalibrationError(f"{path}: .npy format version {version} is not read")
-    if dtype.hasobject:
-        raise CalibrationError(f"{path}: the .npy file holds Python objects (pickles are not read)")
-    size = int(np.prod(shape, dtype=object)) * dtype.itemsize
-    stored = len(data) - stream.tell()
-    if size != stored:
-        raise CalibrationError(f"{path}: its .npy header claims {dtype}{list(shape)} ({size} bytes) but the file holds "
-                               f"{stored} bytes; not read")
+    try:
+        shape, fortran, dtype, _ = npy_header(stream, len(data), "file")
+    except ValueError as exc:
+        raise CalibrationError(f"{path}: its .npy {exc}") from None
     arr = np.frombuffer(data, dtype=dtype, offset=stream.tell())
     return arr.reshape(shape[::-1]).T if fortran else arr.reshape(shape)
 

@@ -474,6 +474,28 @@ MAX_POLICY_BYTES = 256 * 2**20  # unpacked arrays of one policy file (a 4-layer 
 MAX_POLICY_MEMBERS = 1024
 
 
+def npy_header(stream: Any, total_bytes: int, holder: str) -> tuple[tuple[int, ...], bool, np.dtype, int]:
+    """A ``.npy`` stream's header read and checked against the ``total_bytes`` the file (or zip member) holds,
+    before anything is allocated: ``(shape, fortran_order, dtype, data_bytes)``, the stream left at the data.
+    A header claiming more (or fewer) bytes than are there, another format version or pickled objects raise a
+    ``ValueError`` saying which (the policy and calibration readers name the file; ``holder``: "file", "member")."""
+    version = np.lib.format.read_magic(stream)
+    if version == (1, 0):
+        shape, fortran, dtype = np.lib.format.read_array_header_1_0(stream)
+    elif version == (2, 0):
+        shape, fortran, dtype = np.lib.format.read_array_header_2_0(stream)
+    else:
+        raise ValueError(f"format version {version} is not read (.npy 1.0 and 2.0 are)")
+    if dtype.hasobject:
+        raise ValueError("array holds Python objects (pickles are not read)")
+    size = int(np.prod(shape, dtype=object)) * dtype.itemsize
+    stored = total_bytes - stream.tell()
+    if size != stored:
+        raise ValueError(f"header claims {dtype}{list(shape)} ({size} bytes) but the {holder} holds {stored} bytes; "
+                         "not read")
+    return shape, fortran, dtype, size
+
+
 def _read_npz(path: str, source: Any = None) -> dict[str, np.ndarray]:
     """The arrays of an ``np.savez`` archive, reading no more than its sizes allow: the members'
     unpacked sizes (zip directory) and each ``.npy`` header's shape are checked against
@@ -490,20 +512,10 @@ def _read_npz(path: str, source: Any = None) -> dict[str, np.ndarray]:
             if not info.filename.endswith(".npy"):
                 raise PolicyFormatError(f"{path}: member {info.filename!r} is not a .npy array")
             with zf.open(info) as f:
-                version = np.lib.format.read_magic(f)
-                if version == (1, 0):
-                    shape, fortran, dtype = np.lib.format.read_array_header_1_0(f)
-                elif version == (2, 0):
-                    shape, fortran, dtype = np.lib.format.read_array_header_2_0(f)
-                else:
-                    raise PolicyFormatError(f"{path}: {info.filename} has .npy format version {version}")
-                if dtype.hasobject:
-                    raise PolicyFormatError(f"{path}: {info.filename} holds Python objects (pickles are not read)")
-                size = int(np.prod(shape, dtype=object)) * dtype.itemsize
-                stored = info.file_size - f.tell()
-                if size != stored:
-                    raise PolicyFormatError(f"{path}: {info.filename}'s header claims {dtype}{list(shape)} "
-                                            f"({size} bytes) but the member holds {stored} bytes; not read")
+                try:
+                    shape, fortran, dtype, size = npy_header(f, info.file_size, "member")
+                except ValueError as exc:
+                    raise PolicyFormatError(f"{path}: {info.filename}'s {exc}") from None
                 data = f.read(size)
             if len(data) != size:
                 raise PolicyFormatError(f"{path}: {info.filename} is cut short")
