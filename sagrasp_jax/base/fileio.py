@@ -2,8 +2,8 @@
 
 Every file the project writes (checkpoints, policies, MJCF, JSON results, videos) goes
 through here, so a crash or a refused input never leaves a half-written file, and the
-result gets the usual ``0666 & ~umask`` mode rather than ``mkstemp``'s private 0600.  Also the one
-redirect of file descriptor 1 that keeps C libraries' chatter off stdout (``stdout_fd_to``).
+result gets the usual ``0666 & ~umask`` mode rather than ``mkstemp``'s private 0600. 
+(PyBullet's C-level output is kept off the terminal by ``reference/bullet.native_output_filtered``.)
 
 Files that are not files: every input the commands read goes through ``read_regular`` (or
 ``check_regular`` before a library opens it), which refuses a FIFO, device, socket or folder before
@@ -15,15 +15,13 @@ the rename would replace.  No jax import (the deployment runtime uses it).
 
 from __future__ import annotations
 
-import contextlib
 import errno
 import json
 import os
 import re
 import stat
-import sys
 import tempfile
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from typing import Any
 
 
@@ -306,25 +304,3 @@ def atomic_write_json(path: str, data: Any, indent: int = 2, sort_keys: bool = F
     """JSON, strict by default (NaN refused: write ``None`` for missing numbers)."""
     text = json.dumps(data, indent=indent, sort_keys=sort_keys, allow_nan=allow_nan, default=default)
     return atomic_write_text(path, text + "\n")
-
-
-@contextlib.contextmanager
-def stdout_fd_to(target: str) -> Iterator[None]:
-    """Send file descriptor 1 (C libraries' stdout: PyBullet's banners and URDF warnings) to
-    ``"stderr"`` or ``"devnull"`` for the block, so stdout keeps only what the command reports
-    (``--json``).  Python's own ``sys.stdout`` is flushed first and lands there too meanwhile."""
-    if target not in ("stderr", "devnull"):
-        raise ValueError(f"target must be 'stderr' or 'devnull', got {target!r}")
-    sys.stdout.flush()
-    saved = os.dup(1)
-    try:
-        if target == "stderr":
-            os.dup2(2, 1)
-        else:
-            with open(os.devnull, "w") as devnull:
-                os.dup2(devnull.fileno(), 1)
-        yield
-    finally:
-        sys.stdout.flush()
-        os.dup2(saved, 1)
-        os.close(saved)
