@@ -94,7 +94,17 @@ def test_camera_pose_and_field_of_view_cover_the_target_region():
             ray = np.array([x, y, 0.025]) - cam.xpos
             worst = max(worst, math.degrees(math.acos(ray @ view / np.linalg.norm(ray))))
     assert 10.0 < worst < 20.0
-    assert worst < scene.SCENE.camera.fovy_deg / 2
+    # the MJCF camera is the scene's camera model (task.camera): its field of view and pixels
+    assert model.cam_fovy[cam.id] == pytest.approx(scene.SCENE.camera.model.fovy_deg, abs=1e-4)
+    assert tuple(model.cam_resolution[cam.id]) == scene.SCENE.camera.resolution == (1920, 1200)
+    # every sampled cube's top corners project inside the image, 10 px from its border
+    k = scene.SCENE.camera.model.intrinsics
+    xs, ys = np.meshgrid(np.linspace(*s.target_x, 36), np.linspace(*s.target_y, 36))
+    inside = [(x, y) for x, y in zip(xs.ravel(), ys.ravel()) if s.target_radius[0] <= math.hypot(x, y) <= s.target_radius[1]]
+    corners = np.array([[x + dx, y + dy, 0.05] for x, y in inside for dx in (-0.015, 0.015) for dy in (-0.015, 0.015)])
+    uv = k.project((corners - scene.SCENE.camera.pos) @ scene.SCENE.camera.rot)
+    assert len(inside) > 1000
+    assert uv[:, 0].min() > 10 and uv[:, 0].max() < k.width - 10 and uv[:, 1].min() > 10 and uv[:, 1].max() < k.height - 10
 
 
 def test_dynamic_servo_tracks_a_small_step():

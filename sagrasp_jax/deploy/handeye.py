@@ -412,10 +412,9 @@ PLAN_HEIGHTS_MM = (40.0, 400.0)  # TCP heights: 4 cm above the table up to the o
 PLAN_GRID_MM = 50.0
 PLAN_REACH_MM = (250.0, 750.0)  # horizontal distance from the base axis a candidate may have (the IK decides)
 PLAN_BOX_MARGIN_MM = 50.0  # inside the safety layer's workspace box (deploy.safety.WorkspaceBox)
-# The camera's view for the plan: the Mech-Eye Pro M's half field of view (tan), 1920 × 1200 px at fx 2425.48,
-# fy 2425.33 px (deploy.twin_camera.MECH_EYE_PRO_M, which needs pybullet to import), from the paper's pose,
-# keeping the planned points within 85 % of it for a camera a few cm elsewhere.
-CAMERA_HALF_FOV_TAN = (960.0 / 2425.48, 600.0 / 2425.33)
+# The camera's view for the plan: the scene camera's half field of view (tan; task.camera, the Mech-Eye PRO M's
+# 43.2° × 27.8°) from the paper's pose, keeping the planned points within 85 % of it for a camera a few cm elsewhere.
+CAMERA_HALF_FOV_TAN = SCENE.camera.model.intrinsics.half_fov_tan
 PLAN_FOV_MARGIN = 0.85
 MARKER_CLEARANCE_MM = 5.0  # the line of sight from the TCP to the camera passes the arm by this much
 PLAN_TILTS_DEG = (45.0, 60.0, 30.0, 75.0)  # approach axis from straight down, tried in this order

@@ -9,35 +9,18 @@ camera:
   T_cam_base, docs/task.md §5.1), or at the pose of any ``CameraCalibration`` (render from the true pose,
   perceive with a wrong calibration, to rehearse a calibration error).  Camera frame as the Mech-Eye's
   (OpenCV's): x to the image's right, y down, z along the optical axis.
-* **Intrinsics** (``MECH_EYE_PRO_M``): 1920 × 1200 pixels, fx 2425.48, fy 2425.33, cx 959.74, cy 632.70
-  (px), no distortion (the camera delivers rectified data).  These are a Mech-Eye PRO M's factory
-  intrinsics as Mech-Mind's SDK sample ``get_camera_intrinsics`` printed them for one unit (published
-  in a public sample repository); the Pro M Enhanced is the same 1920 × 1200 optics with a brighter
-  projector, so we use them for it: a 43.2° × 27.8° field of view, 1.11 × 0.69 m of table at the
-  cell's 1.41 m, 0.58 mm per pixel.  ``Intrinsics.scaled(f)`` keeps that field of view at f times the
-  resolution (the studies use 1/4: 480 × 300, 2.3 mm per pixel on the table).
+* **The camera** (``task.camera``: intrinsics, noise model, depth range): by default the scene's
+  (``scene.SCENE.camera.model``, the paper's Mech-Eye PRO M: 1920 × 1200 px, 43.2° × 27.8°), any model of
+  ``task.camera.CAMERA_MODELS`` by name (``realsense_d435``), at ``resolution`` times its pixels
+  (``Intrinsics.scaled``: the studies use 1/4 of the Mech-Eye's, 480 × 300, 2.3 mm per pixel on the table),
+  no distortion (both cameras deliver rectified data); the clip planes are the model's depth range.
 * **Output** (``Frame``): ``rgb`` (H, W, 3) uint8; ``cloud_mm`` (H, W, 3) float32 camera-frame points in
   millimetres with NaN where there is no return (the Mech-Eye's organized point cloud); ``segmentation``
   (H, W) PyBullet body ids (−1 none) for labels and ground truth.  The depth comes from the renderer's
   z-buffer, linearised, each pixel's ray through its centre (OpenCV's convention: pixel (u, v) centre at
   u = column index).
-* **Depth noise** (``NOISE_MODELS``, ``apply_depth_noise``), applied along each pixel's ray:
-
-  ``none``
-      the exact render.
-  ``industrial``
-      structured light of the Mech-Eye class: σ_z = 0.2 mm at 1.5 m growing with z² (a triangulating
-      sensor's law; 0.18 mm at the cell's 1.41 m, the order of the vendor's quoted single-point Z
-      repeatability, not checked against a datasheet here), 0.5 % of pixels lost at random, and 50 % of
-      the pixels at a depth edge (a neighbour > 10 mm nearer or farther: projector shadows and mixed
-      returns) lost.
-  ``consumer``
-      active stereo of the RealSense D4xx class: σ_z = 2.5 mm at 1 m growing with z² (stereo RMS error
-      z²·σ_disparity/(f·B) with a 50 mm baseline, ≈ 0.08 px subpixel error at 848 px width: 4.9 mm at
-      1.41 m), 2 % random dropouts, 60 % dropouts at depth edges, and 20 % of the remaining edge pixels
-      "flying" (placed between the near and the far surface, the stereo matcher's edge artefact).
-
-  The noise models change the depth only; the image keeps the Mech-Eye's optics and resolution.
+* **Depth noise** (``task.camera.NOISE_MODELS``: ``none``, ``industrial``, ``consumer``), applied along
+  each pixel's ray (``apply_depth_noise``); it changes the depth only, the image keeps the camera's optics.
 * **Colours** follow the paper (red target, white obstacles: ``scene.SCENE``); ``Colours`` sets others,
   ``random_colours`` draws domain-randomised ones (target hue jittered about red, obstacles any light
   grey to white, table any muted colour) and ``random_lighting`` the light, for the YOLO dataset.
@@ -59,128 +42,17 @@ import numpy as np
 
 from sagrasp_jax.base import extras
 from sagrasp_jax.deploy.calibration import CameraCalibration
+from sagrasp_jax.task.camera import (  # noqa: F401  (the camera's description, read here and re-exported)
+    CAMERA_MODELS, NOISE_MODELS, CameraModel, DepthNoise, Intrinsics, apply_depth_noise, camera_model, noise_model,
+)
 from sagrasp_jax.task.scene import SCENE
 
 extras.require("twin", what="the twin camera")
 from sagrasp_jax.reference import bullet  # noqa: E402,F401  (imports pybullet with its banner kept off the terminal)
 import pybullet as pb  # noqa: E402
 
-NEAR_M, FAR_M = 0.3, 3.0  # clip planes; the Mech-Eye Pro M's useful depth range lies inside
+MECH_EYE_PRO_M = CAMERA_MODELS["mecheye_pro_m"].intrinsics
 PARK_Z = -50.0  # m: where a hidden arm waits during a capture
-
-
-@dataclass(frozen=True)
-class Intrinsics:
-    """Pinhole intrinsics (OpenCV convention: pixel centres at integer coordinates), no distortion."""
-
-    width: int
-    height: int
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-
-    def scaled(self, factor: float) -> "Intrinsics":
-        """The same field of view at ``factor`` times the resolution (pixel edges, not centres, scale)."""
-        if not (math.isfinite(factor) and 0 < factor <= 4):
-            raise ValueError(f"resolution factor must be in (0, 4], got {factor}")
-        w, h = max(8, round(self.width * factor)), max(8, round(self.height * factor))
-        sx, sy = w / self.width, h / self.height
-        return Intrinsics(w, h, self.fx * sx, self.fy * sy, (self.cx + 0.5) * sx - 0.5, (self.cy + 0.5) * sy - 0.5)
-
-    @property
-    def matrix(self) -> np.ndarray:
-        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
-
-    @property
-    def fov_deg(self) -> tuple[float, float]:
-        """Horizontal and vertical field of view (degrees, edge to edge)."""
-        return (math.degrees(2 * math.atan((self.width / 2) / self.fx)),
-                math.degrees(2 * math.atan((self.height / 2) / self.fy)))
-
-    def rays(self) -> np.ndarray:
-        """(H, W, 3) direction of every pixel centre's ray with z = 1 (camera frame)."""
-        u = (np.arange(self.width) - self.cx) / self.fx
-        v = (np.arange(self.height) - self.cy) / self.fy
-        rays = np.ones((self.height, self.width, 3))
-        rays[..., 0] = u[None, :]
-        rays[..., 1] = v[:, None]
-        return rays
-
-
-MECH_EYE_PRO_M = Intrinsics(1920, 1200, 2425.48, 2425.33, 959.74, 632.70)
-
-
-@dataclass(frozen=True)
-class DepthNoise:
-    """A depth camera's errors: σ_z = sigma_mm·(z / ref_m)² along the ray, and lost pixels."""
-
-    name: str
-    sigma_mm: float  # axial standard deviation at ref_m
-    ref_m: float
-    dropout: float  # fraction of valid pixels lost at random
-    edge_dropout: float  # fraction of depth-edge pixels lost
-    edge_jump_mm: float = 10.0  # a neighbour this much nearer or farther makes a pixel an edge pixel
-    flying: float = 0.0  # fraction of the kept edge pixels put between the near and the far surface
-
-
-NOISE_MODELS: dict[str, DepthNoise] = {
-    "none": DepthNoise("none", 0.0, 1.0, 0.0, 0.0),
-    "industrial": DepthNoise("industrial", 0.2, 1.5, 0.005, 0.5),
-    "consumer": DepthNoise("consumer", 2.5, 1.0, 0.02, 0.6, flying=0.2),
-}
-
-
-def noise_model(name: str | DepthNoise) -> DepthNoise:
-    if isinstance(name, DepthNoise):
-        return name
-    if name not in NOISE_MODELS:
-        raise ValueError(f"unknown depth-noise model {name!r}; known: {', '.join(NOISE_MODELS)}")
-    return NOISE_MODELS[name]
-
-
-def _edge_pixels(depth: np.ndarray, jump: float) -> tuple[np.ndarray, np.ndarray]:
-    """(edge mask, depth of the farthest-apart 4-neighbour) of a depth map (NaN = no return)."""
-    h, w = depth.shape
-    padded = np.pad(depth, 1, constant_values=np.nan)
-    edge = np.zeros((h, w), bool)
-    other = depth.copy()
-    best = np.zeros((h, w))
-    for dy, dx in ((0, 1), (0, -1), (1, 0), (-1, 0)):
-        nb = padded[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w]
-        diff = np.abs(nb - depth)
-        with np.errstate(invalid="ignore"):
-            bigger = diff > np.maximum(best, jump)
-        bigger &= np.isfinite(diff)
-        other = np.where(bigger, nb, other)
-        best = np.where(bigger, diff, best)
-        edge |= bigger
-    return edge, other
-
-
-def apply_depth_noise(cloud_mm: np.ndarray, noise: str | DepthNoise, rng: np.random.Generator) -> np.ndarray:
-    """``cloud_mm`` (H, W, 3, camera frame, mm, NaN = no return) as the noisy camera would report it."""
-    model = noise_model(noise)
-    cloud = np.array(cloud_mm, dtype=np.float64, copy=True)
-    if model.name == "none" or not np.isfinite(cloud).any():
-        return cloud.astype(np.float32)
-    z = cloud[..., 2]
-    valid = np.isfinite(z)
-    edge, other = _edge_pixels(z, model.edge_jump_mm)
-    lost = valid & (rng.random(z.shape) < model.dropout)
-    lost |= edge & valid & (rng.random(z.shape) < model.edge_dropout)
-    z_new = z.copy()
-    if model.flying > 0:
-        fly = edge & valid & ~lost & (rng.random(z.shape) < model.flying)
-        t = rng.random(z.shape)
-        z_new = np.where(fly, z + t * (other - z), z_new)
-    sigma = model.sigma_mm * (z_new / (1000.0 * model.ref_m)) ** 2
-    z_new = z_new + sigma * rng.standard_normal(z.shape)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        scale = z_new / z
-    cloud = cloud * scale[..., None]
-    cloud[lost | ~valid] = np.nan
-    return cloud.astype(np.float32)
 
 
 @dataclass(frozen=True)
@@ -271,13 +143,16 @@ def _projection_matrix(k: Intrinsics, near: float, far: float) -> list[float]:
 class TwinCamera:
     """Captures ``Frame``s of a ``PyBulletTwin`` from a calibrated camera pose.
 
-    ``intrinsics`` default: ``MECH_EYE_PRO_M`` scaled by ``resolution`` (1 = 1920 × 1200; the field of
-    view is kept).  ``pose``: the camera's true pose as a ``CameraCalibration`` (camera -> world);
-    default the cell's (``scene.SCENE.camera``, the paper's T_cam_base)."""
+    ``model``: a ``task.camera`` model or its name (default the scene's, ``SCENE.camera.model``); its
+    intrinsics scaled by ``resolution`` (1 = its full resolution; the field of view is kept), or ``intrinsics``
+    as given.  ``pose``: the camera's true pose as a ``CameraCalibration`` (camera -> world); default the
+    cell's (``scene.SCENE.camera``, the paper's T_cam_base)."""
 
     def __init__(self, resolution: float = 1.0, intrinsics: Intrinsics | None = None,
-                 pose: CameraCalibration | None = None) -> None:
-        self.intrinsics = (intrinsics or MECH_EYE_PRO_M).scaled(resolution) if resolution != 1.0 else (intrinsics or MECH_EYE_PRO_M)
+                 pose: CameraCalibration | None = None, model: str | CameraModel | None = None) -> None:
+        self.model = camera_model(model) if model is not None else SCENE.camera.model
+        base = intrinsics or self.model.intrinsics
+        self.intrinsics = base.scaled(resolution) if resolution != 1.0 else base
         if pose is None:
             cam = np.eye(4)
             cam[:3, :3] = SCENE.camera.rot
@@ -285,8 +160,9 @@ class TwinCamera:
         else:
             cam = pose.matrix
         self.cam_to_world = cam
+        self._near, self._far = self.model.depth_range_m
         self._view = _view_matrix(cam)
-        self._proj = _projection_matrix(self.intrinsics, NEAR_M, FAR_M)
+        self._proj = _projection_matrix(self.intrinsics, self._near, self._far)
         self._rays = self.intrinsics.rays()
 
     def _recolour(self, twin: Any, colours: Colours) -> None:
@@ -324,7 +200,7 @@ class TwinCamera:
                 pb.resetBasePositionAndOrientation(twin.robot_body, *parked, physicsClientId=client)
         rgb = np.asarray(rgba, dtype=np.uint8).reshape(k.height, k.width, 4)[..., :3].copy()
         d = np.asarray(depth_buffer, dtype=np.float64).reshape(k.height, k.width)
-        z = FAR_M * NEAR_M / (FAR_M - (FAR_M - NEAR_M) * d)  # linear depth along the optical axis, m
+        z = self._far * self._near / (self._far - (self._far - self._near) * d)  # linear depth along the optical axis, m
         z[d >= 1.0 - 1e-7] = np.nan  # nothing rendered: no return
         cloud = (self._rays * (1000.0 * z)[..., None]).astype(np.float32)
         seg = np.asarray(seg, dtype=np.int64).reshape(k.height, k.width)

@@ -154,6 +154,7 @@ def load_servo_model(xml_path: str | None = None) -> ServoModel:
 
 
 RENDER_MODES = ("human", "rgb_array")
+RENDER_WIDTH = 640  # px: rgb_array frames (the scene camera's field of view at 640 × 400)
 
 
 def _advertised_render_modes() -> list[str]:
@@ -561,11 +562,12 @@ class PyBulletGraspEnv(gym.Env if gym is not None else object):  # type: ignore[
         return self._spec
 
     def render(self) -> np.ndarray | None:
-        """``rgb_array``: an image from the calibrated scene camera; ``human``: the GUI shows itself."""
+        """``rgb_array``: an image from the calibrated scene camera (its field of view, ``RENDER_WIDTH`` wide); ``human``: the GUI shows itself."""
         if self.render_mode != "rgb_array":
             return None
         cam = SCENE.camera
-        width, height = cam.resolution
+        k = cam.model.intrinsics.scaled(RENDER_WIDTH / cam.resolution[0])  # the camera's field of view, 640 px wide
+        width, height = k.width, k.height
         eye = np.asarray(cam.pos)
         view = self._pb(pb.computeViewMatrix, eye.tolist(), (eye + cam.optical_axis).tolist(), (-cam.rot[:, 1]).tolist())
         proj = self._pb(pb.computeProjectionMatrixFOV, cam.fovy_deg, width / height, 0.05, 3.0)

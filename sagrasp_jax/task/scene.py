@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from sagrasp_jax.task.camera import DEFAULT_CAMERA, CAMERA_MODELS, CameraModel
 from sagrasp_jax.task.robot import BOX
 
 # Hand-eye calibration camera -> robot base, millimetres (paper Eq. 13, docs/task.md §5).
@@ -64,10 +65,21 @@ class Table:
 
 @dataclass(frozen=True)
 class CameraSpec:
+    """The cell's depth camera: a model of ``task.camera`` (intrinsics, noise, driver) at the calibrated pose."""
+
     pos: tuple[float, float, float]
     rot: np.ndarray  # columns = camera axes in the world; optical axis = +z column (≈ world −z)
-    fovy_deg: float = 50.0
-    resolution: tuple[int, int] = (640, 480)
+    model: CameraModel = CAMERA_MODELS[DEFAULT_CAMERA]
+
+    @property
+    def fovy_deg(self) -> float:
+        """Vertical field of view (the MJCF camera's ``fovy``)."""
+        return self.model.fovy_deg
+
+    @property
+    def resolution(self) -> tuple[int, int]:
+        """(width, height) in pixels."""
+        return self.model.intrinsics.width, self.model.intrinsics.height
 
     @property
     def optical_axis(self) -> np.ndarray:
