@@ -27,6 +27,7 @@ COMMANDS: dict[str, Command] = {
     "render": Command("render", "render", "watch a run (--run) or a policy (--policy): an mp4 video and a PNG still"),
     "plot": Command("plot", "plots", "plot a run's learning curves (success per episode kind, return, lr, SA) to PNG"),
     "export": Command("export", "train", "export a run's policy for the robot: policy.npz (NumPy) and ONNX"),
+    "capture": Command("capture", "core; twin for --camera twin", "save one depth capture (Mech-Eye, RealSense or the twin) to replay"),
     "deploy": Command("deploy", "core; twin for --backend twin", "run a policy on one detected cube: robot or twin"),
     "rehearse": Command("deploy.rehearse", "twin", "the deploy loop over N random twin scenes: the cube held, per kind"),
     "calibrate": Command("calibrate", "core", "fit the hand-eye matrix T_cam_base from camera / TCP point pairs"),
@@ -61,6 +62,7 @@ def _launcher(name: str) -> Callable[[], None]:
 # the console scripts' targets (pyproject.toml: sagrasp-train = "sagrasp_jax.__main__:train", ...)
 train, evaluate, render, plot, export = (_launcher(n) for n in ("train", "evaluate", "render", "plot", "export"))
 deploy, rehearse, calibrate, sysid, parity = (_launcher(n) for n in ("deploy", "rehearse", "calibrate", "sysid", "parity"))
+capture = _launcher("capture")
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -216,8 +216,25 @@ def test_bad_clouds_are_refused(scene_cloud):
         P.detect_scene(cloud, rgb[:-1], CAL)
     m = CAL.matrix.copy()
     m[2, 3] += 0.12  # the camera believed 12 cm higher: the table 12 cm above z = 0
-    with pytest.raises(P.PerceptionError, match="no table plane within 30 mm .* wrong calibration"):
+    with pytest.raises(P.CalibrationMismatch, match=r"the table\) comes out \+1[12]\d mm from the table's height.*does "
+                                                    "not match this camera"):
         P.detect_scene(cloud, rgb, CameraCalibration.from_matrix(m, "m"))
+    for dz, dy_deg, refused in ((0.006, 0.0, False), (0.015, 0.0, True), (0.0, 1.0, False), (0.0, 3.0, True)):
+        # a camera believed dz higher, turned dy_deg about its x axis: within ±10 mm and 2° accepted, else refused
+        # with the offset and tilt measured (the table within the 30-mm band either way)
+        turn = math.radians(dy_deg)
+        rx = np.array([[1, 0, 0], [0, math.cos(turn), -math.sin(turn)], [0, math.sin(turn), math.cos(turn)]])
+        m = CAL.matrix.copy()
+        m[:3, :3] = rx @ m[:3, :3]
+        centre_before = CAL.cam_to_base([0.0, 0.0, 1.41])
+        m[:3, 3] += centre_before - (rx @ (centre_before - CAL.camera_position) + CAL.camera_position) + [0, 0, dz]
+        cal = CameraCalibration.from_matrix(m, "m")
+        if refused:
+            with pytest.raises(P.CalibrationMismatch, match=r"the table comes out [+-]\d+\.\d mm .* tilted \d\.\d\d°"):
+                P.detect_scene(cloud, rgb, cal)
+        else:
+            tilt = math.degrees(math.acos(P.detect_scene(cloud, rgb, cal).diagnostics["plane_normal"][2]))
+            assert tilt == pytest.approx(dy_deg, abs=0.05)
 
 
 def test_a_tilted_calibration_is_refused(scene_cloud):

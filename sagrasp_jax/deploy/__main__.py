@@ -71,9 +71,13 @@ from sagrasp_jax.deploy.calibration import (
     standing_cube_centre,
     validate_target,
 )
-from sagrasp_jax.base import cli, extras
+from sagrasp_jax.base import cli, extras, fileio
+from sagrasp_jax.deploy.cameras import CameraError, open_camera
+from sagrasp_jax.task.camera import model_for_driver
 from sagrasp_jax.task import shapes
-from sagrasp_jax.deploy.loop import DeployError, Obstacle, format_report, run_episode, scene_spec, with_obstacle_kinds
+from sagrasp_jax.deploy.loop import (
+    DeployError, Obstacle, format_report, plan_episode, run_episode, scene_spec, with_obstacle_kinds,
+)
 from sagrasp_jax.task.config import HOME_Q
 from sagrasp_jax.deploy import aubo
 from sagrasp_jax.deploy.safety import SafetyViolation, check_policy_constants, check_policy_scene, deployment_env
@@ -81,6 +85,7 @@ from sagrasp_jax.deploy.transfer import TransferErrors
 from sagrasp_jax.task.policy_file import POLICY_HELP, PRETRAINED, PolicyFormatError, load_policy
 
 BACKENDS = ("twin", "aubo")
+CAMERA_SOURCES = ("mecheye", "realsense", "replay")  # --camera for one deploy (twin: deploy.rehearse's many scenes)
 UNITS = ("mm", "m")
 DETECTION_RANGE = (0.3, 3.0)  # m from the camera: where a depth camera over the table can see anything
 OBSTACLE_SIZE_RANGE = (0.005, 0.5)  # m, any obstacle dimension
@@ -88,6 +93,8 @@ CELL_BOX = ((-1.0, -1.2, -0.05), (1.0, 0.6, 1.5))  # m, world box an obstacle ce
 MAX_YAW_DEG = 360.0
 MAX_BASE_Z_OFFSET = 0.5  # m; the controller base is within half a metre of the URDF's
 MAX_STEPS = 100_000
+RECORDS_DIR = "deploy-records"  # --camera's default --record parent folder, in the working directory
+PLANNED_COMMANDS_SHOWN = 5  # --dry-run prints this many of the first joint targets an ideal arm would be sent
 
 
 class InputRefused(ValueError):
@@ -195,9 +202,22 @@ def _parser() -> argparse.ArgumentParser:
     p = _Parser(prog="python -m sagrasp_jax.deploy", description=__doc__.split("\n\n")[0],
                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n\n", 2)[2])
     p.add_argument("--policy", required=True, help=POLICY_HELP)
-    p.add_argument("--target-cam", nargs=3, type=float, required=True, metavar=("X", "Y", "Z"),
+    p.add_argument("--camera", default=None, metavar="SOURCE",
+                   help="where the cube and the obstacles come from, instead of --target-cam and --obstacle: "
+                        "mecheye (--camera-address IP), realsense (--camera-address SERIAL or a recorded .bag; default "
+                        "the first connected), or replay:FILE (a capture file of python -m sagrasp_jax.capture or of an "
+                        "earlier deploy's --record folder); one capture, perceived (deploy.perception), the calibration "
+                        "checked against the table.  (--camera twin --scenes N rehearses many rendered scenes)")
+    p.add_argument("--camera-address", default=None, metavar="ADDRESS",
+                   help="--camera mecheye: the camera's IP address; realsense: its serial number or a .bag recording")
+    p.add_argument("--record", default=None, metavar="DIR",
+                   help=f"with --camera: the folder the capture (capture.npz) and the report (report.json) are saved "
+                        f"in (default {RECORDS_DIR}/<UTC time>-<camera>; a replay saves the report only); an existing "
+                        "folder must be empty")
+    p.add_argument("--target-cam", nargs=3, type=float, default=None, metavar=("X", "Y", "Z"),
                    help="the cube as the depth camera reports it: the centre of its top face, in the camera frame, in "
-                        "--units (default mm); its centre is taken half the cube's height below, standing on the table")
+                        "--units (default mm); its centre is taken half the cube's height below, standing on the table "
+                        "(or --camera)")
     p.add_argument("--target-yaw", type=float, default=0.0, metavar="DEG", help="cube yaw about the optical axis (default 0)")
     p.add_argument("--units", choices=UNITS, default="mm", help="units of the detections (default mm)")
     p.add_argument("--obstacle", nargs="+", action="append", default=[], metavar="VALUE",
@@ -256,7 +276,16 @@ def _json_safe(value: Any) -> Any:
 
 
 def _emit(args: argparse.Namespace, payload: dict[str, Any], text: str, error: bool = False) -> None:
-    """The report on stdout (JSON with --json); a refusal's message also on stderr."""
+    """The report on stdout (JSON with --json); a refusal's message also on stderr; with a ``--record`` folder
+    (``--camera``) also its ``report.json``."""
+    record = getattr(args, "record_dir", None)
+    if record is not None:
+        path = os.path.join(record, "report.json")
+        try:
+            fileio.atomic_write_json(path, _json_safe(payload))
+            text += f"\nsaved {path}" if not error else ""
+        except OSError as exc:
+            print(f"warning: could not save {path}: {exc}", file=sys.stderr)
     if args.json:
         print(json.dumps(_json_safe(payload), indent=2, allow_nan=False))
     if error or not args.json:
@@ -451,15 +480,46 @@ def _plan(args: argparse.Namespace, given: dict[str, Any], q_home: np.ndarray, s
              f"  at most        {steps} policy steps, then " + ("stop at the grasp pose (--no-grasp)" if args.no_grasp
                                                                else "slide over the cube, close and lift 5 cm"),
              f"  calibration    {given['calibration']}"]
+    seen = given.get("perception")
+    if seen is not None:
+        capture = given["capture"]
+        plan["perception"] = seen
+        n = seen["table_normal"]
+        lines += [f"  capture        {capture['camera'] or 'camera unknown'}, {capture['pixels'][0]} × {capture['pixels'][1]} px, "
+                  f"{capture['source'] or 'source unknown'}, {capture['time_utc'] or 'time unknown'}",
+                  f"  perception     cube by {seen['cube_by']}, top face {seen['cube_face_mm'][0]:.1f} × "
+                  f"{seen['cube_face_mm'][1]:.1f} mm ({seen['cube_top_points']} points); {len(seen['obstacles_world'])} "
+                  f"obstacle(s); table σ {seen['table_sigma_mm']:.2f} mm, "
+                  f"{math.degrees(math.acos(min(1.0, n[2]))):.2f}° from level; {seen['seconds']:.2f} s"]
+    planned = given.get("planned")
+    if planned is not None:
+        plan["planned"] = planned
+        if planned["ideal_arm_outcome"] == "refused":
+            lines.append(f"  planned        the loop refused on an ideal arm: {planned['message']}")
+        else:
+            lines.append(f"  planned        on an ideal arm: {planned['ideal_arm_outcome']} after {planned['ideal_arm_steps']} "
+                         f"steps; the first joint targets (°):")
+            lines += ["                 [" + ", ".join(f"{math.degrees(v):.2f}" for v in q) + "]"
+                      for q in planned["first_commands_rad"]]
     return plan, "\n".join(lines)
+
+
+def _option_value(tokens: Sequence[str], option: str) -> str | None:
+    """The value given to ``option`` on a command line (``--opt V`` or ``--opt=V``), None when absent."""
+    for i, token in enumerate(tokens):
+        if token == option and i + 1 < len(tokens):
+            return tokens[i + 1]
+        if token.startswith(option + "="):
+            return token.split("=", 1)[1]
+    return None
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = _parser()
     tokens = list(sys.argv[1:] if argv is None else argv)
-    if "--camera" in tokens:  # end to end from the twin's camera over many scenes: deploy.rehearse
+    if _option_value(tokens, "--camera") == "twin":  # end to end from the twin's camera over many scenes
         return _camera_scenes(tokens)
-    if "--dry-run" in tokens and not any(t.split("=", 1)[0] == "--target-cam" for t in tokens):
+    if "--dry-run" in tokens and not any(t.split("=", 1)[0] in ("--target-cam", "--camera") for t in tokens):
         return _aubo_dry_run(tokens)  # the AUBO's read-only check: no policy or detection needed
     if "--json" in tokens:
         parser.json_argv = tokens
@@ -473,10 +533,91 @@ def main(argv: Sequence[str] | None = None) -> int:
             return cli.INTERRUPTED
 
 
+def _check_detection_source(args: argparse.Namespace) -> None:
+    """Exactly one source of the detection: ``--target-cam`` (with ``--obstacle``s) typed, or ``--camera``."""
+    if (args.camera is None) == (args.target_cam is None):
+        raise InputRefused("give the cube either as --target-cam X Y Z (typed) or --camera SOURCE (captured and "
+                           "perceived), " + ("not both" if args.camera is not None else "one of them"))
+    if args.camera is None:
+        for name in ("camera_address", "record"):
+            if getattr(args, name) is not None:
+                raise InputRefused(f"{_flags([name])} is only for --camera")
+        return
+    kind = args.camera.split(":", 1)[0]
+    if kind not in CAMERA_SOURCES:
+        raise InputRefused(f"--camera {args.camera!r}: one of mecheye, realsense, replay:FILE (or twin with --scenes)")
+    if kind == "replay" and not args.camera[len("replay:"):]:
+        raise InputRefused("--camera replay:FILE needs the capture file's path after the colon")
+    if kind == "replay" and args.camera_address is not None:
+        raise InputRefused("--camera-address is for a camera; a replay reads its FILE")
+    if kind == "mecheye" and not args.camera_address:
+        raise InputRefused("--camera mecheye needs --camera-address IP (the camera's address)")
+    given = [flag for flag, value in (("--obstacle", args.obstacle), ("--target-yaw", args.target_yaw),
+                                      ("--twin-target-error", args.twin_target_error)) if value]
+    if given:
+        raise InputRefused(f"{', '.join(given)}: with --camera the perception finds the cube, its yaw and the obstacles, "
+                           "and its own error is the detection's; type them only with --target-cam")
+
+
+def _record_dir(args: argparse.Namespace, kind: str) -> str:
+    """The ``--record`` folder, created empty (an existing one must be empty: nothing of another run is mixed in)."""
+    import datetime
+
+    stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y%m%d-%H%M%S")
+    folder = args.record or os.path.join(RECORDS_DIR, f"{stamp}-{kind}")
+    if os.path.isdir(folder) and os.listdir(folder):
+        raise InputRefused(f"--record {folder}: the folder is not empty (give a new one)")
+    if os.path.exists(folder) and not os.path.isdir(folder):
+        raise InputRefused(f"--record {folder}: not a folder")
+    fileio.check_writable(folder, "--record folder")
+    return folder
+
+
+def _perceive_camera(args: argparse.Namespace, cal: CameraCalibration, env_cfg: Any,
+                     given: dict[str, Any]) -> tuple[Any, Any]:
+    """One capture from ``--camera`` (saved into the record folder unless it is a replay), perceived with the
+    policy's obstacle kinds; the calibration is checked against the table on the way (``perception.fit_table``)."""
+    from sagrasp_jax.deploy import capture_file, perception
+
+    kind = args.camera.split(":", 1)[0]
+    args.record_dir = _record_dir(args, kind)
+    if kind == "replay":
+        path = args.camera[len("replay:"):]
+        capture = capture_file.load_capture(path)
+        given["capture_file"] = os.path.abspath(path)
+    else:
+        camera = open_camera(kind, args.camera_address)  # a Ctrl-C meanwhile stops at the next safe point, after it
+        try:
+            capture = camera.capture()
+        finally:
+            camera.close()
+        capture = capture._replace(camera=capture.camera or model_for_driver(kind).name,
+                                   source=capture.source or f"{kind} {args.camera_address or ''}".strip(),
+                                   time_utc=capture.time_utc or capture_file.now_utc())
+        path = capture_file.save_capture(os.path.join(args.record_dir, "capture.npz"), capture)
+        given["capture_file"] = os.path.abspath(path)
+        print(f"saved {path}", file=sys.stderr)
+    given["capture"] = {"camera": capture.camera, "source": capture.source, "time_utc": capture.time_utc,
+                        "pixels": [int(capture.cloud_mm.shape[1]), int(capture.cloud_mm.shape[0])],
+                        "intrinsics": capture.intrinsics.as_list() if capture.intrinsics is not None else None}
+    settings = perception.PerceptionSettings.for_policy(env_cfg)
+    seen = perception.detect_scene(capture.cloud_mm, capture.rgb, cal, env_cfg.sampling.target_size, settings=settings)
+    d = seen.diagnostics
+    given["perception"] = {
+        "target_world": [float(v) for v in seen.target_centre], "target_yaw_world": float(seen.target_yaw),
+        "obstacles_world": [{"kind": o.kind, "centre": list(o.centre), "size": list(o.size), "yaw": o.yaw}
+                            for o in seen.obstacles],
+        "table_normal": d["plane_normal"], "table_sigma_mm": d["plane_sigma_mm"], "valid_points": d["valid_points"],
+        "cube_top_points": d["cube_top_points"], "cube_face_mm": d["cube_face_mm"], "cube_by": d["cube_by"],
+        "obstacle_fits": d["obstacles"], "seconds": d["seconds"]}
+    return capture, seen
+
+
 def _deploy(args: argparse.Namespace) -> int:
     given: dict[str, Any] = {"target_cam": args.target_cam, "units": args.units, "target_yaw_cam_deg": args.target_yaw,
-                             "obstacles_cam": args.obstacle, "backend": args.backend}
+                             "obstacles_cam": args.obstacle, "backend": args.backend, "camera": args.camera}
     try:
+        _check_detection_source(args)
         if args.max_steps is not None and not 1 <= args.max_steps <= MAX_STEPS:
             raise InputRefused(f"--max-steps must be in [1, {MAX_STEPS}], got {args.max_steps}")
         if not (math.isfinite(args.target_yaw) and abs(args.target_yaw) <= MAX_YAW_DEG):
@@ -495,24 +636,37 @@ def _deploy(args: argparse.Namespace) -> int:
             cal = CameraCalibration.from_file(args.calibration, args.calibration_units, args.base_z_offset, args.base_yaw)
         else:
             cal = CameraCalibration.default(args.base_z_offset, args.base_yaw)
-        top = cal.cam_to_base(_camera_point(args.target_cam, args.units, "--target-cam"))
-        centre = validate_target(detected_top_to_cube_centre(top), env_cfg.sampling)
-        square = env_cfg.sampling.target_size[0] == env_cfg.sampling.target_size[1]
-        # a square cube is the same turned by 90°: report its yaw in the trained range ±45°
-        yaw = camera_yaw_to_world(cal, math.radians(args.target_yaw), math.pi / 2 if square else 2 * math.pi)
-        obstacles = [parse_obstacle(tokens, cal, args.units, i) for i, tokens in enumerate(args.obstacle)]
-        q_home = np.asarray(env_cfg.task.home_q if args.twin_start_q is None else args.twin_start_q, dtype=float)
+        capture = None
+        if args.camera is not None:
+            capture, seen = _perceive_camera(args, cal, env_cfg, given)
+            centre = validate_target(seen.target_centre, env_cfg.sampling)
+            yaw, obstacles = float(seen.target_yaw), list(seen.obstacles)
+        else:
+            top = cal.cam_to_base(_camera_point(args.target_cam, args.units, "--target-cam"))
+            centre = validate_target(detected_top_to_cube_centre(top), env_cfg.sampling)
+            square = env_cfg.sampling.target_size[0] == env_cfg.sampling.target_size[1]
+            # a square cube is the same turned by 90°: report its yaw in the trained range ±45°
+            yaw = camera_yaw_to_world(cal, math.radians(args.target_yaw), math.pi / 2 if square else 2 * math.pi)
+            obstacles = [parse_obstacle(tokens, cal, args.units, i) for i, tokens in enumerate(args.obstacle)]
+        truth = capture.truth if capture is not None and args.backend == "twin" else None
+        start_q = args.twin_start_q if args.twin_start_q is not None else (truth["q0"] if truth else env_cfg.task.home_q)
+        q_home = np.asarray(start_q, dtype=float)
         if not (np.isfinite(q_home).all() and np.all(np.abs(q_home) <= math.pi)):
             raise InputRefused(f"--twin-start-q {args.twin_start_q} must be 6 finite joint angles within ±π rad")
         env_cfg = with_obstacle_kinds(env_cfg, obstacles)
-        spec = scene_spec(q_home, standing_cube_centre(centre, env_cfg.sampling), yaw, obstacles, env_cfg)
+        if truth:  # a twin capture replayed on the twin: the twin holds the true scene, the loop the detection
+            true_obstacles = [Obstacle(o["kind"], tuple(o["centre"]), tuple(o["size"]), o["yaw"]) for o in truth["obstacles"]]
+            env_cfg = with_obstacle_kinds(env_cfg, true_obstacles)
+            spec = scene_spec(q_home, truth["target_pos"], truth["target_yaw"], true_obstacles, env_cfg)
+        else:
+            spec = scene_spec(q_home, standing_cube_centre(centre, env_cfg.sampling), yaw, obstacles, env_cfg)
         twin_errors, detection_error = _twin_errors(args)
         detection = validate_target(centre + detection_error, env_cfg.sampling)
         if args.backend == "twin" and not args.dry_run:
             extras.require("twin", what="--backend twin (the PyBullet digital twin)")
         aubo_settings = _aubo_settings(args)
     except (InputRefused, TargetRejected, CalibrationError, PolicyFormatError, ValueError, extras.MissingExtra,
-            DeployError) as exc:
+            DeployError, CameraError, fileio.NotWritable) as exc:
         _emit(args, {"outcome": "input_refused", "message": str(exc), "input": given},
               f"error: refused before moving: {exc}", error=True)
         return 2
@@ -521,8 +675,14 @@ def _deploy(args: argparse.Namespace) -> int:
                                   for o in obstacles])
     cli.check()  # Ctrl-C while the input was checked: stop before anything connects
     if args.dry_run:
-        return _dry_run(args, given, q_home, env_cfg.task.max_steps if args.max_steps is None else args.max_steps,
-                        aubo_settings)
+        steps = env_cfg.task.max_steps if args.max_steps is None else args.max_steps
+        try:  # what the loop would command an arm that follows exactly, through the same safety layer
+            plan_report, commands = plan_episode(policy, q_home, detection, yaw, obstacles, max_steps=steps)
+            given["planned"] = {"ideal_arm_outcome": plan_report.outcome, "ideal_arm_steps": plan_report.steps,
+                                "first_commands_rad": [[float(v) for v in q] for q in commands[:PLANNED_COMMANDS_SHOWN]]}
+        except (SafetyViolation, DeployError, TargetRejected, ValueError) as exc:
+            given["planned"] = {"ideal_arm_outcome": "refused", "message": str(exc), "first_commands_rad": []}
+        return _dry_run(args, given, q_home, steps, aubo_settings)
 
     if args.backend == "aubo":  # the real arm: connect, check it stands at home, open the gripper
         try:

@@ -318,6 +318,7 @@ class AuboRobot:
         self.lookahead = lookahead(self.settings, self.control_dt)
         self.overruns = 0  # control periods the command call itself took longer than
         self._log = log or (lambda message: None)
+        self._sdk_messages: list[str] = []  # what the SDK logged (its login refusal is only said there)
         self._sdk = None
         self._code_names: dict[int, str] = {}
         if client_factory is None:
@@ -343,16 +344,14 @@ class AuboRobot:
         self._client = client
         try:
             if hasattr(client, "setLogHandler"):  # the SDK prints to stderr otherwise; keep its lines for messages
-                client.setLogHandler(lambda level, source, line, message: self._log(f"[aubo sdk] {message}"))
+                client.setLogHandler(self._sdk_log)
             client.setRequestTimeout(int(round(s.request_timeout_s * 1000)))
             code = client.connect(self.host, self.port)
             if code != 0 or not client.hasConnected():
                 raise AuboConnectionError(
                     f"{self._where()}: the SDK could not open a session (code {code_name(code, self._code_names)}; a "
                     f"controller that does not answer within {s.request_timeout_s:g} s gives -7)")
-            client.login(s.user, s.password)
-            if not client.hasLogined():
-                raise AuboConnectionError(f"{self._where()}: login as {s.user!r} refused")
+            self._login(client)
             names = list(client.getRobotNames())
             if not names:
                 raise AuboConnectionError(f"{self._where()}: the controller reports no robot")
@@ -368,6 +367,37 @@ class AuboRobot:
             self.close()
             raise AuboConnectionError(f"{self._where()}: {type(exc).__name__}: {exc} (request timeout "
                                       f"{s.request_timeout_s:g} s)") from None
+
+    def _sdk_log(self, level: int, source: str, line: int, message: str) -> None:
+        self._sdk_messages.append(str(message))
+        self._log(f"[aubo sdk] {message}")
+
+    def _login(self, client: Any) -> None:
+        """``RpcClient.login``; a refusal is told apart from a silent controller by the SDK's own log line.
+
+        Found against the SDK 0.24.1 (tests/aubo_emulator.py): a controller that refuses the login answers
+        ``__login__...FAILED``; the SDK then logs "login failed" and ``login`` raises ``AuboException("RPC
+        request timeout.")`` once the request timeout has passed, and ``hasLogined()`` is True all the same, so
+        neither the exception nor ``hasLogined`` says that the login was refused.  The log line comes from the
+        SDK's I/O thread, which needs the GIL that the waiting call held: it is given a moment to arrive.
+        """
+        s = self.settings
+        refused = AuboConnectionError(f"{self._where()}: login as {s.user!r} refused (wrong user or password? deploy "
+                                      "takes them from $AUBO_USER and $AUBO_PASSWORD)")
+        try:
+            code = client.login(s.user, s.password)
+        except Exception:
+            deadline = time.monotonic() + 0.2
+            while "login failed" not in self._sdk_messages and time.monotonic() < deadline:
+                time.sleep(0.01)
+            if "login failed" in self._sdk_messages:
+                raise refused from None
+            raise
+        if "login failed" in self._sdk_messages:
+            raise refused
+        if code is not None and int(code) != 0:  # the SDK returns 0 on every login seen; checked all the same
+            raise AuboConnectionError(f"{self._where()}: login as {s.user!r} returned "
+                                      f"{code_name(code, self._code_names)}")
 
     def _call(self, what: str, fn: Callable[..., Any], *args: Any) -> Any:
         """One SDK call; its exceptions (request timeouts) become ``AuboError`` naming the call and the controller."""

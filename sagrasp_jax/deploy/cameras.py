@@ -29,6 +29,7 @@ from typing import Any, NamedTuple, Protocol, runtime_checkable
 import numpy as np
 
 from sagrasp_jax.base import extras
+from sagrasp_jax.task.camera import Intrinsics
 
 CAMERAS = ("mecheye", "realsense")
 
@@ -38,10 +39,15 @@ class CameraError(RuntimeError):
 
 
 class Capture(NamedTuple):
-    """One capture in the project's form (module docstring)."""
+    """One capture in the project's form (module docstring), with what is known of where it came from."""
 
     rgb: np.ndarray  # (H, W, 3) uint8
     cloud_mm: np.ndarray  # (H, W, 3) float32, camera frame, mm, NaN where no return
+    intrinsics: Intrinsics | None = None  # the pixel grid's, as the SDK (or the twin) reported them
+    camera: str = ""  # the task.camera model name ("mecheye_pro_m", "realsense_d435"), "" when not known
+    source: str = ""  # what took it: "mecheye 192.168.1.10", "realsense 0123456789", "twin seed 0 scene 3", a file
+    time_utc: str = ""  # ISO 8601, when it was taken
+    truth: dict[str, Any] | None = None  # a twin capture's true scene (capture_file.scene_truth); None for a camera
 
 
 @runtime_checkable

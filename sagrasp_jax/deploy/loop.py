@@ -346,6 +346,37 @@ def run_episode(
     return report
 
 
+class IdealArm:
+    """A robot that stands exactly where it was last told (no latency, no servo lag, no readings' error) and
+    records every command: what the loop would send an arm, computed without one (the dry run's plan)."""
+
+    def __init__(self, q0: Any) -> None:
+        self.q = np.array(q0, dtype=float)
+        self.commands: list[np.ndarray] = []
+
+    def read_joints(self) -> np.ndarray:
+        return self.q.copy()
+
+    def command_joint_targets(self, q: np.ndarray) -> None:
+        self.q = np.array(q, dtype=float)
+        self.commands.append(self.q.copy())
+
+    def open_gripper(self) -> None:
+        pass
+
+    def close_gripper(self) -> None:
+        pass
+
+
+def plan_episode(policy: NumpyPolicy, q0: Any, target_pos: Any, target_yaw: float, obstacles: Sequence[Obstacle],
+                 max_steps: int | None = None) -> tuple[DeployReport, list[np.ndarray]]:
+    """The policy's episode on an ``IdealArm`` from ``q0`` to the grasp pose (no grasp): the report and the joint
+    targets the loop would command, each through the same safety layer as on the robot."""
+    arm = IdealArm(q0)
+    report = run_episode(arm, policy, target_pos, target_yaw, obstacles, max_steps=max_steps, grasp=False)
+    return report, arm.commands
+
+
 def _ramp(robot: RobotInterface, safety: SafetyLayer, q_goal: np.ndarray, q_target: np.ndarray, min_steps: int) -> np.ndarray:
     """Move the commanded target to ``q_goal`` in safety-checked steps of at most half the step limit."""
     n = max(min_steps, math.ceil(float(np.max(np.abs(q_goal - q_target) / safety.step_limit)) * 2))

@@ -13,8 +13,10 @@ as a ``deploy.loop.Obstacle`` (kind, centre, MuJoCo size, yaw).  Steps (``detect
    140 mm; the message says which unit it looks like and the factor that gives millimetres).
 2. **Table plane.** Points within ``plane_band_m`` of the table top (z = 0 through the calibration) are
    fitted by least squares, the band narrowed to 3 σ of the fit's residuals (robust MAD) and refitted;
-   the plane must hold a fair share of the points and lie within ``max_plane_tilt_deg`` of level, else
-   the calibration is wrong.
+   the plane must hold a fair share of the points.  This is also the check of the calibration against
+   the scene: through it the table must come out at its known height (``max_table_offset_m`` under the
+   workspace centre) and level (``max_plane_tilt_deg``), else ``CalibrationMismatch`` names the measured
+   offset and tilt (a table far off is found as the largest level surface in view).
 3. **Above the table.** Points more than ``min_height_m`` (or 5 σ of the table's noise) above the plane,
    minus the cell's static parts (gantry posts, camera: ``scene.SCENE``) and, given the arm's joints,
    the arm itself (``robot.primitive_poses``, ``robot_margin_m``).
@@ -81,6 +83,8 @@ from sagrasp_jax.task.robot import RobotModel, forward_kinematics, load_robot, p
 from sagrasp_jax.task.scene import SCENE
 
 DEPTH_RANGE_MM = (300.0, 3000.0)  # where a depth camera over the table reports anything (deploy's DETECTION_RANGE)
+WORKSPACE_CENTRE = (float(np.mean(SamplingConfig().target_x)), float(np.mean(SamplingConfig().target_y)))  # m, where
+# the table's height is checked: the middle of the region the cube is drawn in
 PLANE_POINTS = 20_000  # table points the plane is fitted to (evenly strided)
 OCCLUDER_JUMP_M = 0.01  # a neighbour this much nearer (camera z) and not of the region hides part of it
 # a fit holds a region when at most this share of its points lies outside it (_uncovered): of a whole region (its
@@ -115,7 +119,8 @@ class PerceptionSettings:
 
     plane_band_m: float = 0.03  # first table guess: |z| below this in the world frame
     min_plane_fraction: float = 0.2  # of the valid points must lie on the table
-    max_plane_tilt_deg: float = 5.0  # the table's normal against world z
+    max_plane_tilt_deg: float = 2.0  # the table's normal against world z: a calibration tilted more is refused
+    max_table_offset_m: float = 0.010  # the table's height under the workspace centre against scene.SCENE.table.top_z
     min_height_m: float = 0.008  # above the table: an object's point (at least 5 σ of the table's noise)
     max_gap_m: float = 0.03  # neighbouring pixels this far apart in 3-D are not one surface
     max_slope: float = 5.0  # ... nor those whose depth steps more than this many pixel pitches (a 79° slope)
@@ -283,11 +288,44 @@ def _intrinsics_from_cloud(cam: np.ndarray, valid: np.ndarray) -> tuple[float, f
 # ---------------------------------------------------------------------------------------------- table
 
 
+class CalibrationMismatch(PerceptionError):
+    """The table does not come out where the scene puts it through this calibration: the calibration is not this
+    camera's (or the camera was moved since it was calibrated)."""
+
+
+def table_height_mode(world_z: np.ndarray) -> float | None:
+    """The height (world z, m) of the largest level surface in view: the mode of the points' heights in 5-mm
+    bins within ±0.5 m of the table (the table fills most of the view), or None when nothing lies there."""
+    top = SCENE.table.top_z
+    z = world_z[np.abs(world_z - top) < 0.5]
+    if len(z) < 50:
+        return None
+    counts, edges = np.histogram(z, bins=200, range=(top - 0.5, top + 0.5))
+    i = int(np.argmax(counts))
+    return float((edges[i] + edges[i + 1]) / 2)
+
+
+def _mismatch(found: str, settings: PerceptionSettings) -> CalibrationMismatch:
+    return CalibrationMismatch(
+        f"through this calibration {found} (allowed: ±{settings.max_table_offset_m * 1000:g} mm, "
+        f"{settings.max_plane_tilt_deg:g}° from level): the calibration does not match this camera (another "
+        "camera's file, the camera moved since, or the wrong --calibration-units / --base-z-offset); calibrate "
+        "again (python -m sagrasp_jax.calibrate)")
+
+
 def fit_table(world: np.ndarray, valid: np.ndarray, settings: PerceptionSettings) -> tuple[np.ndarray, float, float, int]:
-    """Robust plane z = a·x + b·y + c through the table's points: (normal, offset d with n·p = d, σ, inliers)."""
+    """Robust plane z = a·x + b·y + c through the table's points: (normal, offset d with n·p = d, σ, inliers).
+
+    This is also the check of the calibration against the scene: the plane must come out at the table's known
+    height (within ``max_table_offset_m`` under the workspace centre) and level (``max_plane_tilt_deg``), else
+    ``CalibrationMismatch`` names the measured offset and tilt."""
     pts = world[valid]
     near = np.abs(pts[:, 2] - SCENE.table.top_z) < settings.plane_band_m
     if near.sum() < max(50, settings.min_plane_fraction * len(pts)):
+        mode = table_height_mode(pts[:, 2])
+        if mode is not None and abs(mode - SCENE.table.top_z) >= settings.plane_band_m:
+            raise _mismatch(f"the largest level surface in view (the table) comes out {1000 * (mode - SCENE.table.top_z):+.0f} "
+                            f"mm from the table's height z = {SCENE.table.top_z:g} m", settings)
         raise PerceptionError(
             f"no table plane within {settings.plane_band_m * 1000:.0f} mm of z = {SCENE.table.top_z:g} m in the world frame "
             f"({int(near.sum())} of {len(pts)} points): wrong calibration or base_z_offset?")
@@ -311,9 +349,11 @@ def fit_table(world: np.ndarray, valid: np.ndarray, settings: PerceptionSettings
     norm = float(np.linalg.norm(normal))
     normal /= norm
     tilt = math.degrees(math.acos(min(1.0, normal[2])))
-    if tilt > settings.max_plane_tilt_deg:
-        raise PerceptionError(f"the table plane is tilted {tilt:.1f}° from level in the world frame (> "
-                              f"{settings.max_plane_tilt_deg:g}°): wrong calibration?")
+    x0, y0 = WORKSPACE_CENTRE
+    offset = coef[0] * x0 + coef[1] * y0 + coef[2] - SCENE.table.top_z
+    if tilt > settings.max_plane_tilt_deg or abs(offset) > settings.max_table_offset_m:
+        raise _mismatch(f"the table comes out {1000 * offset:+.1f} mm from its height under the workspace centre and "
+                        f"tilted {tilt:.2f}° from level in the world frame", settings)
     return normal, float(coef[2] / norm), sigma, inliers
 
 

@@ -68,6 +68,11 @@ def _kind(spec: sampling.ResetSpec, model: robot.RobotModel, env_cfg: EnvConfig)
     return "blocking" if bool(blocking) else "obstacle"
 
 
+def episode_kind(spec: sampling.ResetSpec, env_cfg: EnvConfig) -> str:
+    """"no obstacle", "obstacle" or "blocking": how the evaluation counts this scene."""
+    return _kind(spec, robot.load_robot(), env_cfg)
+
+
 def _failure(report: DeployReport | None, refused: str) -> str:
     """One word for why an episode did not end with the cube held."""
     if report is None:
@@ -88,23 +93,22 @@ class CameraSettings(NamedTuple):
     """End to end from the camera: the twin renders the Mech-Eye's view (``deploy.twin_camera``) and
     ``deploy.perception`` gives the loop the cube and the obstacles instead of the sampler's."""
 
-    noise: str = "industrial"  # depth-noise model (twin_camera.noise_model)
-    resolution: float = 0.25  # fraction of the Mech-Eye's 1920 × 1200 (the field of view is kept)
+    noise: str = "industrial"  # depth-noise model (task.camera.NOISE_MODELS)
+    resolution: float = 0.25  # fraction of the camera model's pixels (the Mech-Eye's 1920 × 1200; the view is kept)
+    model: str = "mecheye_pro_m"  # the camera (task.camera.CAMERA_MODELS)
 
 
 def _perceive(twin: Any, spec: sampling.ResetSpec, camera: CameraSettings, rng: np.random.Generator,
-              record: dict[str, Any]) -> tuple[np.ndarray, float, list[Any]] | None:
-    """Capture the twin (the arm out of view), perceive, and record perception's errors against the true scene;
-    None (and the record says why) when perception refuses the capture."""
+              record: dict[str, Any], env_cfg: EnvConfig) -> tuple[np.ndarray, float, list[Any]] | None:
+    """Capture the twin (the arm out of view), perceive with the policy's obstacle kinds, and record perception's
+    errors against the true scene; None (and the record says why) when perception refuses the capture."""
     from sagrasp_jax.deploy.calibration import CameraCalibration
-    from sagrasp_jax.deploy.perception import PerceptionError, detect_scene
-    from sagrasp_jax.deploy.twin_camera import TwinCamera
+    from sagrasp_jax.deploy.perception import PerceptionError, PerceptionSettings, detect_scene
 
-    # The capture is taken with the arm out of view, as a cell captures before the arm moves in: from its home
-    # pose the AUBO hides some cubes from the gantry camera (perception refuses those, naming why).
-    frame = TwinCamera(camera.resolution).capture(twin, camera.noise, rng, hide_robot=True)
+    capture = twin_capture(twin, spec, camera, rng)
     try:
-        seen = detect_scene(frame.cloud_mm, frame.rgb, CameraCalibration.default())
+        seen = detect_scene(capture.cloud_mm, capture.rgb, CameraCalibration.default(),
+                            settings=PerceptionSettings.for_policy(env_cfg))
     except PerceptionError as exc:
         record["perception"] = {"refused": str(exc)}
         return None
@@ -121,6 +125,31 @@ def _perceive(twin: Any, spec: sampling.ResetSpec, camera: CameraSettings, rng: 
     return seen.target_centre, float(seen.target_yaw), list(seen.obstacles)
 
 
+def draw_scene(scene_cfg: EnvConfig, seed: int, index: int) -> tuple[sampling.ResetSpec, np.random.Generator]:
+    """Scene ``index`` of ``seed`` (the same for any number of workers) and the generator that drew it, left where
+    the rehearsal draws the episode's errors and the camera's noise from it."""
+    model = robot.load_robot()
+    rng = np.random.default_rng([seed, index])
+    spec = sampling.sample_reset(np, model, scene_cfg.sampling, scene_cfg.task,
+                                 rng.uniform(size=sampling.uniforms_needed(scene_cfg.sampling)))
+    return sampling.ResetSpec(*(np.asarray(v) for v in spec)), rng
+
+
+def twin_capture(twin: Any, spec: sampling.ResetSpec, camera: CameraSettings, rng: np.random.Generator,
+                 kind: str = "", source: str = "twin") -> Any:
+    """The twin's scene as the camera of ``camera`` reports it (the arm out of view), as a ``cameras.Capture``
+    holding the true scene (``capture_file.scene_truth``), ready to save and replay."""
+    from sagrasp_jax.deploy.cameras import Capture
+    from sagrasp_jax.deploy.capture_file import now_utc, scene_truth
+    from sagrasp_jax.deploy.twin_camera import TwinCamera
+
+    # The capture is taken with the arm out of view, as a cell captures before the arm moves in: from its home
+    # pose the AUBO hides some cubes from the gantry camera (perception refuses those, naming why).
+    cam = TwinCamera(camera.resolution, model=camera.model)
+    frame = cam.capture(twin, camera.noise, rng, hide_robot=True)
+    return Capture(frame.rgb, frame.cloud_mm, frame.intrinsics, cam.model.name, source, now_utc(), scene_truth(spec, kind))
+
+
 def run_scene(policy_path: str, env_cfg: EnvConfig, scene_cfg: EnvConfig, seed: int, index: int,
               camera: CameraSettings | None = None) -> dict[str, Any]:
     """Scene ``index`` of ``seed`` through the deploy loop on a fresh twin; a JSON-safe record.  With
@@ -130,10 +159,7 @@ def run_scene(policy_path: str, env_cfg: EnvConfig, scene_cfg: EnvConfig, seed: 
 
     policy = _policy(policy_path)
     model = robot.load_robot()
-    rng = np.random.default_rng([seed, index])
-    spec = sampling.sample_reset(np, model, scene_cfg.sampling, scene_cfg.task,
-                                 rng.uniform(size=sampling.uniforms_needed(scene_cfg.sampling)))
-    spec = sampling.ResetSpec(*(np.asarray(v) for v in spec))
+    spec, rng = draw_scene(scene_cfg, seed, index)
     errors, target_error = transfer.draw(env_cfg.randomize, env_cfg.control.mode != "kinematic", rng)
     detected = np.asarray(spec.target_pos, float) + target_error
     record: dict[str, Any] = {"index": index, "kind": _kind(spec, model, scene_cfg),
@@ -143,7 +169,7 @@ def run_scene(policy_path: str, env_cfg: EnvConfig, scene_cfg: EnvConfig, seed: 
     report, refused = None, ""
     with PyBulletTwin(spec, env_cfg, q0=spec.q0, errors=errors, seed=index) as twin:
         if camera is not None:
-            seen = _perceive(twin, spec, camera, rng, record)
+            seen = _perceive(twin, spec, camera, rng, record, env_cfg)
             scene = seen if seen is not None else None
             refused = "perception refused" if seen is None else ""
         else:

@@ -443,7 +443,7 @@ def load_policy(path: str | os.PathLike[str]) -> NumpyPolicy:
     """Read and validate ``policy.npz`` (or a pretrained policy by name, ``PRETRAINED``, or a folder holding a
     ``policy.npz``); raises PolicyFormatError naming the file and the problem.  The file is read whole through
     ``fileio.read_regular`` (a FIFO, device or folder refused before it is opened, the size bounded), then its
-    members as ``_read_npz`` allows."""
+    members as ``read_npz`` allows."""
     given = os.fspath(path)
     path = resolve_policy(given)
     try:
@@ -461,7 +461,7 @@ def load_policy(path: str | os.PathLike[str]) -> NumpyPolicy:
     except OSError as exc:
         raise PolicyFormatError(f"{path}: cannot read the policy file ({exc.strerror or exc})") from None
     try:
-        arrays = _read_npz(path, io.BytesIO(data))
+        arrays = read_npz(path, io.BytesIO(data))
     except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, ValueError, EOFError, NotImplementedError,
             RuntimeError) as exc:
         if isinstance(exc, PolicyFormatError):
@@ -496,29 +496,30 @@ def npy_header(stream: Any, total_bytes: int, holder: str) -> tuple[tuple[int, .
     return shape, fortran, dtype, size
 
 
-def _read_npz(path: str, source: Any = None) -> dict[str, np.ndarray]:
+def read_npz(path: str, source: Any = None, *, max_bytes: int = MAX_POLICY_BYTES, max_members: int = MAX_POLICY_MEMBERS,
+             error: type[ValueError] = PolicyFormatError, what: str = "a policy file") -> dict[str, np.ndarray]:
     """The arrays of an ``np.savez`` archive, reading no more than its sizes allow: the members'
-    unpacked sizes (zip directory) and each ``.npy`` header's shape are checked against
-    ``MAX_POLICY_BYTES`` and against each other before any array is allocated, so a header claiming
-    gigabytes or a zip bomb is refused (PolicyFormatError) instead of filling the memory."""
+    unpacked sizes (zip directory) and each ``.npy`` header's shape are checked against ``max_bytes``
+    and against each other before any array is allocated, so a header claiming gigabytes or a zip bomb
+    is refused (``error``, naming ``path``) instead of filling the memory.  The policy and capture readers."""
     arrays: dict[str, np.ndarray] = {}
     with zipfile.ZipFile(path if source is None else source) as zf:
         infos = zf.infolist()
         total = sum(info.file_size for info in infos)
-        if len(infos) > MAX_POLICY_MEMBERS or total > MAX_POLICY_BYTES:
-            raise PolicyFormatError(f"{path}: {len(infos)} members of {total} bytes unpacked, over the "
-                                    f"{MAX_POLICY_BYTES} bytes a policy file may hold (zip bomb?); not read")
+        if len(infos) > max_members or total > max_bytes:
+            raise error(f"{path}: {len(infos)} members of {total} bytes unpacked, over the "
+                        f"{max_bytes} bytes {what} may hold (zip bomb?); not read")
         for info in infos:
             if not info.filename.endswith(".npy"):
-                raise PolicyFormatError(f"{path}: member {info.filename!r} is not a .npy array")
+                raise error(f"{path}: member {info.filename!r} is not a .npy array")
             with zf.open(info) as f:
                 try:
                     shape, fortran, dtype, size = npy_header(f, info.file_size, "member")
                 except ValueError as exc:
-                    raise PolicyFormatError(f"{path}: {info.filename}'s {exc}") from None
+                    raise error(f"{path}: {info.filename}'s {exc}") from None
                 data = f.read(size)
             if len(data) != size:
-                raise PolicyFormatError(f"{path}: {info.filename} is cut short")
+                raise error(f"{path}: {info.filename} is cut short")
             arr = np.frombuffer(data, dtype=dtype)
             arrays[info.filename[:-4]] = (arr.reshape(shape[::-1]).T if fortran else arr.reshape(shape)).copy()
     return arrays
