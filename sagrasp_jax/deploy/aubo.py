@@ -28,7 +28,24 @@ plain socket and its own timeout, so an unreachable host fails in seconds with a
 (``AuboConnectionError``: deploy exits 2 and nothing moved).  ``close`` leaves servo mode, logs out and
 disconnects.  The controller's joint zero is assumed to be the URDF's (``joint_offset``, default 0); the dry
 run (``deploy --backend aubo --host IP --dry-run``) shows the joints so that a user can check this at the home
-pose before the first run.  Nothing in this module has run against a real controller.
+pose before the first run.
+
+What has run (issue 53): this class with the vendor's own ``RpcClient`` (pyaubo-sdk 0.24.1) inside, end to end
+against an emulated controller, ``tests/aubo_emulator.py``, which speaks the wire protocol that client was found
+to speak (framing, version check, text login, JSON-RPC calls and result shapes: that file's docstring):
+``connect`` and the login, accepted and refused; ``getRobotNames``, ``getJointPositions``, ``getRobotModeType``,
+``getSafetyModeType``; ``setServoModeSelect``/``getServoModeSelect``; ``servoJoint`` at the control period;
+``isToolIoInput``/``setToolIoInput``/``setToolDigitalOutput`` for the gripper; ``logout`` (client-side only:
+it sends nothing) and ``disconnect``; and a whole ``deploy --backend aubo`` episode, the dry run, the home
+check, a wrong password, a silent controller and a connection dropped mid-episode (tests/test_aubo_emulator.py).
+Found there and handled here: a refused login shows only in the SDK's log ("login failed"); ``login`` then
+raises a request timeout and ``hasLogined()`` is True all the same (``_login``).
+
+What has never run: a real ARCS controller (its own answers: the login reply's text, the codes it returns for
+a command it refuses, the enum names it sends, how its servo mode 1 follows the targets, what it does with the
+arm when the RPC connection drops in servo mode: the emulator's are guesses where the SDK accepts several);
+the AUBO-i5 moving; the real network; the real gripper wiring (which tool outputs at which level open and
+close the EG2: ``GripperIO``'s default is a guess).
 """
 
 from __future__ import annotations
