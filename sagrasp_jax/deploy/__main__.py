@@ -412,6 +412,9 @@ def _camera_scenes(tokens: list[str]) -> int:
     p.add_argument("--camera-resolution", type=float, default=0.25, help="fraction of 1920 × 1200 (default 0.25)")
     p.add_argument("--seed", type=int, default=0, help="scene draws (default 0)")
     p.add_argument("--workers", type=int, default=1, help="processes (default 1)")
+    p.add_argument("--save-captures", default=None, metavar="DIR",
+                   help="save every scene's capture in DIR (replayable: --camera replay:FILE), read back and perceived "
+                        "again; the result counts the replays that saw exactly the same")
     p.add_argument("--out", default=None, help="write the result as JSON here (an existing file only if it holds the "
                    "same twin result, or another one with --force)")
     p.add_argument("--force", action="store_true", help="replace an --out file that holds another twin result")

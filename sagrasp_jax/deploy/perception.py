@@ -295,14 +295,16 @@ class CalibrationMismatch(PerceptionError):
 
 def table_height_mode(world_z: np.ndarray) -> float | None:
     """The height (world z, m) of the largest level surface in view: the mode of the points' heights in 5-mm
-    bins within ±0.5 m of the table (the table fills most of the view), or None when nothing lies there."""
+    bins within ±0.5 m of the table (the table fills most of the view), refined by the median of the points near
+    it, or None when nothing lies there."""
     top = SCENE.table.top_z
     z = world_z[np.abs(world_z - top) < 0.5]
     if len(z) < 50:
         return None
     counts, edges = np.histogram(z, bins=200, range=(top - 0.5, top + 0.5))
     i = int(np.argmax(counts))
-    return float((edges[i] + edges[i + 1]) / 2)
+    mode = (edges[i] + edges[i + 1]) / 2
+    return float(np.median(z[np.abs(z - mode) < 0.005]))  # refined within the bin's neighbours
 
 
 def _mismatch(found: str, settings: PerceptionSettings) -> CalibrationMismatch:

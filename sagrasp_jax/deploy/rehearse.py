@@ -98,19 +98,39 @@ class CameraSettings(NamedTuple):
     model: str = "mecheye_pro_m"  # the camera (task.camera.CAMERA_MODELS)
 
 
+def _same_detection(a: Any, b: Any) -> bool:
+    """Two ``SceneDetection``s equal to the last bit (the cube, its yaw, every obstacle)."""
+    return (np.array_equal(a.target_centre, b.target_centre) and a.target_yaw == b.target_yaw
+            and list(a.obstacles) == list(b.obstacles))
+
+
 def _perceive(twin: Any, spec: sampling.ResetSpec, camera: CameraSettings, rng: np.random.Generator,
-              record: dict[str, Any], env_cfg: EnvConfig) -> tuple[np.ndarray, float, list[Any]] | None:
+              record: dict[str, Any], env_cfg: EnvConfig, captures_dir: str | None = None
+              ) -> tuple[np.ndarray, float, list[Any]] | None:
     """Capture the twin (the arm out of view), perceive with the policy's obstacle kinds, and record perception's
     errors against the true scene; None (and the record says why) when perception refuses the capture."""
     from sagrasp_jax.deploy.calibration import CameraCalibration
     from sagrasp_jax.deploy.perception import PerceptionError, PerceptionSettings, detect_scene
 
     capture = twin_capture(twin, spec, camera, rng)
+    settings = PerceptionSettings.for_policy(env_cfg)
     try:
-        seen = detect_scene(capture.cloud_mm, capture.rgb, CameraCalibration.default(),
-                            settings=PerceptionSettings.for_policy(env_cfg))
+        seen = detect_scene(capture.cloud_mm, capture.rgb, CameraCalibration.default(), settings=settings)
     except PerceptionError as exc:
-        record["perception"] = {"refused": str(exc)}
+        seen, refusal = None, str(exc)
+    if captures_dir:  # the capture saved, read back and perceived again: the replay must see exactly the same
+        from sagrasp_jax.deploy import capture_file
+
+        path = capture_file.save_capture(os.path.join(captures_dir, f"scene-{record['index']:06d}.npz"), capture)
+        try:
+            replay = capture_file.load_capture(path)
+            again = detect_scene(replay.cloud_mm, replay.rgb, CameraCalibration.default(), settings=settings)
+            same = seen is not None and _same_detection(seen, again)
+        except PerceptionError as exc:
+            same = seen is None and str(exc) == refusal
+        record["capture_file"], record["replay_identical"] = os.path.basename(path), bool(same)
+    if seen is None:
+        record["perception"] = {"refused": refusal}
         return None
     truth = obstacles_from_spec(spec)
     errors = [min(float(np.linalg.norm(np.subtract(o.centre, t.centre))) for t in truth) for o in seen.obstacles] \
@@ -151,7 +171,7 @@ def twin_capture(twin: Any, spec: sampling.ResetSpec, camera: CameraSettings, rn
 
 
 def run_scene(policy_path: str, env_cfg: EnvConfig, scene_cfg: EnvConfig, seed: int, index: int,
-              camera: CameraSettings | None = None) -> dict[str, Any]:
+              camera: CameraSettings | None = None, captures_dir: str | None = None) -> dict[str, Any]:
     """Scene ``index`` of ``seed`` through the deploy loop on a fresh twin; a JSON-safe record.  With
     ``camera`` the loop is handed what perception finds in the twin's rendered capture (the condition's
     detection error is not added: the camera's own error is the detection error)."""
@@ -169,7 +189,7 @@ def run_scene(policy_path: str, env_cfg: EnvConfig, scene_cfg: EnvConfig, seed: 
     report, refused = None, ""
     with PyBulletTwin(spec, env_cfg, q0=spec.q0, errors=errors, seed=index) as twin:
         if camera is not None:
-            seen = _perceive(twin, spec, camera, rng, record, env_cfg)
+            seen = _perceive(twin, spec, camera, rng, record, env_cfg, captures_dir)
             scene = seen if seen is not None else None
             refused = "perception refused" if seen is None else ""
         else:
@@ -202,9 +222,8 @@ def _policy(path: str) -> NumpyPolicy:
     return _POLICIES[path]
 
 
-def _scene(args: tuple[str, EnvConfig, EnvConfig, int, int, CameraSettings | None]) -> dict[str, Any]:
-    path, env_cfg, scene_cfg, seed, index, camera = args
-    return run_scene(path, env_cfg, scene_cfg, seed, index, camera)
+def _scene(args: tuple[str, EnvConfig, EnvConfig, int, int, CameraSettings | None, str | None]) -> dict[str, Any]:
+    return run_scene(*args)
 
 
 def wilson(k: int, n: int, z: float = 1.959964) -> tuple[float, float]:
@@ -242,8 +261,11 @@ def policy_name(policy_path: str) -> str:
 
 
 def rehearse(policy_path: str, episodes: int, condition: str, scenes: str = "mix", seed: int = 0,
-             workers: int = 1, progress: bool = True, camera: CameraSettings | None = None) -> dict[str, Any]:
-    """Run ``episodes`` twin scenes; the summary per episode kind and every episode's record."""
+             workers: int = 1, progress: bool = True, camera: CameraSettings | None = None,
+             captures_dir: str | None = None) -> dict[str, Any]:
+    """Run ``episodes`` twin scenes; the summary per episode kind and every episode's record.  With ``camera`` and
+    ``captures_dir`` every scene's capture is saved there (``scene-<index>.npz``), read back and perceived again:
+    each record says whether the replay saw exactly the same (``replay_identical``)."""
     policy = _policy(policy_path)
     env_cfg = condition_env(policy.env_config(), condition)
     scene_cfg = scene_env(env_cfg, scenes)
@@ -254,12 +276,13 @@ def rehearse(policy_path: str, episodes: int, condition: str, scenes: str = "mix
         if workers == 1:
             for i in range(episodes):
                 cli.check()  # a safe point for Ctrl-C: between scenes (and before every command, deploy.loop)
-                records.append(run_scene(policy_path, env_cfg, scene_cfg, seed, i, camera))
+                records.append(run_scene(policy_path, env_cfg, scene_cfg, seed, i, camera, captures_dir))
                 if progress and (i + 1) % 50 == 0:
                     print(f"  {i + 1}/{episodes} scenes, held {sum(r['held'] for r in records) / len(records):.1%}",
                           file=sys.stderr, flush=True)
         else:
-            records = _in_workers(workers, [(policy_path, env_cfg, scene_cfg, seed, i, camera) for i in range(episodes)])
+            records = _in_workers(workers, [(policy_path, env_cfg, scene_cfg, seed, i, camera, captures_dir)
+                                           for i in range(episodes)])
     except cli.Interrupted as exc:
         exc.done = exc.done or (len(records), episodes)
         raise
@@ -324,6 +347,8 @@ def perception_summary(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
         "obstacles_true": true_n, "obstacles_found": sum(p["obstacles_found"] for p in seen),
         "obstacles_invented": sum(p["obstacles_invented"] for p in seen),
         "obstacle_centre_error_mm": {"p50": pct(centre, 50), "p95": pct(centre, 95)},
+        "replayed": sum("replay_identical" in r for r in records),
+        "replay_identical": sum(bool(r.get("replay_identical")) for r in records),
     }
 
 
@@ -349,6 +374,9 @@ def format_table(result: dict[str, Any]) -> str:
         lines.append(f"perception: {p['refused']} of {p['captures']} captures refused; cube centre error (horizontal) "
                      f"p50 {t['p50'] or 0:.1f} / p95 {t['p95'] or 0:.1f} / max {t['max'] or 0:.1f} mm; obstacles "
                      f"{p['obstacles_found']} of {p['obstacles_true']} found, {p['obstacles_invented']} invented")
+        if p.get("replayed"):
+            lines.append(f"replays: {p['replay_identical']} of {p['replayed']} saved captures perceived again exactly "
+                         "as when taken")
     return "\n".join(lines)
 
 
@@ -370,6 +398,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "consumer; default industrial)")
     p.add_argument("--camera-resolution", type=float, default=0.25,
                    help="--camera twin: fraction of the Mech-Eye's 1920 × 1200 (default 0.25)")
+    p.add_argument("--save-captures", default=None, metavar="DIR",
+                   help="--camera twin: save every scene's capture in DIR (scene-<index>.npz, replayable with deploy "
+                        "--camera replay:FILE), read it back and perceive it again; the result counts the replays "
+                        "that saw exactly the same")
 
 
 def check_arguments(args: argparse.Namespace) -> None:
@@ -385,6 +417,11 @@ def check_arguments(args: argparse.Namespace) -> None:
         noise_model(args.depth_noise)  # ValueError naming the models
         if not 0.05 <= args.camera_resolution <= 1.0:
             raise ValueError(f"--camera-resolution must be in [0.05, 1], got {args.camera_resolution}")
+    if getattr(args, "save_captures", None):
+        if getattr(args, "camera", "none") != "twin":
+            raise ValueError("--save-captures needs --camera twin")
+        os.makedirs(args.save_captures, exist_ok=True)
+        fileio.check_writable(args.save_captures, "--save-captures folder")
 
 
 RESULT_KIND = {"backend": "twin", "episodes": None, "summary": None}  # what makes a file a twin result
@@ -425,7 +462,7 @@ def run_cli(policy_path: str, args: argparse.Namespace, out: str | None = None) 
                 print(f"error: {exc}", file=sys.stderr)
                 return 2
             result = rehearse(policy_path, args.episodes, args.condition, args.scenes, args.seed, args.workers,
-                              camera=camera)
+                              camera=camera, captures_dir=getattr(args, "save_captures", None))
             cli.check()  # the last safe point: a Ctrl-C from here on lets the result be written
         except cli.Interrupted as exc:
             done, total = exc.done or (0, args.episodes)
