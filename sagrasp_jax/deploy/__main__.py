@@ -5,6 +5,8 @@
         [--backend twin] [--gui] [--json] [--dry-run]
     python -m sagrasp_jax.deploy ... --backend aubo --host IP [--port N] [--gripper-io SPEC] [--dry-run]
     python -m sagrasp_jax.deploy --backend aubo --host IP [--port N] --dry-run [--policy P] [--json]
+    python -m sagrasp_jax.deploy --policy P --camera mecheye|realsense|replay:FILE [--camera-address A]
+        [--record DIR] [--calibration FILE] [--backend twin|aubo --host IP] [--dry-run] [--json]
 
 ``--policy`` takes a ``policy.npz``, a folder holding one (a finished run folder, export's ``--out``) or the
 name of a packaged policy, ``pretrained``; a name always means the packaged policy (``./pretrained`` for a
@@ -19,6 +21,19 @@ mapped to the centre, and the cube centre must lie in the trained region, every 
 outside the training clearance of the cube (``env.sampling.target_clearance``), and the
 policy's control constants must be this robot's — all checked before the robot moves; bad
 input exits with status 2 and says what is wrong (with ``--json``, as a JSON refusal).
+
+From a camera (the paper's section 5, one command): ``--camera mecheye --camera-address IP`` (Mech-Eye,
+``pip install "sagrasp_jax[mecheye]"``), ``--camera realsense [--camera-address SERIAL|FILE.bag]`` (RealSense,
+``[realsense]``) or ``--camera replay:FILE`` (a capture file: ``python -m sagrasp_jax.capture``, or the
+``capture.npz`` an earlier run saved) takes the detections instead of ``--target-cam`` and ``--obstacle``: one
+capture, perceived with the policy's obstacle kinds (``deploy.perception``), the calibration checked against the
+table on the way (the table must come out at its height, within 10 mm, and level, within 2°, through
+``--calibration``; else exit 2 naming the measured offset and tilt).  The capture and the report are saved in
+``--record DIR`` (default ``deploy-records/<UTC time>-<camera>``; a replay saves the report only), so a grasp
+that failed on the cell can be run again at a desk: ``--camera replay:DIR/capture.npz --backend twin`` (the
+twin's cube stands where the detection says; a twin capture holds its true scene and the twin stands on it) or
+``--dry-run``, which also prints the detection, perception's diagnostics and the first joint targets an ideal arm
+would be sent.
 
 Obstacles (``shapes.SHAPES``): ``--obstacle sphere X Y Z R``, ``--obstacle cylinder X Y Z R H``,
 ``--obstacle box X Y Z LX LY LZ [YAW_DEG]`` (full lengths; LX along the camera's x axis
@@ -47,7 +62,8 @@ before its next command, closes the session (servo mode left, logged out) and ex
 
 Exit status: 0 the cube is held after the lift (with --no-grasp: the grasp pose reached), 1 not held
 (timeout, collision, a faulty approach, a dropped cube, or a backend that cannot tell: the JSON report's
-``held`` says which), 2 input refused before anything moved, 3 the safety layer stopped the robot.
+``held`` says which), 2 input refused before anything moved (a refused camera, capture or perception too), 3 the
+safety layer stopped the robot or the controller's connection was lost during the episode.
 """
 
 from __future__ import annotations
