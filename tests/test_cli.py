@@ -8,7 +8,7 @@ import sys
 
 from tiny_run import REPO
 
-COMMANDS = ("train", "evaluate", "export", "render", "plot", "calibrate", "sysid", "parity", "deploy",
+COMMANDS = ("train", "evaluate", "export", "render", "plot", "calibrate", "sysid", "parity", "deploy", "capture",
             "deploy.rehearse")
 
 # One process runs every command's module as ``python -m`` would (runpy), so the heavy imports happen once.
