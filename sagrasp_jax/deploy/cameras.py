@@ -5,10 +5,14 @@ A ``CameraSource`` has ``capture() -> Capture(rgb, cloud_mm)`` and ``close()``: 
 optical axis, OpenCV's and both vendors' convention), millimetres, NaN where there is no return, the same
 pixel grid as the image — what ``deploy.twin_camera`` renders and ``deploy.perception`` reads.
 
-* ``MechEyeCamera(ip)`` (``pip install "sagrasp_jax[mecheye]"``, Mech-Mind's ``mecheyeapi``): one
-  ``Camera.capture_2d_and_3d`` per capture, read through ``Frame2DAnd3D.get_textured_point_cloud`` (the 2D
-  image mapped onto the depth grid): its ``vertices()`` are in mm (the SDK's default unit, set explicitly
-  with ``set_point_cloud_unit``) with NaN where invalid, its ``colors()`` BGR.
+* ``MechEyeCamera(ip)`` (``pip install "sagrasp_jax[mecheye]"``, Mech-Mind's ``mecheyeapi``, wheels for CPython
+  3.7–3.11 only): one ``Camera.capture_2d_and_3d`` per capture, read through
+  ``Frame2DAnd3D.get_textured_point_cloud`` (the 2D image mapped onto the depth map's grid): its ``vertices()``
+  are in mm (the SDK's default unit, set explicitly with ``set_point_cloud_unit``) with NaN where invalid, its
+  ``colors()`` BGR.  The capture carries the depth camera's intrinsics (``get_camera_intrinsics``, when
+  ``get_camera_resolutions`` gives the depth map the cloud's size: ``mecheye_intrinsics``), the model
+  (``get_camera_info``: ``mecheye_pro_m`` for a PRO M or Pro M Enhanced; "" for any other, named in ``source``),
+  ``source`` "mecheye IP SERIAL" and the time it was asked for.
 * ``RealSenseCamera(serial=None)`` (``pip install "sagrasp_jax[realsense]"``, Intel's ``pyrealsense2``; on
   Linux it also needs the system's libusb-1.0): depth and colour streams, the depth aligned to the colour
   camera (``rs.align``), the cloud from ``rs.pointcloud`` (librealsense's own deprojection, with the
@@ -19,11 +23,50 @@ the SDKs' real frame objects built without a device (a Mech-Eye ``TexturedPointC
 RealSense software device's depth frame through ``rs.pointcloud``).  Neither camera class has run against
 a real camera here.  Every capture has a timeout; a camera that is absent or does not answer raises
 ``CameraError`` naming it (deploy exits 2: nothing moved).
+
+Mech-Eye API 2.6.0 without a camera, as measured here (Linux x86-64, CPython 3.11).  It has no virtual or
+file-backed area-scan camera (``Camera.save_virtual_device_file`` writes an .mraw for Mech-Eye Viewer from a
+connected camera; only the laser profilers' ``VirtualProfiler`` loads one) and no reader for the frames it saves
+(PLY, PCD, CSV): nothing replays through it (``deploy --camera replay:FILE`` replays the project's capture files).
+Its containers (``TexturedPointCloud``, ``CameraIntrinsics``, ``CameraResolutions``, ``CameraInfo``) are built
+and filled without a device; ``Camera.discover_cameras`` keeps to its timeout (0.2 s, 2.0 s: an empty list).
+``Camera.connect`` does not keep to its timeout, and holds the GIL (no Python thread can cut it short): it runs
+the system's ``ping`` to the camera, sends a ZeroMQ request to TCP port 5577 (``CameraInfo.port`` is not used),
+waits about 1 s and, after a failure, runs ``ping`` again.  Whatever the timeout (0.1 to 10 s) it returned after
+1.0 s against loopback with nothing listening, with a listener that accepts and says nothing, and with a ZeroMQ
+peer that never replies; after 1.8 to 4.1 s for an absent host on this machine's subnet (ping's ARP wait); after
+13 s with a ``ping`` that took 6 s.  Its code for an unanswered request is -2 (DEVICE_OFFLINE, "the device is
+unreachable") when ``ping`` fails or is not installed, -9 (TIMEOUT_ERROR) when the host answers ping; a host
+name or a file path is -7 (INVALID_INPUT_ERROR) at once.  So ``MechEyeCamera`` first opens a plain TCP
+connection to port 5577 within its timeout and asks the SDK only when something accepts it.  The SDK writes its
+own lines to stderr (and, on a machine's first run, its logger's to stdout) and logs to /var/log/mmind (else
+/tmp): ``MechEyeCamera`` holds what the SDK writes during its calls (to stderr after a success; after a failure
+the error carries the SDK's message).  A ``Camera`` that tried a silent peer and lives on until the
+interpreter's exit hangs that exit, so a failed one is dropped at once.
+
+What of this path ran here (``tests/test_mecheye_sdk.py``): the SDK's ``connect`` against those loopback peers,
+through ``open_camera`` and the ``capture`` and ``deploy`` commands (refused with exit 2 within the timeout), and
+the SDK's containers through ``mecheye_capture``, ``mecheye_intrinsics`` and ``mecheye_model``.  What never ran:
+a Mech-Eye camera — a successful ``connect``, ``set_point_cloud_unit``, ``get_camera_info``,
+``get_camera_intrinsics`` and ``get_camera_resolutions`` on a connection, ``capture_2d_and_3d`` and its
+timeout, a real frame's ``get_textured_point_cloud`` (that its grid is the depth map's, with the depth camera's
+intrinsics, is read from Mech-Mind's docstrings and samples, not seen), ``disconnect`` of a live connection, and
+what a camera's server makes of the bare TCP connection opened before the SDK's.
 """
 
 from __future__ import annotations
 
+import ctypes
+import datetime
 import importlib
+import ipaddress
+import os
+import re
+import shutil
+import socket
+import sys
+import tempfile
+import time
 from typing import Any, NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
@@ -95,6 +138,33 @@ def mecheye_capture(vertices: Any, colors_bgr: Any, unit_to_mm: float = 1.0) -> 
     return checked_capture(rgb, cloud, "Mech-Eye")
 
 
+# CameraInfo.model ("Mech-Eye PRO M", "Mech-Eye Pro M Enhanced"), lower case, letters and digits, less "mecheye"
+MECHEYE_MODELS = {"prom": "mecheye_pro_m", "promenhanced": "mecheye_pro_m"}
+
+
+def mecheye_model(model: str) -> str:
+    """The ``task.camera`` model of a Mech-Eye ``CameraInfo.model``: ``mecheye_pro_m`` for a PRO M or Pro M Enhanced
+    (the same optics), "" for any other model (one ``task.camera`` does not describe)."""
+    key = re.sub(r"[^a-z0-9]", "", str(model).lower()).removeprefix("mecheye")
+    return MECHEYE_MODELS.get(key, "")
+
+
+def mecheye_intrinsics(intrinsics: Any, resolutions: Any, height: int, width: int) -> Intrinsics | None:
+    """The pinhole intrinsics of a textured point cloud's ``height`` × ``width`` grid from Mech-Eye API's
+    ``CameraIntrinsics`` and ``CameraResolutions``: the depth camera's (``get_textured_point_cloud`` is the depth
+    map's grid in the depth camera's frame, the 2D image mapped onto it; Mech-Mind's samples deproject the depth map
+    with these), when the depth map is that size; None otherwise, or when the values are not a camera's (zeros: not
+    read from a device).  The distortion coefficients are not kept: the cloud is 3D already."""
+    depth = resolutions.depth
+    if (int(depth.width), int(depth.height)) != (int(width), int(height)):
+        return None
+    m = intrinsics.depth.camera_matrix
+    try:
+        return Intrinsics(int(width), int(height), float(m.fx), float(m.fy), float(m.cx), float(m.cy))
+    except ValueError:
+        return None
+
+
 def realsense_capture(color: Any, vertices_m: Any, height: int, width: int, color_format: str = "rgb8") -> Capture:
     """RealSense colour frame data (H, W, 3) and ``points.get_vertices()`` (H·W or H·W×3 float32, metres, 0 where no
     depth, the depth aligned to the colour camera) -> ``Capture`` in mm with NaN."""
@@ -126,41 +196,145 @@ def import_vendor(extra: str, module: str, what: str) -> Any:
         raise CameraError(f"{what}: {module} is installed but does not import on this machine: {exc}{hint}") from None
 
 
+MECHEYE_PORT = 5577  # the TCP port Mech-Eye API 2.6 connects to (ZeroMQ; seen with strace: CameraInfo.port is not used)
+
+
+def _flush_c_stdio() -> None:
+    try:
+        ctypes.CDLL(None).fflush(None)
+    except (OSError, AttributeError, TypeError):  # no C library to reach (not POSIX): nothing buffered there
+        pass
+
+
+def _held_output(call: Any, *args: Any) -> tuple[Any, str]:
+    """``call(*args)`` with file descriptors 1 and 2 going to a temporary file: its result and what it wrote.
+
+    Mech-Eye API writes its own lines to the terminal (its logger's first-run notes to stdout, "Network request timed
+    out ..." and the shell's "ping: not found" to stderr), which would break ``--json``'s stdout and the one-line
+    error; it also keeps its own log (/var/log/mmind/eye_api_logs, else under /tmp)."""
+    for stream in (sys.stdout, sys.stderr):
+        if stream is not None:
+            stream.flush()
+    _flush_c_stdio()
+    try:
+        saved = os.dup(1), os.dup(2)
+    except OSError:  # no such descriptors to redirect: nothing of ours to keep clean
+        return call(*args), ""
+    with tempfile.TemporaryFile() as held:
+        try:
+            os.dup2(held.fileno(), 1)
+            os.dup2(held.fileno(), 2)
+            result = call(*args)
+        finally:
+            _flush_c_stdio()
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            os.close(saved[0])
+            os.close(saved[1])
+        held.seek(0)
+        return result, held.read().decode("utf-8", errors="replace")
+
+
 class MechEyeCamera:
-    """A Mech-Eye industrial 3D camera at ``ip`` (the paper's Pro M Enhanced): ``capture``, ``close``."""
+    """A Mech-Eye industrial 3D camera at ``ip`` (the paper's Pro M Enhanced): ``capture``, ``close``.
+
+    ``timeout_s`` bounds the connection: a plain TCP connection to the camera's port first (Mech-Eye API's own
+    ``connect`` does not keep to its timeout, module docstring), then the SDK's ``connect``.  ``capture_timeout_s``
+    is handed to ``capture_2d_and_3d``."""
 
     def __init__(self, ip: str, timeout_s: float = 5.0, capture_timeout_s: float = 10.0) -> None:
+        self._camera = None
         if not isinstance(ip, str) or not ip.strip():
             raise CameraError(f"Mech-Eye camera address {ip!r} must be an IP address")
         self.ip = ip.strip()
+        try:
+            ipaddress.IPv4Address(self.ip)
+        except ValueError:
+            hint = (": Mech-Eye API opens no file (an .mraw is Mech-Eye Viewer's virtual device); replay a capture file "
+                    "with --camera replay:FILE" if self.ip.lower().endswith(".mraw") or os.sep in self.ip else "")
+            raise CameraError(f"Mech-Eye camera address {self.ip!r} must be an IPv4 address such as 192.168.1.10 "
+                              f"(Mech-Eye API takes no host names){hint}") from None
+        self.timeout_s = float(timeout_s)
         self.capture_timeout_ms = int(round(capture_timeout_s * 1000))
         self._sdk = import_vendor("mecheye", "mecheye.area_scan_3d_camera", "the Mech-Eye camera")
         self._shared = importlib.import_module("mecheye.shared")
-        self._camera = self._sdk.Camera()
-        self._check(self._camera.connect(self.ip, int(round(timeout_s * 1000))), f"connect (timeout {timeout_s:g} s)",
-                    connected=False)
-        self._check(self._camera.set_point_cloud_unit(self._shared.CoordinateUnit_Millimeter), "set_point_cloud_unit(mm)")
-
-    def _check(self, status: Any, what: str, connected: bool = True) -> None:
+        self._port_answers()
+        camera = self._sdk.Camera()
+        t0 = time.monotonic()
+        status, written = _held_output(camera.connect, self.ip, int(round(self.timeout_s * 1000)))
         if not status.is_ok():
-            if connected:
-                self.close()
-            raise CameraError(f"Mech-Eye camera at {self.ip}: {what} failed: {status.error_description} "
-                              f"(code {status.error_code})")
+            camera = None  # gone now: a Camera that tried a silent peer and lives on to the interpreter's exit hangs it
+            raise CameraError(self._connect_failure(status, time.monotonic() - t0))
+        if written.strip():
+            print(written.rstrip(), file=sys.stderr)
+        self._camera = camera
+        self._check(self._camera.set_point_cloud_unit(self._shared.CoordinateUnit_Millimeter), "set_point_cloud_unit(mm)")
+        info = self._sdk.CameraInfo()
+        self._check(self._camera.get_camera_info(info), "get_camera_info")
+        self.serial, self.model_name = str(info.serial_number), str(info.model)
+        self.model = mecheye_model(self.model_name)
+        self.source = f"mecheye {self.ip} {self.serial}".strip()
+        if not self.model:
+            self.source += f" ({self.model_name or 'model not reported'}: not a task.camera model)"
+        self._intrinsics, self._resolutions = self._sdk.CameraIntrinsics(), self._sdk.CameraResolutions()
+        if not (self._camera.get_camera_intrinsics(self._intrinsics).is_ok()
+                and self._camera.get_camera_resolutions(self._resolutions).is_ok()):
+            self._intrinsics = self._resolutions = None  # the captures then carry no intrinsics
+
+    def _port_answers(self) -> None:
+        """``CameraError`` unless something accepts a TCP connection on the camera's port within the timeout."""
+        try:
+            with socket.create_connection((self.ip, MECHEYE_PORT), timeout=self.timeout_s):
+                return
+        except TimeoutError:
+            reason = f"no answer within {self.timeout_s:g} s"
+        except OSError as exc:
+            reason = (exc.strerror or str(exc)).lower()
+        raise CameraError(f"Mech-Eye camera at {self.ip}: connect failed: nothing accepts a connection on its TCP port "
+                          f"{MECHEYE_PORT} ({reason}; timeout {self.timeout_s:g} s): is the camera on, at this address, "
+                          "on this PC's network?")
+
+    def _status_text(self, status: Any) -> str:
+        code = status.error_code
+        names = {getattr(self._shared.ErrorStatus, n): n.removeprefix("MMIND_STATUS_")
+                 for n in dir(self._shared.ErrorStatus) if n.startswith("MMIND_")}
+        return f"{status.error_description} (SDK code {code} {names.get(code, '')})".replace(" )", ")")
+
+    def _connect_failure(self, status: Any, elapsed: float) -> str:
+        hint = ""
+        if status.error_code == self._shared.ErrorStatus.MMIND_STATUS_DEVICE_OFFLINE and shutil.which("ping") is None:
+            hint = ("; Mech-Eye API judges a camera reachable by running the system's ping, which is not installed "
+                    "here (Debian and Ubuntu: apt-get install iputils-ping)")
+        return (f"Mech-Eye camera at {self.ip}: connect failed after {elapsed:.1f} s (timeout {self.timeout_s:g} s): "
+                f"{self._status_text(status)}{hint}")
+
+    def _check(self, status: Any, what: str) -> None:
+        if not status.is_ok():
+            self.close()
+            raise CameraError(f"Mech-Eye camera at {self.ip}: {what} failed: {self._status_text(status)}")
 
     def capture(self) -> Capture:
+        if self._camera is None:
+            raise CameraError(f"Mech-Eye camera at {self.ip}: closed")
         frame = self._sdk.Frame2DAnd3D()
-        self._check(self._camera.capture_2d_and_3d(frame, self.capture_timeout_ms),
-                    f"capture_2d_and_3d (timeout {self.capture_timeout_ms / 1000:g} s)")
+        taken = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="milliseconds")
+        status, written = _held_output(self._camera.capture_2d_and_3d, frame, self.capture_timeout_ms)
+        self._check(status, f"capture_2d_and_3d (timeout {self.capture_timeout_ms / 1000:g} s)")
+        if written.strip():
+            print(written.rstrip(), file=sys.stderr)
         cloud = frame.get_textured_point_cloud()
         if cloud.is_empty():
             raise CameraError(f"Mech-Eye camera at {self.ip}: the capture holds no point cloud")
-        return mecheye_capture(cloud.vertices(), cloud.colors())
+        capture = mecheye_capture(cloud.vertices(), cloud.colors())
+        height, width = capture.cloud_mm.shape[:2]
+        intrinsics = (mecheye_intrinsics(self._intrinsics, self._resolutions, height, width)
+                      if self._intrinsics is not None else None)
+        return capture._replace(intrinsics=intrinsics, camera=self.model, source=self.source, time_utc=taken)
 
     def close(self) -> None:
         camera, self._camera = getattr(self, "_camera", None), None
         if camera is not None:
-            camera.disconnect()
+            _held_output(camera.disconnect)
 
 
 class RealSenseCamera:
