@@ -14,14 +14,21 @@ pixel grid as the image — what ``deploy.twin_camera`` renders and ``deploy.per
   (``get_camera_info``: ``mecheye_pro_m`` for a PRO M or Pro M Enhanced; "" for any other, named in ``source``),
   ``source`` "mecheye IP SERIAL" and the time it was asked for.
 * ``RealSenseCamera(serial=None)`` (``pip install "sagrasp_jax[realsense]"``, Intel's ``pyrealsense2``; on
-  Linux it also needs the system's libusb-1.0): depth and colour streams, the depth aligned to the colour
-  camera (``rs.align``), the cloud from ``rs.pointcloud`` (librealsense's own deprojection, with the
-  camera's intrinsics and distortion) in metres, 0 where there is no depth: converted to mm and NaN.
+  Linux it also needs the system's libusb-1.0, Debian's ``libusb-1.0-0``): depth and colour streams, the depth
+  aligned to the colour camera (``rs.align``), the cloud from ``rs.pointcloud`` (librealsense's own
+  deprojection, with the camera's intrinsics and distortion) in metres, 0 where there is no depth: converted to
+  mm and NaN.  ``RealSenseCamera("path/to/recording.db3")`` (or an older librealsense's ROS1 ``.bag``) plays a
+  recording back through the same ``rs.pipeline``, ``rs.align`` and ``rs.pointcloud`` instead of a device
+  (``rs.config.enable_device_from_file``, not in real time, not repeated): ``deploy.realsense_record`` writes
+  such a recording of the twin's renders.  The capture's intrinsics are the colour stream's pinhole part
+  (width, height, fx, fy, ppx, ppy); its distortion coefficients are not kept, since the cloud from
+  ``rs.pointcloud`` has already been deprojected with them.
 
 The conversions from the SDKs' arrays (``mecheye_capture``, ``realsense_capture``) are pure NumPy, tested on
 the SDKs' real frame objects built without a device (a Mech-Eye ``TexturedPointCloud`` filled by hand, a
-RealSense software device's depth frame through ``rs.pointcloud``).  Neither camera class has run against
-a real camera here.  Every capture has a timeout; a camera that is absent or does not answer raises
+RealSense software device's depth frame through ``rs.pointcloud``); ``RealSenseCamera`` has run on
+recordings of the twin's renders (``tests/test_realsense_librealsense.py``).  Neither camera class has run
+against a real camera here.  Every capture has a timeout; a camera that is absent or does not answer raises
 ``CameraError`` naming it (deploy exits 2: nothing moved).
 
 Mech-Eye API 2.6.0 without a camera, as measured here (Linux x86-64, CPython 3.11).  It has no virtual or
@@ -72,7 +79,7 @@ from typing import Any, NamedTuple, Protocol, runtime_checkable
 import numpy as np
 
 from sagrasp_jax.base import extras
-from sagrasp_jax.task.camera import Intrinsics
+from sagrasp_jax.task.camera import CAMERA_MODELS, Intrinsics
 
 CAMERAS = ("mecheye", "realsense")
 
@@ -192,7 +199,8 @@ def import_vendor(extra: str, module: str, what: str) -> Any:
     try:
         return importlib.import_module(module)
     except ImportError as exc:
-        hint = " (install the system's libusb-1.0, e.g. apt install libusb-1.0-0)" if "libusb" in str(exc) else ""
+        hint = (" (install the system's libusb-1.0: on Debian and Ubuntu apt-get install libusb-1.0-0)"
+                if "libusb" in str(exc) else "")
         raise CameraError(f"{what}: {module} is installed but does not import on this machine: {exc}{hint}") from None
 
 
@@ -337,56 +345,170 @@ class MechEyeCamera:
             _held_output(camera.disconnect)
 
 
+RECORDING_SUFFIXES = (".db3", ".bag")  # librealsense 2.59 records rosbag2 (.db3) only; its playback also reads ROS1 .bag
+
+
+def is_recording(address: str) -> bool:
+    """Whether a RealSense ``--camera-address`` names a recording rather than a serial number: it ends in .db3 or
+    .bag, holds a path separator, or is an existing file (a serial number is digits)."""
+    return (address.lower().endswith(RECORDING_SUFFIXES) or os.sep in address
+            or (os.altsep is not None and os.altsep in address) or os.path.isfile(address))
+
+
+def realsense_model(device_name: str) -> str:
+    """The ``task.camera`` model of a RealSense device (or recording) by its name: a model named in it (a twin
+    recording's), else ``realsense_d435`` unless the name is of another RealSense product ("" then: not known)."""
+    for name in CAMERA_MODELS:
+        if name in device_name:
+            return name
+    other = re.search(r"\b(D4\d\d|D5\d\d|L5\d\d|SR3\d\d|T26\d)", device_name)
+    return "" if other and "D435" not in device_name else "realsense_d435"
+
+
+def _frame_time_utc(rs: Any, frame: Any) -> str:
+    """When ``frame`` was taken, ISO 8601: its own timestamp when that is host time (ms since the epoch), else now."""
+    now = datetime.datetime.now(datetime.timezone.utc)
+    try:
+        host = frame.get_frame_timestamp_domain() in (rs.timestamp_domain.system_time, rs.timestamp_domain.global_time)
+        taken = datetime.datetime.fromtimestamp(frame.get_timestamp() / 1000.0, datetime.timezone.utc)
+    except (RuntimeError, ValueError, OverflowError, OSError):
+        host = False
+    when = taken if host and datetime.datetime(2000, 1, 1, tzinfo=datetime.timezone.utc) <= taken <= now + \
+        datetime.timedelta(days=1) else now
+    return when.isoformat(timespec="milliseconds")
+
+
 class RealSenseCamera:
-    """An Intel RealSense depth camera (``serial``, or the only/first one connected): ``capture``, ``close``."""
+    """An Intel RealSense depth camera (``serial``, or the only/first one connected), or a recording of one
+    (``serial`` a .db3/.bag file: ``is_recording``): ``capture``, ``close``.
+
+    Either way the frames come through ``rs.pipeline``, the depth is aligned to the colour camera (``rs.align``) and
+    the cloud is librealsense's (``rs.pointcloud``).  A recording is played once, paused until the pipeline listens
+    and then not in real time (its frame sets come back in order; ``deploy.realsense_record`` measured it): each
+    ``capture`` takes the next one that holds depth and colour; past the last, ``CameraError``."""
 
     def __init__(self, serial: str | None = None, width: int = 1280, height: int = 720, fps: int = 30,
                  timeout_s: float = 5.0) -> None:
         rs = self._rs = import_vendor("realsense", "pyrealsense2", "the RealSense camera")
         self.timeout_ms = int(round(timeout_s * 1000))
-        ctx = rs.context()
-        found = [d.get_info(rs.camera_info.serial_number) for d in ctx.query_devices()]
-        if not found:  # pipeline.start would wait 15 s to say the same
-            raise CameraError("RealSense: no camera connected (USB 3 cable, udev rules?)")
-        if serial is not None and serial not in found:
-            raise CameraError(f"RealSense: no camera with serial {serial}; connected: {', '.join(found)}")
-        self.serial = serial or found[0]
-        config = rs.config()
-        config.enable_device(self.serial)
-        config.enable_stream(rs.stream.depth, width, height, rs.format.z16, fps)
-        config.enable_stream(rs.stream.color, width, height, rs.format.rgb8, fps)
-        self._pipeline = rs.pipeline(ctx)
+        self._pipeline = self._playback = None
+        self.file = serial if serial is not None and is_recording(serial) else None
+        if self.file is not None:
+            config = self._open_recording(rs, self.file)
+        else:
+            ctx = rs.context()
+            found = [d.get_info(rs.camera_info.serial_number) for d in ctx.query_devices()]
+            if not found:  # pipeline.start would wait 15 s to say the same
+                raise CameraError("RealSense: no camera connected (USB 3 cable, udev rules?)")
+            if serial is not None and serial not in found:
+                raise CameraError(f"RealSense: no camera with serial {serial}; connected: {', '.join(found)}")
+            self.serial = serial or found[0]
+            self.name = next(d.get_info(rs.camera_info.name) for d in ctx.query_devices()
+                             if d.get_info(rs.camera_info.serial_number) == self.serial)
+            self.source = f"realsense {self.serial}"
+            config = rs.config()
+            config.enable_device(self.serial)
+            config.enable_stream(rs.stream.depth, width, height, rs.format.z16, fps)
+            config.enable_stream(rs.stream.color, width, height, rs.format.rgb8, fps)
+            self._pipeline = rs.pipeline(ctx)
+        self.model = realsense_model(self.name)
         try:
             self._pipeline.start(config)
         except RuntimeError as exc:
             self._pipeline = None
-            raise CameraError(f"RealSense {self.serial}: cannot start {width} × {height} @ {fps} fps depth + colour: "
-                              f"{exc}") from None
+            what = f"the recording {self.file}" if self.file else f"{width} × {height} @ {fps} fps depth + colour"
+            raise CameraError(f"RealSense {self.serial}: cannot start {what}: {exc}") from None
+        if self._playback is not None:
+            self._playback.resume()
         self._align = rs.align(rs.stream.color)
         self._pointcloud = rs.pointcloud()
 
+    def _open_recording(self, rs: Any, path: str) -> Any:
+        """The pipeline's config for a recording: checked to be one, to hold depth and colour, and set to play every
+        frame (not in real time) before the pipeline starts."""
+        self.serial = path
+        self.source = f"realsense {os.path.abspath(path)}"
+        if not os.path.isfile(path):
+            raise CameraError(f"RealSense recording {path}: no such file")
+        probe = rs.config()  # opening the file on its own: what it is and which streams it holds
+        probe.enable_device_from_file(path, repeat_playback=False)
+        try:
+            held = {s.stream_type() for s in probe.resolve(rs.pipeline_wrapper(rs.pipeline())).get_streams()}
+        except RuntimeError as exc:
+            reason = str(exc).split("Reason: ", 1)[-1]
+            raise CameraError(f"RealSense recording {path}: not a librealsense recording (a .db3 of its recorder or "
+                              f"an older ROS1 .bag) that this pyrealsense2 can read: {reason}") from None
+        if not {rs.stream.depth, rs.stream.color} <= held:
+            names = ", ".join(sorted(str(s).split(".")[-1] for s in held)) or "no stream"
+            raise CameraError(f"RealSense recording {path}: needs a depth and a colour stream; it holds {names}")
+        config = rs.config()
+        config.enable_device_from_file(path, repeat_playback=False)
+        config.enable_stream(rs.stream.depth)
+        config.enable_stream(rs.stream.color)
+        self._pipeline = rs.pipeline()
+        try:  # resolved first (pipeline.start then uses this device), so that it plays not in real time from its start
+            profile = config.resolve(rs.pipeline_wrapper(self._pipeline))
+        except RuntimeError as exc:
+            raise CameraError(f"RealSense recording {path}: cannot play its depth and colour: {exc}") from None
+        device = profile.get_device()
+        self._playback = device.as_playback()
+        self._playback.set_real_time(False)  # every frame, as fast as they are read
+        self._playback.pause()  # until the pipeline listens (resumed after start): else its first frames may be lost
+        self.name = device.get_info(rs.camera_info.name) if device.supports(rs.camera_info.name) else ""
+        return config
+
+    def _next_frames(self) -> Any:
+        """The next frame set with depth and colour within the timeout (a recording: until its end)."""
+        rs = self._rs
+        deadline = time.monotonic() + self.timeout_ms / 1000
+        ended = 0
+        while True:
+            ok, frames = self._pipeline.try_wait_for_frames(100)
+            if ok and frames.get_depth_frame() and frames.get_color_frame():
+                return frames
+            if self._playback is not None and self._playback.current_status() == rs.playback_status.stopped:
+                ended += 1  # the reader may stop before the last frames are out: look twice more
+                if ended > 2:
+                    raise CameraError(f"RealSense recording {self.file}: no more frames with depth and colour")
+            if time.monotonic() > deadline:
+                raise CameraError(f"RealSense {self.serial}: no frames with depth and colour within "
+                                  f"{self.timeout_ms / 1000:g} s")
+
     def capture(self) -> Capture:
+        rs = self._rs
         if self._pipeline is None:
             raise CameraError(f"RealSense {self.serial}: closed")
-        try:
-            frames = self._align.process(self._pipeline.wait_for_frames(self.timeout_ms))
-        except RuntimeError as exc:
-            raise CameraError(f"RealSense {self.serial}: no frames within {self.timeout_ms / 1000:g} s: {exc}") from None
+        frames = self._align.process(self._next_frames())
         depth, color = frames.get_depth_frame(), frames.get_color_frame()
         if not depth or not color:
             raise CameraError(f"RealSense {self.serial}: a frame set without depth or colour")
         points = self._pointcloud.calculate(depth)
-        return realsense_capture(np.asanyarray(color.get_data()), np.asanyarray(points.get_vertices(2)),
-                                 depth.get_height(), depth.get_width())
+        fmt = str(color.get_profile().format()).split(".")[-1]
+        capture = realsense_capture(np.asanyarray(color.get_data()), np.asanyarray(points.get_vertices(2)),
+                                    depth.get_height(), depth.get_width(), color_format=fmt)
+        k = color.get_profile().as_video_stream_profile().get_intrinsics()
+        try:  # the pinhole part; the distortion is already in the cloud (rs.pointcloud deprojects with it)
+            intrinsics = Intrinsics(int(k.width), int(k.height), float(k.fx), float(k.fy), float(k.ppx), float(k.ppy))
+        except ValueError as exc:
+            raise CameraError(f"RealSense {self.serial}: the colour stream's intrinsics: {exc}") from None
+        if (intrinsics.width, intrinsics.height) != (capture.rgb.shape[1], capture.rgb.shape[0]):
+            raise CameraError(f"RealSense {self.serial}: colour intrinsics of {k.width} × {k.height} for a "
+                              f"{capture.rgb.shape[1]} × {capture.rgb.shape[0]} image")
+        return capture._replace(intrinsics=intrinsics, camera=self.model, source=self.source,
+                                time_utc=_frame_time_utc(rs, color))
 
     def close(self) -> None:
         pipeline, self._pipeline = getattr(self, "_pipeline", None), None
+        self._playback = None
         if pipeline is not None:
-            pipeline.stop()
+            try:
+                pipeline.stop()
+            except RuntimeError:  # never started (a refused recording)
+                pass
 
 
 def open_camera(kind: str, address: str | None = None) -> CameraSource:
-    """``mecheye`` (``address`` = its IP, required) or ``realsense`` (``address`` = serial, optional)."""
+    """``mecheye`` (``address`` = its IP, required) or ``realsense`` (``address`` = serial or a recording, optional)."""
     if kind == "mecheye":
         if not address:
             raise CameraError("the Mech-Eye camera needs its IP address")
