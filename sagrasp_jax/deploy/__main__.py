@@ -424,8 +424,7 @@ def _camera_scenes(tokens: list[str]) -> int:
     p.add_argument("--condition", choices=sorted(rehearse.EVAL_CONDITIONS), default="kinematic",
                    help="the arm's transfer errors, a named evaluation condition (default kinematic: none; the "
                         "detection error is the camera's own)")
-    p.add_argument("--depth-noise", default="industrial", help="none, industrial (default) or consumer")
-    p.add_argument("--camera-resolution", type=float, default=0.25, help="fraction of 1920 × 1200 (default 0.25)")
+    rehearse.add_camera_arguments(p)  # --camera-model, --depth-noise, --camera-resolution, --camera-driver
     p.add_argument("--seed", type=int, default=0, help="scene draws (default 0)")
     p.add_argument("--workers", type=int, default=1, help="processes (default 1)")
     p.add_argument("--save-captures", default=None, metavar="DIR",

@@ -89,13 +89,25 @@ def _failure(report: DeployReport | None, refused: str) -> str:
     return "dropped" if not report.held else ""
 
 
+CAMERA_DRIVERS = ("twin", "realsense")
+
+
 class CameraSettings(NamedTuple):
     """End to end from the camera: the twin renders the Mech-Eye's view (``deploy.twin_camera``) and
-    ``deploy.perception`` gives the loop the cube and the obstacles instead of the sampler's."""
+    ``deploy.perception`` gives the loop the cube and the obstacles instead of the sampler's.  ``driver``
+    ``realsense``: each render goes through librealsense first (``deploy.realsense_record.through_librealsense``:
+    written as a recording, played back through ``cameras.RealSenseCamera``'s rs.pipeline, rs.align and
+    rs.pointcloud, z in 1 mm counts, a D435's default) and perception reads what librealsense returns."""
 
     noise: str = "industrial"  # depth-noise model (task.camera.NOISE_MODELS)
     resolution: float = 0.25  # fraction of the camera model's pixels (the Mech-Eye's 1920 × 1200; the view is kept)
     model: str = "mecheye_pro_m"  # the camera (task.camera.CAMERA_MODELS)
+    driver: str = "twin"  # how the render reaches perception: as rendered, or through librealsense
+
+    def describe(self) -> dict[str, Any]:
+        """As a result names it: every field, ``driver`` only when not the default (a twin-driver result names its
+        camera as it did before drivers existed)."""
+        return {k: v for k, v in self._asdict().items() if not (k == "driver" and v == "twin")}
 
 
 def _same_detection(a: Any, b: Any) -> bool:
@@ -113,6 +125,17 @@ def _perceive(twin: Any, spec: sampling.ResetSpec, camera: CameraSettings, rng: 
     from sagrasp_jax.deploy.perception import PerceptionError, PerceptionSettings, detect_scene
 
     capture = twin_capture(twin, spec, camera, rng)
+    if camera.driver == "realsense":  # the render through librealsense: what a RealSense capture's path makes of it
+        from sagrasp_jax.deploy.cameras import CameraError
+        from sagrasp_jax.deploy.realsense_record import cloud_error_mm, through_librealsense
+
+        try:
+            rendered, capture = capture, through_librealsense(capture)
+        except CameraError as exc:  # librealsense returned no capture: the scene fails as a refused capture would
+            record["librealsense"] = {"error": str(exc)}
+            record["perception"] = {"refused": f"librealsense: {exc}"}
+            return None
+        record["librealsense"] = cloud_error_mm(rendered.cloud_mm, capture.cloud_mm)
     settings = PerceptionSettings.for_policy(env_cfg)
     try:
         seen = detect_scene(capture.cloud_mm, capture.rgb, CameraCalibration.default(), settings=settings)
@@ -300,7 +323,7 @@ def rehearse(policy_path: str, episodes: int, condition: str, scenes: str = "mix
         "episodes": episodes,
         "wall_s": time.perf_counter() - t0,
         "workers": workers,
-        "camera": camera._asdict() if camera is not None else None,
+        "camera": camera.describe() if camera is not None else None,
         "summary": {name: summarise(rs) for name, rs in groups.items()},
         "perception": perception_summary(records) if camera is not None else None,
         "records": records,
@@ -364,7 +387,10 @@ def format_table(result: dict[str, Any]) -> str:
                                  for _, g in groups])]
     rows += [(f"  {k}", [str(g["failures"].get(k, 0)) for _, g in groups]) for k in kinds]
     width = max(len(r[0]) for r in rows) + 2
-    camera = f", from the camera ({result['camera']['noise']} depth noise)" if result.get("camera") else ""
+    cam = result.get("camera") or {}
+    model = f"{cam['model']}, " if cam.get("model", "mecheye_pro_m") != "mecheye_pro_m" else ""
+    driver = ", through librealsense" if cam.get("driver") == "realsense" else ""
+    camera = f", from the camera ({model}{cam['noise']} depth noise{driver})" if cam else ""
     head = f"twin, {result['condition']}, {result['scenes']} scenes{camera}, seed {result['seed']}: {result['wall_s']:.0f} s"
     lines = [head, " " * width + "".join(f"{name:>14}" for name, _ in groups)]
     lines += [label.ljust(width) + "".join(f"{v:>14}" for v in values) for label, values in rows]
@@ -394,14 +420,39 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--camera", choices=("none", "twin"), default="none",
                    help="twin: end to end from the twin's rendered camera through deploy.perception (default none: "
                         "the sampler's scene with the condition's detection error)")
-    p.add_argument("--depth-noise", default="industrial", help="--camera twin: depth-noise model (none, industrial, "
-                   "consumer; default industrial)")
-    p.add_argument("--camera-resolution", type=float, default=0.25,
-                   help="--camera twin: fraction of the Mech-Eye's 1920 × 1200 (default 0.25)")
+    add_camera_arguments(p, "--camera twin: ")
     p.add_argument("--save-captures", default=None, metavar="DIR",
                    help="--camera twin: save every scene's capture in DIR (scene-<index>.npz, replayable with deploy "
                         "--camera replay:FILE), read it back and perceive it again; the result counts the replays "
                         "that saw exactly the same")
+
+
+def add_camera_arguments(p: argparse.ArgumentParser, prefix: str = "") -> None:
+    """The twin camera's options (here and in ``deploy --camera twin --scenes N``); ``prefix`` starts each help."""
+    from sagrasp_jax.task.camera import CAMERA_MODELS
+
+    p.add_argument("--camera-model", choices=tuple(CAMERA_MODELS), default="mecheye_pro_m",
+                   help=f"{prefix}the camera the twin renders (task.camera; default mecheye_pro_m)")
+    p.add_argument("--depth-noise", default=None, help=f"{prefix}depth-noise model (none, industrial, consumer; default "
+                   "the camera model's: industrial for the Mech-Eye, consumer for the RealSense)")
+    p.add_argument("--camera-resolution", type=float, default=0.25,
+                   help=f"{prefix}fraction of the camera model's pixels (default 0.25: the Mech-Eye's 1920 × 1200 as "
+                        "480 × 300, the RealSense's 1280 × 720 as 320 × 180)")
+    p.add_argument("--camera-driver", choices=CAMERA_DRIVERS, default="twin",
+                   help=f"{prefix}twin (default): perception reads the render; realsense: the render goes through "
+                        "librealsense first (a recording played back through rs.pipeline, rs.align and rs.pointcloud, "
+                        "as a RealSense capture; needs pyrealsense2 and the system's libusb-1.0)")
+
+
+def camera_settings(args: argparse.Namespace) -> CameraSettings | None:
+    """The ``CameraSettings`` of parsed options (None without ``--camera twin``); the noise defaults to the model's."""
+    if getattr(args, "camera", "none") != "twin":
+        return None
+    from sagrasp_jax.task.camera import camera_model
+
+    model = camera_model(getattr(args, "camera_model", "mecheye_pro_m"))
+    return CameraSettings(args.depth_noise or model.noise, args.camera_resolution, model.name,
+                          getattr(args, "camera_driver", "twin"))
 
 
 def check_arguments(args: argparse.Namespace) -> None:
@@ -414,9 +465,17 @@ def check_arguments(args: argparse.Namespace) -> None:
     if getattr(args, "camera", "none") == "twin":
         from sagrasp_jax.deploy.twin_camera import noise_model
 
-        noise_model(args.depth_noise)  # ValueError naming the models
+        if args.depth_noise is not None:
+            noise_model(args.depth_noise)  # ValueError naming the models
         if not 0.05 <= args.camera_resolution <= 1.0:
             raise ValueError(f"--camera-resolution must be in [0.05, 1], got {args.camera_resolution}")
+        if getattr(args, "camera_driver", "twin") == "realsense":  # before any scene: pyrealsense2 and libusb present
+            from sagrasp_jax.deploy.cameras import CameraError, import_vendor
+
+            try:
+                import_vendor("realsense", "pyrealsense2", "--camera-driver realsense")
+            except CameraError as exc:
+                raise ValueError(str(exc)) from None
     if getattr(args, "save_captures", None):
         if getattr(args, "camera", "none") != "twin":
             raise ValueError("--save-captures needs --camera twin")
@@ -434,7 +493,7 @@ def result_identity(policy: NumpyPolicy, policy_path: str, args: argparse.Namesp
     gives the same result, whatever the number of workers."""
     return {"backend": "twin", "policy": policy_name(policy_path), "policy_sha256": policy.file_sha256,
             "condition": args.condition, "scenes": args.scenes, "seed": args.seed, "episodes": args.episodes,
-            "camera": camera._asdict() if camera is not None else None}
+            "camera": camera.describe() if camera is not None else None}
 
 
 def check_output(path: str, identity: dict[str, Any], force: bool) -> None:
@@ -449,7 +508,11 @@ def run_cli(policy_path: str, args: argparse.Namespace, out: str | None = None) 
     write (to ``out``, default ``args.out``); the exit status.  Ctrl-C stops the scenes (the workers at once),
     writes nothing and exits 130 with one line saying so."""
     out = args.out if out is None else out
-    camera = CameraSettings(args.depth_noise, args.camera_resolution) if getattr(args, "camera", "none") == "twin" else None
+    try:
+        camera = camera_settings(args)
+    except ValueError as exc:  # an unknown camera model given programmatically (the parsers offer only known ones)
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     with cli.at_safe_points():
         try:
             try:
