@@ -29,7 +29,7 @@ import numpy as np
 from sagrasp_jax.base import cli, extras, fileio
 from sagrasp_jax.deploy import capture_file
 from sagrasp_jax.deploy.cameras import CameraError, open_camera
-from sagrasp_jax.task.camera import CAMERA_MODELS, NOISE_MODELS, model_for_driver
+from sagrasp_jax.task.camera import CAMERA_MODELS, NOISE_MODELS
 
 SOURCES = ("mecheye", "realsense", "twin")
 
@@ -109,8 +109,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                         capture = camera.capture()
                     finally:
                         camera.close()
-                    capture = capture._replace(
-                        camera=capture.camera or model_for_driver(args.camera).name,
+                    capture = capture._replace(  # camera: "" when the driver cannot name a known model, never guessed
                         source=capture.source or f"{args.camera} {args.camera_address or ''}".strip(),
                         time_utc=capture.time_utc or capture_file.now_utc())
                 cli.check()
