@@ -8,7 +8,8 @@ beside the wall-clock rate (under contention the wall clock suffers, the CPU tim
 Every cell runs on 1 jax device and, split over them with ``shard_map`` as the trainer does, on
 all CPU devices (one per core, ``train.use_cpu_devices``; ``--devices`` picks the counts).  With
 ``--pybullet`` it also times the PyBullet reference env (raw stepping, one env, kinematic and dynamic) when the
-``reference`` extra is installed.  Prints a table and writes JSON.
+``reference`` extra is installed.  Prints a table and writes JSON.  ``bench_bare_pybullet`` times a bare PyBullet
+AUBO-i5 chain, the paper stack's raw stepping (``bench_train``'s sb3 section, ``bench_vs_paper_stack raw``).
 
     python -m experiments.bench_env --out experiments/results/bench_env_cpu.json
 """
@@ -114,6 +115,61 @@ def bench_pybullet(mode: str, steps: int) -> dict | None:
     elapsed = time.perf_counter() - t0
     env.close()
     return {"mode": mode, "backend": "pybullet", "batch": 1, "steps": steps, "env_steps_per_s": round(steps / elapsed, 1)}
+
+
+def bench_bare_pybullet(steps: int = 20_000, physics_steps: int = 0) -> dict | None:
+    """Raw stepping of a bare PyBullet AUBO-i5 chain (docs/task.md §6's anchor, no learning): per step
+    the 6 arm joints' new targets, the gripper link's pose, one closest-point query to an obstacle, a
+    17-number observation.  ``physics_steps`` 0 sets the joints (``resetJointState``: the kinematic
+    stepping); N > 0 is the paper stack's dynamic stepping: position control of the 6 joints under
+    gravity and N ``stepSimulation`` calls of 1/240 s (12: one 0.05 s control period)."""
+    try:
+        import pybullet as pb
+    except ImportError:
+        return None
+    import numpy as np
+
+    from sagrasp_jax.task import robot
+
+    cid = pb.connect(pb.DIRECT)
+    try:
+        arm = pb.loadURDF(robot.URDF_PATH, useFixedBase=True, physicsClientId=cid)
+        joints = [j for j in range(pb.getNumJoints(arm, physicsClientId=cid))
+                  if pb.getJointInfo(arm, j, physicsClientId=cid)[2] == pb.JOINT_REVOLUTE][:6]
+        tip = pb.getNumJoints(arm, physicsClientId=cid) - 1
+        shape = pb.createCollisionShape(pb.GEOM_SPHERE, radius=0.05, physicsClientId=cid)
+        obstacle = pb.createMultiBody(0, shape, basePosition=[0.0, -0.45, 0.2], physicsClientId=cid)
+        rng = np.random.default_rng(0)
+        actions = rng.uniform(-1, 1, (steps, 6))
+        q = np.array(config.HOME_Q)
+        for j, qj in zip(joints, q):
+            pb.resetJointState(arm, j, qj, physicsClientId=cid)
+        if physics_steps:
+            pb.setGravity(0, 0, -9.81, physicsClientId=cid)
+            pb.setTimeStep(1.0 / 240.0, physicsClientId=cid)
+        target = np.array([0.1, -0.45, 0.025])
+        t = time.perf_counter()
+        for a in actions:
+            q = np.clip(q + 0.05 * a, -config.Q_LIMIT, config.Q_LIMIT)
+            if physics_steps:
+                pb.setJointMotorControlArray(arm, joints, pb.POSITION_CONTROL, targetPositions=q.tolist(),
+                                             forces=[150.0] * 6, physicsClientId=cid)
+                for _ in range(physics_steps):
+                    pb.stepSimulation(physicsClientId=cid)
+            else:
+                for j, qj in zip(joints, q):
+                    pb.resetJointState(arm, j, qj, physicsClientId=cid)
+            pos = pb.getLinkState(arm, tip, physicsClientId=cid)[0]
+            close = pb.getClosestPoints(arm, obstacle, 1.0, physicsClientId=cid)
+            d = min((c[8] for c in close), default=1.0)
+            np.concatenate([q, pos, target, [0.0, -0.45, 0.2, d, 0.0]])
+        elapsed = time.perf_counter() - t
+    finally:
+        pb.disconnect(physicsClientId=cid)
+    how = (f"position control, {physics_steps} x stepSimulation(1/240 s)" if physics_steps
+           else "resetJointState x6")
+    return {"what": f"bare PyBullet AUBO-i5 chain: {how}, link pose, one closest-point query, 17-d observation",
+            "steps": steps, "physics_steps": physics_steps, "env_steps_per_s": steps / elapsed}
 
 
 def main(argv: list[str] | None = None) -> int:

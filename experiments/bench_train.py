@@ -279,7 +279,7 @@ def _vm_hwm_kb(pid: int) -> int | None:
 def train_run(args_extra: list[str], work: str, name: str, cache_dir: str, budget_s: float,
               stop_level: float | None, env_extra: dict[str, str] | None = None, root: str = ROOT) -> dict[str, Any]:
     """Run ``python -m sagrasp_jax.train`` and watch its metrics; stop at ``stop_level`` or the budget."""
-    from experiments.bench_vs_paper_stack import watch_trainer
+    from experiments.study import watch_trainer
     from sagrasp_jax.training.run_dir import METRICS_FILE
 
     out = os.path.join(work, name)
@@ -438,62 +438,6 @@ def _fmt_reach(value: Any) -> str:
 
 # ---------------------------------------------------------------------- SB3 and the raw PyBullet env
 
-def bench_bare_pybullet(steps: int = 20_000, physics_steps: int = 0) -> dict[str, Any] | None:
-    """Raw stepping of a bare PyBullet AUBO-i5 chain (docs/task.md §6's anchor, no learning): per step
-    the 6 arm joints' new targets, the gripper link's pose, one closest-point query to an obstacle, a
-    17-number observation.  ``physics_steps`` 0 sets the joints (``resetJointState``: the kinematic
-    stepping); N > 0 is the paper stack's dynamic stepping: position control of the 6 joints under
-    gravity and N ``stepSimulation`` calls of 1/240 s (12: one 0.05 s control period)."""
-    try:
-        import pybullet as pb
-    except ImportError:
-        return None
-    import numpy as np
-
-    from sagrasp_jax.task import config
-    from sagrasp_jax.task import robot
-
-    cid = pb.connect(pb.DIRECT)
-    try:
-        arm = pb.loadURDF(robot.URDF_PATH, useFixedBase=True, physicsClientId=cid)
-        joints = [j for j in range(pb.getNumJoints(arm, physicsClientId=cid))
-                  if pb.getJointInfo(arm, j, physicsClientId=cid)[2] == pb.JOINT_REVOLUTE][:6]
-        tip = pb.getNumJoints(arm, physicsClientId=cid) - 1
-        shape = pb.createCollisionShape(pb.GEOM_SPHERE, radius=0.05, physicsClientId=cid)
-        obstacle = pb.createMultiBody(0, shape, basePosition=[0.0, -0.45, 0.2], physicsClientId=cid)
-        rng = np.random.default_rng(0)
-        actions = rng.uniform(-1, 1, (steps, 6))
-        q = np.array(config.HOME_Q)
-        for j, qj in zip(joints, q):
-            pb.resetJointState(arm, j, qj, physicsClientId=cid)
-        if physics_steps:
-            pb.setGravity(0, 0, -9.81, physicsClientId=cid)
-            pb.setTimeStep(1.0 / 240.0, physicsClientId=cid)
-        target = np.array([0.1, -0.45, 0.025])
-        t = time.perf_counter()
-        for a in actions:
-            q = np.clip(q + 0.05 * a, -config.Q_LIMIT, config.Q_LIMIT)
-            if physics_steps:
-                pb.setJointMotorControlArray(arm, joints, pb.POSITION_CONTROL, targetPositions=q.tolist(),
-                                             forces=[150.0] * 6, physicsClientId=cid)
-                for _ in range(physics_steps):
-                    pb.stepSimulation(physicsClientId=cid)
-            else:
-                for j, qj in zip(joints, q):
-                    pb.resetJointState(arm, j, qj, physicsClientId=cid)
-            pos = pb.getLinkState(arm, tip, physicsClientId=cid)[0]
-            close = pb.getClosestPoints(arm, obstacle, 1.0, physicsClientId=cid)
-            d = min((c[8] for c in close), default=1.0)
-            np.concatenate([q, pos, target, [0.0, -0.45, 0.2, d, 0.0]])
-        elapsed = time.perf_counter() - t
-    finally:
-        pb.disconnect(physicsClientId=cid)
-    how = (f"position control, {physics_steps} x stepSimulation(1/240 s)" if physics_steps
-           else "resetJointState x6")
-    return {"what": f"bare PyBullet AUBO-i5 chain: {how}, link pose, one closest-point query, 17-d observation",
-            "steps": steps, "physics_steps": physics_steps, "env_steps_per_s": steps / elapsed}
-
-
 def bench_sb3_section(sb3_python: str | None, seconds: float, work: str) -> dict[str, Any]:
     from experiments import bench_env
     from experiments import bench_vs_paper_stack as stack
@@ -503,7 +447,7 @@ def bench_sb3_section(sb3_python: str | None, seconds: float, work: str) -> dict
     out["pybullet_raw"] = raw if raw is not None else {"status": "skipped (reference extra missing)"}
     if raw is not None:
         print(f"  raw PyBullet reference env stepping: {raw['env_steps_per_s']:,.0f} env-steps/s (load {load()})", flush=True)
-    bare = bench_bare_pybullet()
+    bare = bench_env.bench_bare_pybullet()
     out["pybullet_bare_chain"] = bare if bare is not None else {"status": "skipped (pybullet missing)"}
     if bare is not None:
         print(f"  raw bare PyBullet AUBO chain stepping: {bare['env_steps_per_s']:,.0f} env-steps/s (load {load()})",

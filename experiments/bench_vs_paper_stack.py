@@ -41,12 +41,11 @@ import json
 import os
 import platform
 import shutil
-import signal
 import subprocess
 import sys
 import tempfile
 import time
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -58,44 +57,12 @@ PAPER_STEPS_PER_S = 375.8  # paper, SB3 + PyBullet on an RTX 4070 machine (docs/
 PAPER_TOTAL_STEPS = 20_000_000
 
 
-def watch_trainer(cmd: list[str], cwd: str, log_path: str, metrics_path: str, poll_s: float,
-                  stop_reason: Callable[[list[dict[str, Any]], float], str | None],
-                  env: dict[str, str] | None = None, on_poll: Callable[[int], None] | None = None,
-                  ) -> tuple[list[dict[str, Any]], str | None, int | None, float]:
-    """Run a trainer command (output to ``log_path``), reading its ``metrics.jsonl`` every ``poll_s``
-    seconds; ``stop_reason(rows, seconds since launch)`` returning a reason SIGTERMs it (it
-    checkpoints and exits).  ``on_poll(pid)`` samples the process (e.g. its memory).  Returns the
-    final metric rows, the stop reason (None: it exited by itself), its exit code and the wall time."""
-    from sagrasp_jax.training.run_dir import read_metrics
-
-    stopped: str | None = None
-    t0 = time.perf_counter()
-    with open(log_path, "w", encoding="utf-8") as log:
-        proc = subprocess.Popen(cmd, cwd=cwd, stdout=log, stderr=subprocess.STDOUT, env=env)
-        try:
-            while proc.poll() is None:
-                time.sleep(poll_s)
-                if on_poll is not None:
-                    on_poll(proc.pid)
-                rows = read_metrics(metrics_path) if os.path.exists(metrics_path) else []
-                stopped = stop_reason(rows, time.perf_counter() - t0)
-                if stopped:
-                    proc.send_signal(signal.SIGTERM)
-                    break
-            proc.wait(timeout=120)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait()
-    rows = read_metrics(metrics_path) if os.path.exists(metrics_path) else []
-    return rows, stopped, proc.returncode, time.perf_counter() - t0
-
-
 # ---------------------------------------------------------------------- ours
 
 def bench_ours(seconds: float, preset: str, overrides: list[str], levels: list[float], window: int,
                work: str, max_startup_s: float) -> dict[str, Any]:
     """Train our SA-PPO via the CLI until ``seconds`` of training time, then stop it and read its metrics."""
+    from experiments.study import watch_trainer  # here: the SB3 worker imports this module without jax
     from sagrasp_jax.training.run_dir import METRICS_FILE
 
     out = os.path.join(work, "ours")
@@ -494,11 +461,11 @@ def raw_main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if min(args.batch, args.scan_steps, args.pybullet_steps, args.physics_steps) < 1:
         p.error("--batch, --scan-steps, --pybullet-steps and --physics-steps must be >= 1")
-    from experiments import bench_env, bench_train
+    from experiments import bench_env
     import jax
 
     def paper_side() -> float:
-        row = bench_train.bench_bare_pybullet(args.pybullet_steps, physics_steps=args.physics_steps)
+        row = bench_env.bench_bare_pybullet(args.pybullet_steps, physics_steps=args.physics_steps)
         if row is None:
             raise SystemExit("error: pybullet is not installed (pip install -e \".[twin]\")")
         return row["env_steps_per_s"]

@@ -73,7 +73,7 @@ import jax
 import numpy as np
 
 from experiments import bench_env, study
-from experiments.bench_vs_paper_stack import watch_trainer
+from experiments.study import watch_trainer
 from sagrasp_jax import evaluate, train
 from sagrasp_jax.task import config
 from sagrasp_jax.training import run_dir

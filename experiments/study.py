@@ -25,6 +25,10 @@ repository root as ``python -m experiments.NAME`` (``experiments`` is a package:
 * **Summaries** (``sagrasp_jax.training.stats``, SciPy's distributions): ``mean_ci`` (mean, 95 % Student-t interval
   across seeds), ``paired`` (paired t-test against a reference variant, seed by seed), curve bands.
 * **JSON** through ``sagrasp_jax.base.fileio`` (``write_json``: atomic, sorted keys, no NaN).
+* **A trainer in a subprocess** (``watch_trainer``): the benchmarks' way to run ``python -m sagrasp_jax.train``,
+  read its metrics.jsonl as it goes and stop it by their own rule (``bench_train``, ``bench_vs_paper_stack``,
+  ``gpu_check``).  Shared helpers live here or in ``bench_env``, below the scripts that use them: no script
+  imports one that imports it back.
 """
 
 from __future__ import annotations
@@ -37,6 +41,7 @@ import json
 import os
 import platform
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -410,6 +415,39 @@ def rate(group: dict[str, Any], key: str = "success_rate") -> float | None:
 def load_curves(study: Study, variant: str) -> list[list[dict[str, Any]]]:
     """metrics.jsonl rows of each seed's run of ``variant``."""
     return [run_dir.read_metrics(os.path.join(study.folder(variant, s), run_dir.METRICS_FILE)) for s in study.seeds]
+
+
+# ---------------------------------------------------------------------- a trainer in a subprocess
+
+def watch_trainer(cmd: list[str], cwd: str, log_path: str, metrics_path: str, poll_s: float,
+                  stop_reason: Callable[[list[dict[str, Any]], float], str | None],
+                  env: dict[str, str] | None = None, on_poll: Callable[[int], None] | None = None,
+                  ) -> tuple[list[dict[str, Any]], str | None, int | None, float]:
+    """Run a trainer command (output to ``log_path``), reading its ``metrics.jsonl`` every ``poll_s``
+    seconds; ``stop_reason(rows, seconds since launch)`` returning a reason SIGTERMs it (it
+    checkpoints and exits).  ``on_poll(pid)`` samples the process (e.g. its memory).  Returns the
+    final metric rows, the stop reason (None: it exited by itself), its exit code and the wall time."""
+    stopped: str | None = None
+    t0 = time.perf_counter()
+    with open(log_path, "w", encoding="utf-8") as log:
+        proc = subprocess.Popen(cmd, cwd=cwd, stdout=log, stderr=subprocess.STDOUT, env=env)
+        try:
+            while proc.poll() is None:
+                time.sleep(poll_s)
+                if on_poll is not None:
+                    on_poll(proc.pid)
+                rows = run_dir.read_metrics(metrics_path) if os.path.exists(metrics_path) else []
+                stopped = stop_reason(rows, time.perf_counter() - t0)
+                if stopped:
+                    proc.send_signal(signal.SIGTERM)
+                    break
+            proc.wait(timeout=120)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+    rows = run_dir.read_metrics(metrics_path) if os.path.exists(metrics_path) else []
+    return rows, stopped, proc.returncode, time.perf_counter() - t0
 
 
 # ---------------------------------------------------------------------- output
