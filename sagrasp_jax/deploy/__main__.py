@@ -89,7 +89,6 @@ from sagrasp_jax.deploy.calibration import (
 )
 from sagrasp_jax.base import cli, extras, fileio
 from sagrasp_jax.deploy.cameras import CameraError, open_camera
-from sagrasp_jax.task.camera import model_for_driver
 from sagrasp_jax.task import shapes
 from sagrasp_jax.deploy.loop import (
     DeployError, Obstacle, format_report, plan_episode, run_episode, scene_spec, with_obstacle_kinds,
@@ -609,8 +608,7 @@ def _perceive_camera(args: argparse.Namespace, cal: CameraCalibration, env_cfg: 
             capture = camera.capture()
         finally:
             camera.close()
-        capture = capture._replace(camera=capture.camera or model_for_driver(kind).name,
-                                   source=capture.source or f"{kind} {args.camera_address or ''}".strip(),
+        capture = capture._replace(source=capture.source or f"{kind} {args.camera_address or ''}".strip(),
                                    time_utc=capture.time_utc or capture_file.now_utc())
         path = capture_file.save_capture(os.path.join(args.record_dir, "capture.npz"), capture)
         given["capture_file"] = os.path.abspath(path)

@@ -63,7 +63,6 @@ what a camera's server makes of the bare TCP connection opened before the SDK's.
 
 from __future__ import annotations
 
-import ctypes
 import datetime
 import importlib
 import ipaddress
@@ -72,13 +71,13 @@ import re
 import shutil
 import socket
 import sys
-import tempfile
 import time
 from typing import Any, NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
 
 from sagrasp_jax.base import extras
+from sagrasp_jax.base.native_output import held_native_output
 from sagrasp_jax.task.camera import CAMERA_MODELS, Intrinsics
 
 CAMERAS = ("mecheye", "realsense")
@@ -207,40 +206,15 @@ def import_vendor(extra: str, module: str, what: str) -> Any:
 MECHEYE_PORT = 5577  # the TCP port Mech-Eye API 2.6 connects to (ZeroMQ; seen with strace: CameraInfo.port is not used)
 
 
-def _flush_c_stdio() -> None:
-    try:
-        ctypes.CDLL(None).fflush(None)
-    except (OSError, AttributeError, TypeError):  # no C library to reach (not POSIX): nothing buffered there
-        pass
-
-
 def _held_output(call: Any, *args: Any) -> tuple[Any, str]:
     """``call(*args)`` with file descriptors 1 and 2 going to a temporary file: its result and what it wrote.
 
     Mech-Eye API writes its own lines to the terminal (its logger's first-run notes to stdout, "Network request timed
     out ..." and the shell's "ping: not found" to stderr), which would break ``--json``'s stdout and the one-line
     error; it also keeps its own log (/var/log/mmind/eye_api_logs, else under /tmp)."""
-    for stream in (sys.stdout, sys.stderr):
-        if stream is not None:
-            stream.flush()
-    _flush_c_stdio()
-    try:
-        saved = os.dup(1), os.dup(2)
-    except OSError:  # no such descriptors to redirect: nothing of ours to keep clean
-        return call(*args), ""
-    with tempfile.TemporaryFile() as held:
-        try:
-            os.dup2(held.fileno(), 1)
-            os.dup2(held.fileno(), 2)
-            result = call(*args)
-        finally:
-            _flush_c_stdio()
-            os.dup2(saved[0], 1)
-            os.dup2(saved[1], 2)
-            os.close(saved[0])
-            os.close(saved[1])
-        held.seek(0)
-        return result, held.read().decode("utf-8", errors="replace")
+    with held_native_output() as held:
+        result = call(*args)
+    return result, held[0] if held else ""
 
 
 class MechEyeCamera:

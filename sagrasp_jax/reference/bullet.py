@@ -15,18 +15,17 @@ and so does the import of pybullet here.
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import math
 import os
 import re
 import sys
-import tempfile
 import xml.etree.ElementTree as ET
 from typing import Any, Collection, Iterator
 
 import numpy as np
 
 from sagrasp_jax.base import extras
+from sagrasp_jax.base.native_output import held_native_output
 
 # A native message: its header ("b3Warning[file,line]:" and a newline), then its text (not always ended by a newline).
 _NATIVE_HEADER = re.compile(r"(b3(?:Warning|Error|Printf)\[[^\]\n]*\]:\n)")
@@ -77,46 +76,22 @@ def urdf_frame_links(path: str) -> tuple[str, ...] | None:
         return None
 
 
-def _flush_c_stdio() -> None:
-    """Flush the C library's stdio buffers (PyBullet's printf), so they land where fd 1 points now."""
-    try:
-        ctypes.CDLL(None).fflush(None)
-    except (OSError, AttributeError, TypeError):  # no C library to reach (not POSIX): nothing buffered there to lose
-        pass
-
-
 @contextlib.contextmanager
 def native_output_filtered(frame_links: Collection[str] | None = None) -> Iterator[None]:
     """Run the block with file descriptors 1 and 2 going to a temporary file, then write what it holds, less
     PyBullet's known-harmless messages (``filter_native_output``), to stderr.  Python's own output in the block
     (``sys.stdout`` too) goes the same way; stdout is left to what the command reports."""
-    for stream in (sys.stdout, sys.stderr):
-        if stream is not None:
-            stream.flush()
-    _flush_c_stdio()
-    saved = os.dup(1), os.dup(2)
-    with tempfile.TemporaryFile() as captured:
-        try:
-            os.dup2(captured.fileno(), 1)
-            os.dup2(captured.fileno(), 2)
+    held: list[str] = []
+    try:
+        with held_native_output() as held:
             yield
-        finally:
-            for stream in (sys.stdout, sys.stderr):
-                if stream is not None:
-                    stream.flush()
-            _flush_c_stdio()
-            os.dup2(saved[0], 1)
-            os.dup2(saved[1], 2)
-            os.close(saved[0])
-            os.close(saved[1])
-            captured.seek(0)
-            passed = filter_native_output(captured.read().decode("utf-8", errors="replace"), frame_links)
-            if passed:
-                if sys.stderr is not None:
-                    sys.stderr.write(passed)
-                    sys.stderr.flush()
-                else:
-                    os.write(2, passed.encode())
+    finally:  # what the block printed reaches stderr even when it raised
+        passed = filter_native_output(held[0] if held else "", frame_links)
+        if passed and sys.stderr is not None:
+            sys.stderr.write(passed)
+            sys.stderr.flush()
+        elif passed:
+            os.write(2, passed.encode())
 
 
 extras.require("twin", what="the PyBullet helpers")
