@@ -167,7 +167,6 @@ CAMERA_MODELS: dict[str, CameraModel] = {
                                   (0.3, 3.0)),
 }
 DEFAULT_CAMERA = "mecheye_pro_m"
-DRIVERS = tuple(dict.fromkeys(m.driver for m in CAMERA_MODELS.values()))
 
 
 def camera_model(name: str | CameraModel) -> CameraModel:
@@ -176,14 +175,6 @@ def camera_model(name: str | CameraModel) -> CameraModel:
     if name not in CAMERA_MODELS:
         raise ValueError(f"unknown camera model {name!r}; known: {', '.join(CAMERA_MODELS)}")
     return CAMERA_MODELS[name]
-
-
-def model_for_driver(driver: str) -> CameraModel:
-    """The registry's model a driver opens (its first), for the twin and the plan."""
-    for model in CAMERA_MODELS.values():
-        if model.driver == driver:
-            return model
-    raise ValueError(f"no camera model uses the driver {driver!r}; drivers: {', '.join(DRIVERS)}")
 
 
 def _edge_pixels(depth: np.ndarray, jump: float) -> tuple[np.ndarray, np.ndarray]:
