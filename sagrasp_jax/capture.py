@@ -1,7 +1,7 @@
 """Take one depth-camera capture and save it: ``python -m sagrasp_jax.capture``.
 
     python -m sagrasp_jax.capture --camera mecheye --camera-address IP --out capture.npz
-    python -m sagrasp_jax.capture --camera realsense [--camera-address SERIAL|FILE.bag] --out capture.npz
+    python -m sagrasp_jax.capture --camera realsense [--camera-address SERIAL|RECORDING] --out capture.npz
     python -m sagrasp_jax.capture --camera twin [--seed S] [--scene N] [--scene-set mix|blocking]
         [--camera-model mecheye_pro_m|realsense_d435] [--depth-noise MODEL] [--camera-resolution F] --out capture.npz
 
@@ -38,7 +38,7 @@ def _parser() -> cli.Parser:
     p = cli.Parser(prog="python -m sagrasp_jax.capture", description=__doc__.split("\n\n")[0])
     p.add_argument("--camera", choices=SOURCES, required=True, help="the camera: mecheye, realsense or twin")
     p.add_argument("--camera-address", default=None, metavar="ADDRESS",
-                   help="mecheye: its IP address (required); realsense: its serial number or a .bag recording "
+                   help="mecheye: its IP address (required); realsense: its serial number or a recording (.db3 or .bag) "
                         "(default the first connected)")
     p.add_argument("--out", required=True, help="the capture file to write (.npz)")
     p.add_argument("--force", action="store_true", help="replace an existing --out file")

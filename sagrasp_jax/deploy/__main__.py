@@ -23,7 +23,7 @@ policy's control constants must be this robot's — all checked before the robot
 input exits with status 2 and says what is wrong (with ``--json``, as a JSON refusal).
 
 From a camera (the paper's section 5, one command): ``--camera mecheye --camera-address IP`` (Mech-Eye,
-``pip install "sagrasp_jax[mecheye]"``), ``--camera realsense [--camera-address SERIAL|FILE.bag]`` (RealSense,
+``pip install "sagrasp_jax[mecheye]"``), ``--camera realsense [--camera-address SERIAL|RECORDING]`` (RealSense,
 ``[realsense]``) or ``--camera replay:FILE`` (a capture file: ``python -m sagrasp_jax.capture``, or the
 ``capture.npz`` an earlier run saved) takes the detections instead of ``--target-cam`` and ``--obstacle``: one
 capture, perceived with the policy's obstacle kinds (``deploy.perception``), the calibration checked against the
@@ -219,12 +219,12 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--policy", required=True, help=POLICY_HELP)
     p.add_argument("--camera", default=None, metavar="SOURCE",
                    help="where the cube and the obstacles come from, instead of --target-cam and --obstacle: "
-                        "mecheye (--camera-address IP), realsense (--camera-address SERIAL or a recorded .bag; default "
+                        "mecheye (--camera-address IP), realsense (--camera-address SERIAL or a recording, .db3 or .bag; default "
                         "the first connected), or replay:FILE (a capture file of python -m sagrasp_jax.capture or of an "
                         "earlier deploy's --record folder); one capture, perceived (deploy.perception), the calibration "
                         "checked against the table.  (--camera twin --scenes N rehearses many rendered scenes)")
     p.add_argument("--camera-address", default=None, metavar="ADDRESS",
-                   help="--camera mecheye: the camera's IP address; realsense: its serial number or a .bag recording")
+                   help="--camera mecheye: the camera's IP address; realsense: its serial number or a recording (.db3 as librealsense records, or .bag)")
     p.add_argument("--record", default=None, metavar="DIR",
                    help=f"with --camera: the folder the capture (capture.npz) and the report (report.json) are saved "
                         f"in (default {RECORDS_DIR}/<UTC time>-<camera>; a replay saves the report only); an existing "
