@@ -359,12 +359,12 @@ def test_bench_train_group_reads_the_last_evaluation_of_a_run_folder(tmp_path: p
 
 
 @pytest.mark.bench
-def test_bench_epochs_smoke(tmp_path: pytest.TempPathFactory) -> None:
+def test_bench_train_epochs_smoke(tmp_path: pytest.TempPathFactory) -> None:
     """Fewer passes late: every variant timed, the late counts cheaper than eight passes per iteration and
     their projected README training shorter; a config value out of range exits 2."""
     out = str(tmp_path / "epochs.json")
     sets = [s for s in TINY_SETS if not s.startswith("ppo.num_epochs")] + ["ppo.num_epochs=8", "train.total_steps=16384"]
-    res = _run(["experiments.bench_epochs", "--reps", "2", "--out", out, *_sets(sets)])
+    res = _run(["experiments.bench_train", "epochs", "--reps", "2", "--out", out, *_sets(sets)])
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
     with open(out, encoding="utf-8") as f:
         rows = {r["variant"]: r for r in json.load(f)["rows"]}
@@ -373,7 +373,7 @@ def test_bench_epochs_smoke(tmp_path: pytest.TempPathFactory) -> None:
     assert rows["late_epochs=2 (from the start)"]["ms_per_iteration"] < rows["8 passes throughout"]["ms_per_iteration"]
     assert rows["8 passes throughout"]["projected_readme_training_s"] is None
     assert 0 < rows["late_epochs=4 (from the start)"]["projected_readme_training_s"]
-    bad = _run(["experiments.bench_epochs", "--set", "ppo.late_from=1.5"])
+    bad = _run(["experiments.bench_train", "epochs", "--set", "ppo.late_from=1.5"])
     assert bad.returncode == 2 and "ppo.late_from" in bad.stderr and "Traceback" not in bad.stderr
 
 
