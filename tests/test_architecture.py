@@ -4,6 +4,10 @@ The table in the doc is the source of truth: this test parses it, derives every 
 package module with ``ast`` (imports inside functions too: a lazy import is still a dependency)
 and checks that each module is listed once, nothing imports a layer above its own, entry points
 do not import each other, there is no import cycle, and jax-free modules stay jax-free.
+
+``experiments/`` (the studies, above the package and outside its wheel) is checked the same way: its
+scripts' import graph has no cycle, no package module imports it, and it holds at most
+``MAX_EXPERIMENT_SCRIPTS`` scripts (the count the doc states).
 """
 
 from __future__ import annotations
@@ -17,6 +21,8 @@ import pytest
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PACKAGE = os.path.join(REPO, "sagrasp_jax")
 DOC = os.path.join(REPO, "docs", "architecture.md")
+EXPERIMENTS = os.path.join(REPO, "experiments")
+MAX_EXPERIMENT_SCRIPTS = 12  # issue 56: the live studies only; fold a new one into the script it belongs with
 JAX_ROOTS = ("jax", "jaxlib", "flax", "optax", "brax", "mujoco.mjx")
 
 
@@ -150,23 +156,28 @@ def test_commands_do_not_import_each_other(graph):
     assert sideways == []
 
 
-def test_no_import_cycle(graph):
+def import_cycles(deps: dict[str, set[str]]) -> list[str]:
+    """Every cycle a depth-first walk of ``deps`` (module -> the modules it imports) closes, as 'a -> b -> a'."""
     state: dict[str, int] = {}
     cycles: list[str] = []
 
     def visit(m: str, stack: list[str]) -> None:
         state[m] = 1
-        for d in sorted(graph[m][0]):
+        for d in sorted(deps[m]):
             if state.get(d) == 1:
                 cycles.append(" -> ".join(stack[stack.index(d):] + [d]))
             elif d not in state:
                 visit(d, stack + [d])
         state[m] = 2
 
-    for m in sorted(graph):
+    for m in sorted(deps):
         if m not in state:
             visit(m, [m])
-    assert cycles == []
+    return cycles
+
+
+def test_no_import_cycle(graph):
+    assert import_cycles({m: deps for m, (deps, _) in graph.items()}) == []
 
 
 def test_jax_free_modules_stay_jax_free(graph):
@@ -217,6 +228,95 @@ def test_the_checker_sees_lazy_and_relative_imports(tmp_path):
                     "    from mujoco import mjx\n")
     inner, outer = imports(str(file), "reference.grasp_check", {"train", "ppo", "reference.grasp_check"})
     assert inner == {"train", "ppo"} and {"os", "mujoco.mjx"} <= outer
+
+
+# ---------------------------------------------------------------------- experiments/ (issue 56, item 5)
+
+def experiment_modules(root: str = EXPERIMENTS) -> dict[str, str]:
+    """The scripts of ``experiments/`` (dotted name below ``experiments``; its ``__init__`` is no script) -> file."""
+    out = {}
+    for folder, _, files in os.walk(root):
+        for name in files:
+            if name.endswith(".py") and name != "__init__.py" and "__pycache__" not in folder:
+                rel = os.path.relpath(os.path.join(folder, name), root)[:-3]
+                out[rel.replace(os.sep, ".")] = os.path.join(folder, name)
+    return out
+
+
+def experiment_imports(file: str, module: str, known: set[str]) -> set[str]:
+    """Every name ``file`` imports anywhere (inside functions too), dotted in full: experiments modules as
+    'experiments.NAME' (relative imports resolved), everything else as written."""
+    with open(file, encoding="utf-8") as f:
+        tree = ast.parse(f.read(), file)
+    package = ["experiments", *module.split(".")[:-1]]
+    out: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out |= {alias.name for alias in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            base = ".".join(package[: len(package) - node.level + 1] + ([node.module] if node.module else [])) \
+                if node.level else node.module or ""
+            for alias in node.names:  # `from experiments import study`: study is a module
+                full = f"{base}.{alias.name}"
+                out.add(full if full.startswith("experiments.") and full[len("experiments."):] in known else base)
+    return out
+
+
+def experiments_graph(root: str = EXPERIMENTS) -> dict[str, set[str]]:
+    """experiments module -> the experiments modules it imports."""
+    mods = experiment_modules(root)
+    graph = {}
+    for m, file in mods.items():
+        deps = set()
+        for name in experiment_imports(file, m, set(mods)):
+            if name.startswith("experiments."):
+                name = name[len("experiments."):]
+                while name and name not in mods:  # `from experiments.study import watch_trainer`: study
+                    name = name.rpartition(".")[0]
+                if name and name != m:
+                    deps.add(name)
+        graph[m] = deps
+    return graph
+
+
+def test_experiments_hold_at_most_twelve_scripts():
+    scripts = sorted(experiment_modules())
+    assert "study" in scripts and len(scripts) <= MAX_EXPERIMENT_SCRIPTS, (
+        f"experiments/ holds {len(scripts)} scripts ({', '.join(scripts)}); at most {MAX_EXPERIMENT_SCRIPTS}: "
+        "fold a new one into the script it belongs with as a subcommand")
+    with open(DOC, encoding="utf-8") as f:
+        stated = re.findall(r"\((\d+) scripts\)", f.read())
+    assert stated == [str(len(scripts))], f"{DOC} says ({', '.join(stated)} scripts); experiments/ holds {len(scripts)}"
+
+
+def test_no_import_cycle_among_experiments():
+    graph = experiments_graph()
+    assert sum(map(len, graph.values())) > 5  # the checker sees the scripts' shared imports
+    assert import_cycles(graph) == []
+
+
+def test_no_package_module_imports_experiments(graph):
+    """The studies sit above the package and outside its wheel: nothing in sagrasp_jax imports them."""
+    upward = sorted(f"{m} imports {e}" for m, (_, external) in graph.items() for e in external
+                    if e.split(".")[0] == "experiments")
+    assert upward == []
+
+
+def test_the_checker_sees_experiments_cycles_and_upward_imports(tmp_path):
+    """A cycle through a lazy or relative import is found, and so is a package module importing a study."""
+    root = tmp_path / "experiments"
+    root.mkdir()
+    (root / "__init__.py").write_text("")
+    (root / "study.py").write_text("import os\n")
+    (root / "a.py").write_text("from experiments import study\ndef f():\n    from experiments.b import g\n")
+    (root / "b.py").write_text("from .a import f\nfrom . import study\n")
+    graph = experiments_graph(str(root))
+    assert graph == {"study": set(), "a": {"study", "b"}, "b": {"a", "study"}}
+    assert import_cycles(graph) == ["a -> b -> a"]
+    file = tmp_path / "mod.py"
+    file.write_text("def f():\n    from experiments.study import watch_trainer\n")
+    _, outer = imports(str(file), "train", {"train"})
+    assert "experiments.study" in outer
 
 
 # ---------------------------------------------------------------------- import noise (issue 17, item 6)
