@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -134,12 +135,17 @@ NOISE_MODELS: dict[str, DepthNoise] = {
 }
 
 
-def noise_model(name: str | DepthNoise) -> DepthNoise:
-    if isinstance(name, DepthNoise):
+def _entry(registry: dict[str, Any], name: Any, what: str) -> Any:
+    """``name``'s entry of ``registry`` (an entry itself is returned as it is); ``ValueError`` naming the known ones."""
+    if not isinstance(name, str):
         return name
-    if name not in NOISE_MODELS:
-        raise ValueError(f"unknown depth-noise model {name!r}; known: {', '.join(NOISE_MODELS)}")
-    return NOISE_MODELS[name]
+    if name not in registry:
+        raise ValueError(f"unknown {what} {name!r}; known: {', '.join(registry)}")
+    return registry[name]
+
+
+def noise_model(name: str | DepthNoise) -> DepthNoise:
+    return _entry(NOISE_MODELS, name, "depth-noise model")
 
 
 @dataclass(frozen=True)
@@ -170,11 +176,7 @@ DEFAULT_CAMERA = "mecheye_pro_m"
 
 
 def camera_model(name: str | CameraModel) -> CameraModel:
-    if isinstance(name, CameraModel):
-        return name
-    if name not in CAMERA_MODELS:
-        raise ValueError(f"unknown camera model {name!r}; known: {', '.join(CAMERA_MODELS)}")
-    return CAMERA_MODELS[name]
+    return _entry(CAMERA_MODELS, name, "camera model")
 
 
 def _edge_pixels(depth: np.ndarray, jump: float) -> tuple[np.ndarray, np.ndarray]:
