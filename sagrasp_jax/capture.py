@@ -20,6 +20,7 @@ Exit status: 0 written; 2 refused (bad options, an absent or silent camera, an o
 
 from __future__ import annotations
 
+import math
 import os
 import sys
 from typing import Sequence
@@ -40,6 +41,10 @@ def _parser() -> cli.Parser:
     p.add_argument("--camera-address", default=None, metavar="ADDRESS",
                    help="mecheye: its IP address (required); realsense: its serial number or a recording (.db3 or .bag) "
                         "(default the first connected)")
+    p.add_argument("--arm-joints", nargs=6, type=float, default=None, metavar="Q",
+                   help="mecheye/realsense: the arm's 6 joint angles (rad) while the capture is taken, saved with it so "
+                        "that perception leaves the arm out (deploy --camera reads them from the controller itself); "
+                        "without them the arm must be out of the camera's view")
     p.add_argument("--out", required=True, help="the capture file to write (.npz)")
     p.add_argument("--force", action="store_true", help="replace an existing --out file")
     twin = p.add_argument_group("--camera twin")
@@ -81,9 +86,12 @@ def _check(args: object) -> None:
             raise ValueError(f"{', '.join(given)} {'is' if len(given) == 1 else 'are'} only for --camera twin")
         if args.camera == "mecheye" and not args.camera_address:
             raise ValueError("--camera mecheye needs --camera-address IP")
+        if args.arm_joints is not None and not all(math.isfinite(q) and abs(q) <= 2 * math.pi for q in args.arm_joints):
+            raise ValueError(f"--arm-joints {args.arm_joints} must be 6 finite joint angles in rad (within ±2π)")
     else:
-        if args.camera_address is not None:
-            raise ValueError("--camera-address is for a real camera, not the twin")
+        if args.camera_address is not None or args.arm_joints is not None:
+            raise ValueError("--camera-address and --arm-joints are for a real camera, not the twin (its arm is parked "
+                             "out of view for the capture)")
         if not (0 <= args.seed < 2**31 and 0 <= args.scene < 2**31):
             raise ValueError(f"--seed and --scene must be in [0, 2^31), got {args.seed} and {args.scene}")
         if not 0.05 <= args.camera_resolution <= 1.0:
@@ -110,6 +118,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                     finally:
                         camera.close()
                     capture = capture._replace(  # camera: "" when the driver cannot name a known model, never guessed
+                        robot_q=None if args.arm_joints is None else tuple(args.arm_joints),
                         source=capture.source or f"{args.camera} {args.camera_address or ''}".strip(),
                         time_utc=capture.time_utc or capture_file.now_utc())
                 cli.check()

@@ -38,11 +38,18 @@ TARGET_CAM = [f"{v:.6f}" for v in CameraCalibration.default().base_to_cam(np.arr
 FAST_GRIPPER = "close=0:1,open=0:0,settle=0.1"  # the default wiring, a shorter settle time
 
 
-def _session(emu: AuboEmulator) -> list[dict[str, Any]]:
-    """The requests and events of the SDK's connection (not the adapter's TCP probe, which sends nothing)."""
-    calls = emu.calls()
-    conn = next(c["conn"] for c in calls if c.get("name") == "getInterfaceVersionCode")
-    return [c for c in calls if c["conn"] == conn]
+def _session(emu: AuboEmulator, closed: bool = True) -> list[dict[str, Any]]:
+    """The requests and events of the SDK's connection (not the adapter's TCP probe, which sends nothing); with
+    ``closed``, once the emulator has seen the client close it (it logs the close when it reads it: on a loaded
+    machine that comes a moment after the client's process has gone), at most 5 s."""
+    deadline = time.monotonic() + 5.0
+    while True:
+        calls = emu.calls()
+        conn = next(c["conn"] for c in calls if c.get("name") == "getInterfaceVersionCode")
+        session = [c for c in calls if c["conn"] == conn]
+        if not closed or session[-1].get("event") == "eof" or time.monotonic() > deadline:
+            return session
+        time.sleep(0.05)
 
 
 def _names(calls: list[dict[str, Any]]) -> list[str]:
@@ -145,7 +152,7 @@ def test_a_reset_connection_fails_the_call_at_once_and_close_still_returns() -> 
         with pytest.raises(AuboError, match="RPC client has not connected"):
             robot.read_joints()
         robot.close()  # leaving servo mode fails (no connection): logged, not raised
-        assert _names(_session(emu))[-1] == "dropped" and len(emu.calls("servoJoint")) == 3
+        assert _names(_session(emu, closed=False))[-1] == "dropped" and len(emu.calls("servoJoint")) == 3
 
 
 def test_a_refused_login_is_named_as_such() -> None:
@@ -261,7 +268,7 @@ def test_deploy_connection_dropped_mid_episode_stops_with_exit_3() -> None:
     request timeout, the episode stops ("refused", exit 3: deploy's status for a robot stopped mid-episode)."""
     with AuboEmulator(joints=HOME, drop_at_servo=10) as emu:
         res = _deploy(emu, *_episode_line())
-        calls = _session(emu)
+        calls = _session(emu, closed=False)
         state = emu.state()
     assert res.returncode == 3 and "Traceback" not in res.stderr, res.stderr
     report = json.loads(res.stdout)
@@ -271,3 +278,40 @@ def test_deploy_connection_dropped_mid_episode_stops_with_exit_3() -> None:
     assert _names(calls)[-1] == "dropped" and state["servo_count"] == 10 and state["open_connections"] == []
     # the close could not leave servo mode over a closed connection: said, not raised
     assert "setServoModeSelect(0) during close failed: RPC client has not connected" in res.stderr
+
+
+def test_a_real_cell_line_camera_and_arm_through_the_vendors_code(tmp_path) -> None:
+    """The one command of a real cell, every vendor's code that runs without hardware on the way:
+    ``deploy --camera realsense`` (a librealsense recording of a twin render) ``--backend aubo`` (pyaubo-sdk
+    against the emulator). The arm's joints are read from the controller before the capture and saved with it."""
+    pytest.importorskip("pybullet")
+    realsense_record = pytest.importorskip("sagrasp_jax.deploy.realsense_record")
+    try:
+        import pyrealsense2  # noqa: F401
+    except ImportError as exc:
+        pytest.skip(f"pyrealsense2 does not import: {exc}")
+    from sagrasp_jax.deploy import capture_file, rehearse
+    from sagrasp_jax.deploy.twin import PyBulletTwin
+    from sagrasp_jax.task.config import EnvConfig
+
+    env_cfg = EnvConfig()
+    spec, rng = rehearse.draw_scene(rehearse.scene_env(env_cfg, "mix"), 0, 3)
+    with PyBulletTwin(spec, env_cfg, q0=spec.q0, seed=3) as twin:
+        capture = rehearse.twin_capture(twin, spec, rehearse.CameraSettings("industrial", 0.25), rng)
+    recording = str(tmp_path / "scene.db3")
+    realsense_record.write_bag(recording, [capture])
+    with AuboEmulator(joints=HOME) as emu:
+        res = _deploy(emu, "--policy", "pretrained", "--camera", "realsense", "--camera-address", recording,
+                      "--gripper-io", FAST_GRIPPER, "--json", "--record", str(tmp_path / "rec"))
+        sessions = [c["conn"] for c in emu.calls() if c.get("name") == "getInterfaceVersionCode"]
+        names = [c.get("name") for c in emu.calls()]
+    assert "Traceback" not in res.stderr, res.stderr
+    assert res.returncode == 1, res.stderr  # the AUBO cannot tell held: exit 1 after a whole episode
+    report = json.loads(res.stdout)
+    assert report["outcome"] == "success" and report["grasp"]["closed"] and report["grasp"]["lifted"]
+    seen = report["input"]["perception"]["target_world"]
+    assert np.linalg.norm(np.subtract(seen, spec.target_pos)) < 0.005  # through librealsense, within 5 mm
+    saved = capture_file.load_capture(str(tmp_path / "rec" / "capture.npz"))
+    np.testing.assert_allclose(saved.robot_q, HOME, atol=1e-9)  # the joints the controller reported
+    assert saved.source.startswith("realsense ") and saved.camera == capture.camera  # the recording's device name
+    assert len(sessions) == 2 and "servoJoint" in names  # the joints read before the capture, then the episode

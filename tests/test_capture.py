@@ -189,7 +189,7 @@ def test_deploy_and_capture_refusals(captures: dict[str, str], tmp_path) -> None
         (["sagrasp_jax.capture", "--camera", "realsense", "--scene", "3", "--out", str(tmp_path / "r.npz")],
          "--scene is only for --camera twin"),
         (["sagrasp_jax.capture", "--camera", "twin", "--camera-address", "1.2.3.4", "--out", str(tmp_path / "t.npz")],
-         "--camera-address is for a real camera"),
+         "--camera-address and --arm-joints are for a real camera"),
     ]
     for argv, message in cases:
         r = _run(*argv, cwd=tmp_path)
@@ -218,3 +218,37 @@ def test_capture_save_refuses_mismatched_intrinsics(tmp_path) -> None:
     with pytest.raises(ValueError, match="intrinsics of a 12 × 11 image for a 12 × 10 cloud"):
         capture_file.save_capture(str(tmp_path / "c.npz"), cap)
     assert not list(tmp_path.iterdir())
+
+
+def _arm_in_view_capture(folder, robot_q_known: bool) -> str:
+    """A twin capture taken with the arm at its start pose, in the camera's view (a real cell's capture before the
+    arm moves), with or without its joints recorded."""
+    from sagrasp_jax.deploy import rehearse
+    from sagrasp_jax.deploy.twin import PyBulletTwin
+    from sagrasp_jax.deploy.twin_camera import TwinCamera
+    from sagrasp_jax.task.config import EnvConfig
+
+    env_cfg = EnvConfig()
+    spec, rng = rehearse.draw_scene(rehearse.scene_env(env_cfg, "mix"), 0, 5)
+    with PyBulletTwin(spec, env_cfg, q0=spec.q0, seed=5) as twin:
+        frame = TwinCamera(0.25).capture(twin, "industrial", rng, hide_robot=False)
+    cap = Capture(frame.rgb, frame.cloud_mm, frame.intrinsics, "mecheye_pro_m", "twin, arm in view", "",
+                  capture_file.scene_truth(spec, "no obstacle"),
+                  tuple(float(v) for v in spec.q0) if robot_q_known else None)
+    return capture_file.save_capture(str(folder / f"arm-{robot_q_known}.npz"), cap)
+
+
+def test_the_arm_in_view_is_left_out_where_its_joints_say(tmp_path) -> None:
+    """The AUBO at home stands in the gantry camera's view: with the joints the capture was taken at, perception
+    leaves it out and the cube is held; without them the arm is an object taller than any obstacle, refused."""
+    known = _arm_in_view_capture(tmp_path, True)
+    assert capture_file.load_capture(known).robot_q is not None
+    r = _run("sagrasp_jax.deploy", "--camera", f"replay:{known}", "--policy", "pretrained", "--json", "--record",
+             str(tmp_path / "known"), cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    report = json.loads(r.stdout)
+    assert report["held"] is True and report["input"]["capture"]["robot_q"] is not None
+    unknown = _arm_in_view_capture(tmp_path, False)
+    r = _run("sagrasp_jax.deploy", "--camera", f"replay:{unknown}", "--policy", "pretrained", "--record",
+             str(tmp_path / "unknown"), cwd=tmp_path)
+    assert r.returncode == 2 and "taller than any trained obstacle" in r.stderr, r.stderr

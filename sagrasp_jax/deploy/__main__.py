@@ -590,10 +590,20 @@ def _record_dir(args: argparse.Namespace, kind: str) -> str:
     return folder
 
 
-def _perceive_camera(args: argparse.Namespace, cal: CameraCalibration, env_cfg: Any,
-                     given: dict[str, Any]) -> tuple[Any, Any]:
+def _arm_joints_now(args: argparse.Namespace, env_cfg: Any, aubo_settings: aubo.AuboSettings | None) -> np.ndarray:
+    """Where the arm stands for a live capture, so that perception leaves it out of the scene: the AUBO's joints
+    read from the controller (a read-only session), on the twin its start pose."""
+    if args.backend == "aubo":
+        with aubo.AuboRobot(args.host, settings=aubo_settings, log=lambda line: print(line, file=sys.stderr)) as robot:
+            return np.asarray(robot.read_joints(), dtype=float)
+    return np.asarray(env_cfg.task.home_q if args.twin_start_q is None else args.twin_start_q, dtype=float)
+
+
+def _perceive_camera(args: argparse.Namespace, cal: CameraCalibration, env_cfg: Any, given: dict[str, Any],
+                     aubo_settings: aubo.AuboSettings | None = None) -> tuple[Any, Any]:
     """One capture from ``--camera`` (saved into the record folder unless it is a replay), perceived with the
-    policy's obstacle kinds; the calibration is checked against the table on the way (``perception.fit_table``)."""
+    policy's obstacle kinds and the arm left out where it stood (``Capture.robot_q``); the calibration is checked
+    against the table on the way (``perception.fit_table``)."""
     from sagrasp_jax.deploy import capture_file, perception
 
     kind = args.camera.split(":", 1)[0]
@@ -603,21 +613,24 @@ def _perceive_camera(args: argparse.Namespace, cal: CameraCalibration, env_cfg: 
         capture = capture_file.load_capture(path)
         given["capture_file"] = os.path.abspath(path)
     else:
+        arm_q = _arm_joints_now(args, env_cfg, aubo_settings)  # the arm is in the camera's view at home
         camera = open_camera(kind, args.camera_address)  # a Ctrl-C meanwhile stops at the next safe point, after it
         try:
             capture = camera.capture()
         finally:
             camera.close()
-        capture = capture._replace(source=capture.source or f"{kind} {args.camera_address or ''}".strip(),
+        capture = capture._replace(robot_q=tuple(float(v) for v in arm_q), source=capture.source or f"{kind} {args.camera_address or ''}".strip(),
                                    time_utc=capture.time_utc or capture_file.now_utc())
         path = capture_file.save_capture(os.path.join(args.record_dir, "capture.npz"), capture)
         given["capture_file"] = os.path.abspath(path)
         print(f"saved {path}", file=sys.stderr)
     given["capture"] = {"camera": capture.camera, "source": capture.source, "time_utc": capture.time_utc,
                         "pixels": [int(capture.cloud_mm.shape[1]), int(capture.cloud_mm.shape[0])],
-                        "intrinsics": capture.intrinsics.as_list() if capture.intrinsics is not None else None}
+                        "intrinsics": capture.intrinsics.as_list() if capture.intrinsics is not None else None,
+                        "robot_q": list(capture.robot_q) if capture.robot_q is not None else None}
     settings = perception.PerceptionSettings.for_policy(env_cfg)
-    seen = perception.detect_scene(capture.cloud_mm, capture.rgb, cal, env_cfg.sampling.target_size, settings=settings)
+    seen = perception.detect_scene(capture.cloud_mm, capture.rgb, cal, env_cfg.sampling.target_size,
+                                   robot_q=capture.robot_q, settings=settings)
     d = seen.diagnostics
     given["perception"] = {
         "target_world": [float(v) for v in seen.target_centre], "target_yaw_world": float(seen.target_yaw),
@@ -653,8 +666,9 @@ def _deploy(args: argparse.Namespace) -> int:
         else:
             cal = CameraCalibration.default(args.base_z_offset, args.base_yaw)
         capture = None
+        aubo_settings = _aubo_settings(args)
         if args.camera is not None:
-            capture, seen = _perceive_camera(args, cal, env_cfg, given)
+            capture, seen = _perceive_camera(args, cal, env_cfg, given, aubo_settings)
             centre = validate_target(seen.target_centre, env_cfg.sampling)
             yaw, obstacles = float(seen.target_yaw), list(seen.obstacles)
         else:
@@ -680,7 +694,6 @@ def _deploy(args: argparse.Namespace) -> int:
         detection = validate_target(centre + detection_error, env_cfg.sampling)
         if args.backend == "twin" and not args.dry_run:
             extras.require("twin", what="--backend twin (the PyBullet digital twin)")
-        aubo_settings = _aubo_settings(args)
     except (InputRefused, TargetRejected, CalibrationError, PolicyFormatError, ValueError, extras.MissingExtra,
             DeployError, CameraError, fileio.NotWritable) as exc:
         _emit(args, {"outcome": "input_refused", "message": str(exc), "input": given},

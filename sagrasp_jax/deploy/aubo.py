@@ -404,7 +404,7 @@ class AuboRobot:
         try:
             code = client.login(s.user, s.password)
         except Exception:
-            deadline = time.monotonic() + 0.2
+            deadline = time.monotonic() + 2.0  # only when login raised: a loaded machine delays the log line
             while "login failed" not in self._sdk_messages and time.monotonic() < deadline:
                 time.sleep(0.01)
             if "login failed" in self._sdk_messages:

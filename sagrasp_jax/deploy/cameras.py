@@ -97,6 +97,8 @@ class Capture(NamedTuple):
     source: str = ""  # what took it: "mecheye 192.168.1.10", "realsense 0123456789", "twin seed 0 scene 3", a file
     time_utc: str = ""  # ISO 8601, when it was taken
     truth: dict[str, Any] | None = None  # a twin capture's true scene (capture_file.scene_truth); None for a camera
+    robot_q: tuple[float, ...] | None = None  # the arm's joints (rad) when it was taken: perception leaves the arm
+    # out of the scene there; None: the arm was out of view (parked, or a capture taken before it came in)
 
 
 @runtime_checkable

@@ -15,7 +15,9 @@ member          type                  what
                                       empty when not known
 ``meta``        str                   JSON: ``camera`` (a ``task.camera`` model name or ""), ``source`` (what
                                       took it), ``time_utc``, ``truth`` (a twin capture's true scene:
-                                      ``q0``, ``target_pos``, ``target_yaw``, ``obstacles``, ``kind``; else null)
+                                      ``q0``, ``target_pos``, ``target_yaw``, ``obstacles``, ``kind``; else null),
+                                      ``robot_q`` (the arm's 6 joints in rad when it was taken, so that perception
+                                      leaves the arm out; null: the arm was out of view)
 ==============  ====================  ==========================================================================
 
 Reading is bounded like every input of the project (``fileio.read_regular``, ``policy_file.read_npz``) and
@@ -42,7 +44,7 @@ from sagrasp_jax.task.policy_file import read_npz
 FORMAT = "sagrasp_jax capture 1"
 MAX_CAPTURE_BYTES = 512 << 20  # a 4K organized cloud and image (≈ 125 MB unpacked) with room to spare
 MEMBERS = ("format", "rgb", "cloud_mm", "intrinsics", "meta")
-META_KEYS = ("camera", "source", "time_utc", "truth")
+META_KEYS = ("camera", "source", "time_utc", "truth", "robot_q")
 TRUTH_KEYS = ("q0", "target_pos", "target_yaw", "obstacles", "kind")
 
 
@@ -95,7 +97,9 @@ def _check_truth(truth: Any, path: str) -> dict[str, Any] | None:
 
 def _meta(capture: Capture) -> str:
     return json.dumps({"camera": capture.camera, "source": capture.source, "time_utc": capture.time_utc,
-                       "truth": capture.truth}, allow_nan=False)
+                       "truth": capture.truth,
+                       "robot_q": None if capture.robot_q is None else [float(v) for v in capture.robot_q]},
+                      allow_nan=False)
 
 
 def save_capture(path: str, capture: Capture) -> str:
@@ -171,8 +175,14 @@ def load_capture(path: str) -> Capture:
         if (intrinsics.width, intrinsics.height) != (cloud.shape[1], cloud.shape[0]):
             raise CaptureFormatError(f"{path}: intrinsics of a {intrinsics.width} × {intrinsics.height} image for a "
                                      f"{cloud.shape[1]} × {cloud.shape[0]} cloud")
-    finite = cloud[np.isfinite(cloud).all(axis=-1)]
-    if finite.size and not math.isfinite(float(np.abs(finite).max())):
-        raise CaptureFormatError(f"{path}: cloud_mm holds infinite points")
+    robot_q = meta["robot_q"]
+    if robot_q is not None:
+        try:
+            q = np.asarray(robot_q, dtype=float).reshape(-1) if isinstance(robot_q, list) else np.zeros(0)
+        except (TypeError, ValueError):
+            q = np.zeros(0)
+        if q.shape != (6,) or not np.isfinite(q).all() or np.abs(q).max() > 2 * math.pi:
+            raise CaptureFormatError(f"{path}: meta.robot_q must be the arm's 6 joint angles in rad, got {robot_q!r}")
+        robot_q = tuple(float(v) for v in q)
     return Capture(checked.rgb, checked.cloud_mm, intrinsics, meta["camera"], meta["source"], meta["time_utc"],
-                   _check_truth(meta["truth"], path))
+                   _check_truth(meta["truth"], path), robot_q)
