@@ -29,7 +29,7 @@ import numpy as np
 
 from sagrasp_jax.base import cli, extras, fileio
 from sagrasp_jax.deploy import capture_file
-from sagrasp_jax.deploy.cameras import CameraError, open_camera
+from sagrasp_jax.deploy.cameras import CameraError, capture_once
 from sagrasp_jax.task.camera import CAMERA_MODELS, NOISE_MODELS
 
 SOURCES = ("mecheye", "realsense", "twin")
@@ -69,8 +69,7 @@ def _twin(args: object) -> capture_file.Capture:
     env_cfg = EnvConfig()
     scene_cfg = rehearse.scene_env(env_cfg, args.scene_set)
     spec, rng = rehearse.draw_scene(scene_cfg, args.seed, args.scene)
-    model = CAMERA_MODELS[args.camera_model]
-    camera = rehearse.CameraSettings(args.depth_noise or model.noise, args.camera_resolution, model.name)
+    camera = rehearse.camera_settings(args)  # the noise defaults to the camera model's
     kind = rehearse.episode_kind(spec, scene_cfg)
     with PyBulletTwin(spec, env_cfg, q0=spec.q0, seed=args.scene) as twin:
         return rehearse.twin_capture(twin, spec, camera, rng, kind,
@@ -112,15 +111,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 if args.camera == "twin":
                     capture = _twin(args)
                 else:
-                    camera = open_camera(args.camera, args.camera_address)
-                    try:
-                        capture = camera.capture()
-                    finally:
-                        camera.close()
-                    capture = capture._replace(  # camera: "" when the driver cannot name a known model, never guessed
-                        robot_q=None if args.arm_joints is None else tuple(args.arm_joints),
-                        source=capture.source or f"{args.camera} {args.camera_address or ''}".strip(),
-                        time_utc=capture.time_utc or capture_file.now_utc())
+                    capture = capture_once(args.camera, args.camera_address, args.arm_joints)
                 cli.check()
                 capture_file.save_capture(args.out, capture)
             except (ValueError, CameraError, extras.MissingExtra, OSError) as exc:

@@ -216,6 +216,23 @@ def read_regular(path: str, max_bytes: int | None = None, what: str = "file") ->
         os.close(fd)
 
 
+def read_input(path: str, max_bytes: int, what: str, error: type[Exception], not_found: str | None = None,
+               too_large_note: str = "") -> bytes:
+    """``read_regular`` for a command's input file, its refusals as ``error`` naming the file: "PATH is a FIFO, not
+    a WHAT", the size bound (with ``too_large_note`` in brackets), ``not_found`` (default "PATH: WHAT not found")
+    and "cannot read the WHAT".  The policy, calibration and capture readers."""
+    try:
+        return read_regular(path, max_bytes, what)
+    except NotRegularFile as exc:
+        raise error(f"{path} is {exc.kind}, not a {what}") from None
+    except FileTooLarge as exc:
+        raise error(f"{exc} ({too_large_note})" if too_large_note else str(exc)) from None
+    except FileNotFoundError:
+        raise error(not_found or f"{path}: {what} not found") from None
+    except OSError as exc:
+        raise error(f"{path}: cannot read the {what} ({exc.strerror or exc})") from None
+
+
 def check_output_file(path: str) -> None:
     """Refuse (``NotWritable``) an output file path that exists and is not a regular file: a FIFO,
     device, socket or folder (a symlink counts as what it points to).  The rename of ``atomic_write``

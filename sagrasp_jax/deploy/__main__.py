@@ -88,7 +88,7 @@ from sagrasp_jax.deploy.calibration import (
     validate_target,
 )
 from sagrasp_jax.base import cli, extras, fileio
-from sagrasp_jax.deploy.cameras import CameraError, open_camera
+from sagrasp_jax.deploy.cameras import CameraError, capture_once
 from sagrasp_jax.task import shapes
 from sagrasp_jax.deploy.loop import (
     DeployError, Obstacle, format_report, plan_episode, run_episode, scene_spec, with_obstacle_kinds,
@@ -613,14 +613,8 @@ def _perceive_camera(args: argparse.Namespace, cal: CameraCalibration, env_cfg: 
         capture = capture_file.load_capture(path)
         given["capture_file"] = os.path.abspath(path)
     else:
-        arm_q = _arm_joints_now(args, env_cfg, aubo_settings)  # the arm is in the camera's view at home
-        camera = open_camera(kind, args.camera_address)  # a Ctrl-C meanwhile stops at the next safe point, after it
-        try:
-            capture = camera.capture()
-        finally:
-            camera.close()
-        capture = capture._replace(robot_q=tuple(float(v) for v in arm_q), source=capture.source or f"{kind} {args.camera_address or ''}".strip(),
-                                   time_utc=capture.time_utc or capture_file.now_utc())
+        # the arm is in the camera's view at home; a Ctrl-C meanwhile stops at the next safe point, after the capture
+        capture = capture_once(kind, args.camera_address, _arm_joints_now(args, env_cfg, aubo_settings))
         path = capture_file.save_capture(os.path.join(args.record_dir, "capture.npz"), capture)
         given["capture_file"] = os.path.abspath(path)
         print(f"saved {path}", file=sys.stderr)

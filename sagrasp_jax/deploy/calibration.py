@@ -128,16 +128,8 @@ def _read_matrix(path: str) -> np.ndarray:
     ext = os.path.splitext(path)[1].lower()
     if ext not in (".json", ".npy", ".txt", ".csv", ".dat"):
         raise CalibrationError(f"{path}: unknown calibration file type {ext!r}; use .json, .npy or .txt")
-    try:
-        data = fileio.read_regular(path, MAX_CALIBRATION_BYTES, "calibration file")
-    except fileio.NotRegularFile as exc:
-        raise CalibrationError(f"{path} is {exc.kind}, not a calibration file") from None
-    except fileio.FileTooLarge as exc:
-        raise CalibrationError(f"{exc} (a calibration is a 4×4 matrix)") from None
-    except FileNotFoundError:
-        raise CalibrationError(f"{path}: calibration file not found") from None
-    except OSError as exc:
-        raise CalibrationError(f"{path}: cannot read the calibration file ({exc.strerror or exc})") from None
+    data = fileio.read_input(path, MAX_CALIBRATION_BYTES, "calibration file", CalibrationError,
+                             too_large_note="a calibration is a 4×4 matrix")
     try:
         if ext == ".npy":
             return np.asarray(_npy_matrix(data, path), dtype=float)

@@ -301,7 +301,7 @@ class MechEyeCamera:
         if self._camera is None:
             raise CameraError(f"Mech-Eye camera at {self.ip}: closed")
         frame = self._sdk.Frame2DAnd3D()
-        taken = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="milliseconds")
+        taken = now_utc()
         status, written = _held_output(self._camera.capture_2d_and_3d, frame, self.capture_timeout_ms)
         self._check(status, f"capture_2d_and_3d (timeout {self.capture_timeout_ms / 1000:g} s)")
         if written.strip():
@@ -481,6 +481,25 @@ class RealSenseCamera:
                 pipeline.stop()
             except RuntimeError:  # never started (a refused recording)
                 pass
+
+
+def now_utc() -> str:
+    """Now, as a capture's ``time_utc`` (ISO 8601, milliseconds)."""
+    return datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="milliseconds")
+
+
+def capture_once(kind: str, address: str | None = None, robot_q: Any = None) -> Capture:
+    """One capture of the ``kind`` camera at ``address`` (opened, captured, closed), with the arm's joints
+    ``robot_q`` when they are known; ``source`` and ``time_utc`` filled where the driver left them empty.  The
+    ``camera`` model stays the driver's word ("" when it cannot name a known one): never guessed."""
+    camera = open_camera(kind, address)
+    try:
+        capture = camera.capture()
+    finally:
+        camera.close()
+    return capture._replace(robot_q=None if robot_q is None else tuple(float(v) for v in robot_q),
+                            source=capture.source or f"{kind} {address or ''}".strip(),
+                            time_utc=capture.time_utc or now_utc())
 
 
 def open_camera(kind: str, address: str | None = None) -> CameraSource:

@@ -26,7 +26,6 @@ checks every member; anything else is a ``CaptureFormatError`` naming the file a
 
 from __future__ import annotations
 
-import datetime
 import io
 import json
 import math
@@ -52,10 +51,6 @@ class CaptureFormatError(ValueError):
     """A capture file that cannot be read as one; nothing was done with it."""
 
 
-def now_utc() -> str:
-    return datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="milliseconds")
-
-
 def scene_truth(spec: Any, kind: str = "") -> dict[str, Any]:
     """A twin scene (a ``sampling.ResetSpec``) as the capture's ``truth``: JSON-safe, enough to build the twin again."""
     active = np.nonzero(np.asarray(spec.obstacle_active))[0]
@@ -67,15 +62,23 @@ def scene_truth(spec: Any, kind: str = "") -> dict[str, Any]:
                           for i in active]}
 
 
+def _finite(value: Any, n: int, path: str, field: str, what: str = "") -> list[float]:
+    """``value``, a JSON list of ``n`` finite numbers, or ``CaptureFormatError`` naming ``meta.FIELD``."""
+    try:
+        v = np.asarray(value, dtype=float).reshape(-1) if isinstance(value, list) else np.zeros(0)
+    except (TypeError, ValueError):
+        v = np.zeros(0)
+    if v.shape != (n,) or not np.isfinite(v).all():
+        raise CaptureFormatError(f"{path}: meta.{field} must be {what or f'{n} finite numbers'}, got {value!r}")
+    return [float(x) for x in v]
+
+
 def _check_truth(truth: Any, path: str) -> dict[str, Any] | None:
     if truth is None:
         return None
 
     def numbers(value: Any, n: int, what: str) -> list[float]:
-        v = np.asarray(value, dtype=float).reshape(-1) if isinstance(value, list) else np.zeros(0)
-        if v.shape != (n,) or not np.isfinite(v).all():
-            raise CaptureFormatError(f"{path}: meta.truth.{what} must be {n} finite numbers, got {value!r}")
-        return [float(x) for x in v]
+        return _finite(value, n, path, f"truth.{what}")
 
     if not isinstance(truth, dict) or sorted(truth) != sorted(TRUTH_KEYS):
         raise CaptureFormatError(f"{path}: meta.truth must hold exactly {', '.join(TRUTH_KEYS)}")
@@ -122,16 +125,8 @@ def save_capture(path: str, capture: Capture) -> str:
 
 def load_capture(path: str) -> Capture:
     """The ``Capture`` a capture file holds, every member checked (``CaptureFormatError`` otherwise)."""
-    try:
-        data = fileio.read_regular(path, MAX_CAPTURE_BYTES, "capture file")
-    except fileio.NotRegularFile as exc:
-        raise CaptureFormatError(f"{path} is {exc.kind}, not a capture file") from None
-    except fileio.FileTooLarge as exc:
-        raise CaptureFormatError(str(exc)) from None
-    except FileNotFoundError:
-        raise CaptureFormatError(f"{path}: capture file not found (python -m sagrasp_jax.capture writes one)") from None
-    except OSError as exc:
-        raise CaptureFormatError(f"{path}: cannot read the capture file ({exc.strerror or exc})") from None
+    data = fileio.read_input(path, MAX_CAPTURE_BYTES, "capture file", CaptureFormatError,
+                             f"{path}: capture file not found (python -m sagrasp_jax.capture writes one)")
     try:
         arrays = read_npz(path, io.BytesIO(data), max_bytes=MAX_CAPTURE_BYTES, max_members=len(MEMBERS),
                           error=CaptureFormatError, what="a capture file")
@@ -177,12 +172,10 @@ def load_capture(path: str) -> Capture:
                                      f"{cloud.shape[1]} × {cloud.shape[0]} cloud")
     robot_q = meta["robot_q"]
     if robot_q is not None:
-        try:
-            q = np.asarray(robot_q, dtype=float).reshape(-1) if isinstance(robot_q, list) else np.zeros(0)
-        except (TypeError, ValueError):
-            q = np.zeros(0)
-        if q.shape != (6,) or not np.isfinite(q).all() or np.abs(q).max() > 2 * math.pi:
-            raise CaptureFormatError(f"{path}: meta.robot_q must be the arm's 6 joint angles in rad, got {robot_q!r}")
-        robot_q = tuple(float(v) for v in q)
+        what = "the arm's 6 joint angles in rad"
+        q = _finite(robot_q, 6, path, "robot_q", what)
+        if max(abs(v) for v in q) > 2 * math.pi:
+            raise CaptureFormatError(f"{path}: meta.robot_q must be {what}, got {robot_q!r}")
+        robot_q = tuple(q)
     return Capture(checked.rgb, checked.cloud_mm, intrinsics, meta["camera"], meta["source"], meta["time_utc"],
                    _check_truth(meta["truth"], path), robot_q)

@@ -182,8 +182,8 @@ def twin_capture(twin: Any, spec: sampling.ResetSpec, camera: CameraSettings, rn
                  kind: str = "", source: str = "twin") -> Any:
     """The twin's scene as the camera of ``camera`` reports it (the arm out of view), as a ``cameras.Capture``
     holding the true scene (``capture_file.scene_truth``), ready to save and replay."""
-    from sagrasp_jax.deploy.cameras import Capture
-    from sagrasp_jax.deploy.capture_file import now_utc, scene_truth
+    from sagrasp_jax.deploy.cameras import Capture, now_utc
+    from sagrasp_jax.deploy.capture_file import scene_truth
     from sagrasp_jax.deploy.twin_camera import TwinCamera
 
     # The capture is taken with the arm out of view, as a cell captures before the arm moves in: from its home
@@ -463,7 +463,7 @@ def check_arguments(args: argparse.Namespace) -> None:
     if not 0 <= args.seed < 2**31:
         raise ValueError(f"--seed must be in [0, 2^31), got {args.seed}")
     if getattr(args, "camera", "none") == "twin":
-        from sagrasp_jax.deploy.twin_camera import noise_model
+        from sagrasp_jax.task.camera import noise_model
 
         if args.depth_noise is not None:
             noise_model(args.depth_noise)  # ValueError naming the models

@@ -442,24 +442,16 @@ MAX_POLICY_FILE_BYTES = 2 * 256 * 2**20  # a policy file's own size: its unpacke
 def load_policy(path: str | os.PathLike[str]) -> NumpyPolicy:
     """Read and validate ``policy.npz`` (or a pretrained policy by name, ``PRETRAINED``, or a folder holding a
     ``policy.npz``); raises PolicyFormatError naming the file and the problem.  The file is read whole through
-    ``fileio.read_regular`` (a FIFO, device or folder refused before it is opened, the size bounded), then its
+    ``fileio.read_input`` (a FIFO, device or folder refused before it is opened, the size bounded), then its
     members as ``read_npz`` allows."""
     given = os.fspath(path)
     path = resolve_policy(given)
-    try:
-        data = fileio.read_regular(path, MAX_POLICY_FILE_BYTES, "policy file")
-    except fileio.NotRegularFile as exc:
-        raise PolicyFormatError(f"{path} is {exc.kind}, not a policy file") from None
-    except fileio.FileTooLarge as exc:
-        raise PolicyFormatError(str(exc)) from None
-    except FileNotFoundError:
-        names = ", ".join(sorted(PRETRAINED))
-        if path != given:  # a folder without a policy file
-            raise PolicyFormatError(f"{given} is a folder without a {POLICY_FILE_NAME} (a training writes one into its "
-                                    "run folder when it finishes; export writes one into its --out folder)") from None
-        raise PolicyFormatError(f"{path}: policy file not found (or a pretrained policy's name: {names})") from None
-    except OSError as exc:
-        raise PolicyFormatError(f"{path}: cannot read the policy file ({exc.strerror or exc})") from None
+    if path != given:  # a folder without a policy file
+        not_found = (f"{given} is a folder without a {POLICY_FILE_NAME} (a training writes one into its run folder "
+                     "when it finishes; export writes one into its --out folder)")
+    else:
+        not_found = f"{path}: policy file not found (or a pretrained policy's name: {', '.join(sorted(PRETRAINED))})"
+    data = fileio.read_input(path, MAX_POLICY_FILE_BYTES, "policy file", PolicyFormatError, not_found)
     try:
         arrays = read_npz(path, io.BytesIO(data))
     except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, ValueError, EOFError, NotImplementedError,
