@@ -1593,7 +1593,8 @@ def test_54_4_ctrl_c_to_a_twin_evaluation_terminates_its_workers_at_once(tmp_pat
     assert code == 130 and took < 10.0, (code, took, err[-2000:])
     assert "the twin rehearsal was stopped after 0 of 4 scenes (its 2 worker processes terminated)" in line
     assert line.endswith("no result was written") and os.listdir(run) == []
-    workers = {int(w.split()[1]) for w in out.splitlines() if w.startswith("SCENE ")}
+    # two workers print to one pipe: their lines may interleave ("SCENE 1SCENE 2\n\n"), so read every pid in it
+    workers = {int(pid) for pid in re.findall(r"SCENE (\d+)", out)}
     assert workers
     for pid in workers:  # gone, not running their scenes on
         with pytest.raises(ProcessLookupError):
