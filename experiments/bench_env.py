@@ -30,6 +30,7 @@ from jax.sharding import PartitionSpec
 
 from sagrasp_jax import train
 from sagrasp_jax.task import config
+from sagrasp_jax.task import config_parse
 from sagrasp_jax.training import sharding
 from sagrasp_jax.envs.grasp_env import GraspEnv
 from sagrasp_jax.base.fileio import atomic_write_json
@@ -38,7 +39,8 @@ from sagrasp_jax.envs.auto_reset import AutoReset
 
 def bench_jax(mode: str, batch: int, steps: int, auto_reset: bool, overrides: list[str] | None = None,
               devices: int = 1) -> dict:
-    cfg = config.apply_overrides(config.get_config("paper"), [f"env.control.mode={mode}"] + list(overrides or [])).env
+    sets = [f"env.control.mode={mode}"] + list(overrides or [])
+    cfg = config_parse.apply_overrides(config.get_config("paper"), sets).env
     base = GraspEnv(cfg)
     env = AutoReset(base) if auto_reset else base
     step = env.batch_step if auto_reset else jax.vmap(base.step)

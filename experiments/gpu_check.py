@@ -76,6 +76,7 @@ from experiments import bench_env, study
 from experiments.study import watch_trainer
 from sagrasp_jax import evaluate, train
 from sagrasp_jax.task import config
+from sagrasp_jax.task import config_parse
 from sagrasp_jax.training import run_dir
 from sagrasp_jax.envs.grasp_env import GraspEnv
 
@@ -129,7 +130,7 @@ def section(name: str, fn: Callable[[], dict[str, Any]]) -> dict[str, Any]:
 def joint_rollout(impl: str, envs: int, steps: int) -> np.ndarray:
     """Joint positions [step, env, joint] of ``envs`` dynamic-mode envs (paper preset, no noise, no
     obstacle) from fixed keys under fixed random actions, physics ``impl``."""
-    cfg = config.apply_overrides(config.get_config("paper"), [
+    cfg = config_parse.apply_overrides(config.get_config("paper"), [
         "env.control.mode=dynamic", f"env.control.impl={impl}", "env.task.obs_noise_std=0",
         "env.sampling.obstacle_prob=0"])
     env = GraspEnv(cfg.env)

@@ -124,7 +124,7 @@ def summarise_algo(evals: list[dict[str, Any]], seeds: Sequence[int]) -> dict[st
 
 
 def env_hashes(folders: Sequence[str]) -> list[str]:
-    """``config.config_hash`` of the env config each run was trained with (from its raw config.json)."""
+    """``config_history.config_hash`` of the env config each run was trained with (from its raw config.json)."""
     out = []
     for folder in folders:
         with open(os.path.join(folder, run_dir.CONFIG_FILE), encoding="utf-8") as f:

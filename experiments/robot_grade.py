@@ -41,7 +41,7 @@ import numpy as np
 from sagrasp_jax import evaluate
 from sagrasp_jax.deploy import sysid
 from sagrasp_jax.envs.grasp_env import GraspEnv
-from sagrasp_jax.task import config, robot, scripted
+from sagrasp_jax.task import config, config_parse, robot, scripted
 from sagrasp_jax.training import run_dir
 from sagrasp_jax.task.config import EVAL_CONDITIONS, ROBOT_KNOBS
 from sagrasp_jax.base.fileio import atomic_write_json
@@ -171,7 +171,7 @@ def _servo_env(mode: str, extra: list[str], gains: dict[str, tuple[float, ...]] 
                  *extra]
     if gains:
         overrides += [f"env.control.{k}={','.join(f'{v:.6f}' for v in vals)}" for k, vals in gains.items()]
-    return GraspEnv(config.apply_overrides(config.get_config("cpu-quick"), overrides).env)
+    return GraspEnv(config_parse.apply_overrides(config.get_config("cpu-quick"), overrides).env)
 
 
 def record(env: GraspEnv, episodes: int, steps: int, seed: int, scripted_actions: bool) -> dict[str, np.ndarray]:
@@ -287,7 +287,7 @@ def synthesize(kp_scale: Any, latency: float, offset: Any, noise: float = 0.0005
     episodes are logged one after another: each jump between them is a period the fit cannot explain)."""
     overrides = ["env.control.mode=dynamic", "env.task.obs_noise_std=0", "env.randomize.latency=3",
                  "env.randomize.servo_gain=0.2"]  # knobs on so the env keeps a command queue and a draw to overwrite
-    cfg = config.apply_overrides(config.get_config("cpu-quick"), overrides).env
+    cfg = config_parse.apply_overrides(config.get_config("cpu-quick"), overrides).env
     env = GraspEnv(cfg)
     kp = jnp.asarray(kp_scale, jnp.float32)
     known = {"kp_scale": kp, "kv_scale": kp, "latency": jnp.asarray(latency, jnp.float32),

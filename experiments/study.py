@@ -52,7 +52,8 @@ from sagrasp_jax import evaluate, train
 from sagrasp_jax.base import fileio
 from sagrasp_jax.training import run_dir
 from sagrasp_jax.training.checkpoint import CheckpointError
-from sagrasp_jax.task.config import EVAL_CONDITIONS, Config, ConfigError, config_from_dict, config_to_dict, get_config
+from sagrasp_jax.task.config import EVAL_CONDITIONS, Config, ConfigError, config_to_dict, get_config
+from sagrasp_jax.task.config_parse import config_from_dict
 from sagrasp_jax.training.run_dir import RunDirError
 
 SEED_FOLDER = "seed{seed}"  # a seed's run folder inside its variant's, as `sagrasp_jax.train --seeds` names it

@@ -46,7 +46,8 @@ from sagrasp_jax.training import rollout
 from sagrasp_jax.training import run_dir
 from sagrasp_jax.training import restore
 from sagrasp_jax.training.checkpoint import CheckpointError
-from sagrasp_jax.task.config import EVAL_CONDITIONS, SEED_RANGE, Config, ConfigError, blocking_sampling, check_range, file_overrides
+from sagrasp_jax.task.config import EVAL_CONDITIONS, SEED_RANGE, Config, ConfigError, blocking_sampling, check_range
+from sagrasp_jax.task.config_parse import file_overrides
 from sagrasp_jax.training.run_dir import RunDirError
 
 EvalEnvFactory = Callable[[Config], rollout.Env]
@@ -115,7 +116,7 @@ def env_overrides(cfg: Config, overrides: list[str] | None) -> Config:
     """``cfg`` with ``--set`` changes of the evaluated env (``env.*`` keys only; the policy's
     observation layout must stay the same)."""
     from sagrasp_jax.task import observation
-    from sagrasp_jax.task.config import apply_overrides
+    from sagrasp_jax.task.config_parse import apply_overrides
 
     overrides = list(overrides or [])
     bad = [o for o in overrides if not o.strip().startswith("env.")]
@@ -195,12 +196,12 @@ def evaluate_run(run: str, episodes: int = 1000, seed: int | None = None, max_st
 
 
 def config_identity(cfg: Config) -> str:
-    """A hash of a run's whole config (seed included; ``config.config_hash`` covers the env only), in its
-    first-written layout (``config.identity_dict``), so a key's rename keeps older runs' evaluation files valid."""
+    """A hash of a run's whole config (seed included; ``config_history.config_hash`` covers the env only), in its
+    first-written layout (``config_history.identity_dict``), so a key's rename keeps older runs' evaluation files valid."""
     import hashlib
     import json
 
-    from sagrasp_jax.task.config import identity_dict
+    from sagrasp_jax.task.config_history import identity_dict
 
     return hashlib.sha256(json.dumps(identity_dict(cfg), sort_keys=True).encode()).hexdigest()[:16]
 

@@ -52,7 +52,7 @@ class _ListKeys(argparse.Action):
 
     def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: Any,
                  option_string: str | None = None) -> None:
-        from sagrasp_jax.task.config import describe_keys
+        from sagrasp_jax.task.config_parse import describe_keys
 
         preset = namespace.preset or "cpu-quick"
         if preset not in PRESETS:

@@ -15,7 +15,8 @@ import pytest
 
 from sagrasp_jax.training import checkpoint
 from sagrasp_jax.training.checkpoint import CheckpointError
-from sagrasp_jax.task.config import apply_overrides, get_config
+from sagrasp_jax.task.config import get_config
+from sagrasp_jax.task.config_parse import apply_overrides
 
 
 def _trees():

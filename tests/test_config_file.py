@@ -12,7 +12,7 @@ import sys
 import pytest
 
 from sagrasp_jax import evaluate, train
-from sagrasp_jax.task import config
+from sagrasp_jax.task import config_parse
 from sagrasp_jax.task.config import ConfigError, get_config
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -81,11 +81,11 @@ def test_missing_file_and_wrong_suffix_exit_2(tmp_path, capsys):
 
 def test_typo_key_suggests_the_nearest_keys_not_all_of_them():
     with pytest.raises(ConfigError) as info:
-        config.apply_overrides(get_config("cpu-quick"), ["ppo.learning_rte=1e-4"])
+        config_parse.apply_overrides(get_config("cpu-quick"), ["ppo.learning_rte=1e-4"])
     text = str(info.value)
     assert "did you mean ppo.learning_rate" in text and text.count(",") < 5
     with pytest.raises(ConfigError, match="did you mean env.task.max_steps"):
-        config.apply_overrides(get_config("cpu-quick"), ["task.max_steps=10"])  # the section left out
+        config_parse.apply_overrides(get_config("cpu-quick"), ["task.max_steps=10"])  # the section left out
 
 
 def test_evaluate_config_file_takes_env_keys_only(tmp_path, capsys):
@@ -114,7 +114,7 @@ def test_yaml_yields_json_types_only():
     pytest.importorskip("yaml")
     import yaml
 
-    assert config.parse_yaml("a: 2001-12-14\nb: yes\nc: &x 3\nd: [1.5, null]\n") == {
+    assert config_parse.parse_yaml("a: 2001-12-14\nb: yes\nc: &x 3\nd: [1.5, null]\n") == {
         "a": "2001-12-14", "b": True, "c": 3, "d": [1.5, None]}  # an anchor alone is harmless
     for text, message in [("a: !!set {x, y}", "tag:yaml.org,2002:set is not allowed"),
                           ("a: !!binary aGVsbG8=", "tag:yaml.org,2002:binary is not allowed"),
@@ -123,21 +123,21 @@ def test_yaml_yields_json_types_only():
                           ("a: &x [1]\nb: *x", "an alias (*x) is not allowed"),
                           ("a: 1" + "0" * 64, "an integer of 65 digits (at most 64)")]:
         with pytest.raises((ValueError, yaml.YAMLError), match=re.escape(message)):
-            config.parse_yaml(text)
+            config_parse.parse_yaml(text)
     for depth in (32, 100_000):  # refused as it is scanned (PyYAML's scanner slows down as depth²), or after
         with pytest.raises((ValueError, yaml.YAMLError), match="nested deeper than 32 levels"):
-            config.parse_yaml("a: " + "[" * depth + "]" * depth)
-    deepest = config.parse_yaml("a: " + "[" * 31 + "]" * 31)  # 32 levels with the mapping: the bound itself
+            config_parse.parse_yaml("a: " + "[" * depth + "]" * depth)
+    deepest = config_parse.parse_yaml("a: " + "[" * 31 + "]" * 31)  # 32 levels with the mapping: the bound itself
     assert json.dumps(deepest) == '{"a": ' + "[" * 31 + "]" * 31 + "}"
 
 
 def test_json_numbers_and_nesting_are_bounded():
-    assert config.parse_json('{"a": ' + "9" * 64 + "}") == {"a": int("9" * 64)}
+    assert config_parse.parse_json('{"a": ' + "9" * 64 + "}") == {"a": int("9" * 64)}
     with pytest.raises(ValueError, match="an integer of 65 digits"):
-        config.parse_json('{"a": ' + "9" * 65 + "}")
+        config_parse.parse_json('{"a": ' + "9" * 65 + "}")
     with pytest.raises(ValueError, match="nested deeper than 32 levels"):
-        config.parse_json("[" * 33 + "]" * 33)
-    assert json.dumps(config.parse_json("[" * 32 + "]" * 32)) == "[" * 32 + "]" * 32  # the bound itself
+        config_parse.parse_json("[" * 33 + "]" * 33)
+    assert json.dumps(config_parse.parse_json("[" * 32 + "]" * 32)) == "[" * 32 + "]" * 32  # the bound itself
 
 
 @pytest.mark.parametrize("literal, digits", [
@@ -151,13 +151,13 @@ def test_every_yaml_integer_notation_is_bounded(literal, digits):
     import yaml
 
     with pytest.raises((ValueError, yaml.YAMLError), match=re.escape(f"an integer of {digits} digits (at most 64)")):
-        config.parse_yaml(f"a: {literal}\n")
+        config_parse.parse_yaml(f"a: {literal}\n")
     for ok, value in [("0x" + "f" * 53, 16**53 - 1), ("-0x1F", -31), ("0b101", 5), ("017", 15), ("1_000", 1000),
                       ("1:20", 80), ("+" + "9" * 64, int("9" * 64))]:
-        assert config.parse_yaml(f"a: {ok}") == {"a": value}
+        assert config_parse.parse_yaml(f"a: {ok}") == {"a": value}
     for empty in ('""', '"-"'):  # PyYAML's own IndexError on an empty explicit integer: a YAML error too
         with pytest.raises(yaml.YAMLError, match="is not an integer"):
-            config.parse_yaml(f"a: !!int {empty}")
+            config_parse.parse_yaml(f"a: !!int {empty}")
 
 
 @pytest.mark.parametrize("command", ["train", "evaluate"])

@@ -6,6 +6,8 @@ import pytest
 
 from sagrasp_jax import train
 from sagrasp_jax.task import config
+from sagrasp_jax.task import config_history
+from sagrasp_jax.task import config_parse
 
 
 def test_every_key_has_a_description():
@@ -34,17 +36,18 @@ def test_list_keys_shows_meaning_value_and_valid_values(capsys):
 def test_string_lists_parse_from_bare_words_and_json():
     base = config.get_config("paper")
     for text in ("capsule,box", '["capsule", "box"]', " capsule , box "):
-        cfg = config.apply_overrides(base, [f"env.sampling.obstacle_kinds={text}"])
+        cfg = config_parse.apply_overrides(base, [f"env.sampling.obstacle_kinds={text}"])
         assert cfg.env.sampling.obstacle_kinds == ("capsule", "box")
     saved = config.config_to_dict(cfg)
-    assert config.config_from_dict(saved) == cfg
+    assert config_parse.config_from_dict(saved) == cfg
     del saved["env"]["sampling"]["obstacle_kinds"]  # a config saved before the key existed: the paper's kinds
-    assert config.config_from_dict(saved).env.sampling.obstacle_kinds == ("sphere", "cylinder", "box")
+    assert config_parse.config_from_dict(saved).env.sampling.obstacle_kinds == ("sphere", "cylinder", "box")
 
 
 def test_minibatches_must_divide_the_batch():
     with pytest.raises(config.ConfigError, match="ppo.num_minibatches"):
-        config.apply_overrides(config.get_config("paper"), ["ppo.num_envs=10", "ppo.unroll_length=3", "ppo.num_minibatches=4"])
+        config_parse.apply_overrides(config.get_config("paper"),
+                                     ["ppo.num_envs=10", "ppo.unroll_length=3", "ppo.num_minibatches=4"])
 
 
 def test_cpu_quick_takes_four_passes_late_and_a_lower_pass_count_keeps_its_own():
@@ -53,14 +56,14 @@ def test_cpu_quick_takes_four_passes_late_and_a_lower_pass_count_keeps_its_own()
     cfg = config.get_config("cpu-quick")
     assert (cfg.ppo.late_epochs, cfg.ppo.late_from, cfg.ppo.num_epochs) == (4, 0.3, 8)
     assert [int(ppo.epochs_at(cfg.ppo, p)) for p in (0.0, 0.29, 0.3, 1.0)] == [8, 8, 4, 4]
-    assert config.identity_dict(cfg)["ppo"]["late_epochs"] == 4  # the preset's runs are new runs
+    assert config_history.identity_dict(cfg)["ppo"]["late_epochs"] == 4  # the preset's runs are new runs
     # fewer passes than the late count: refused before the preset set the key; now the run's own count throughout
-    two = config.apply_overrides(cfg, ["ppo.num_epochs=2"])
+    two = config_parse.apply_overrides(cfg, ["ppo.num_epochs=2"])
     assert two.ppo.late_epochs == 4 and ppo.epochs_at(two.ppo, 0.9) is None  # the fixed scan of 2 passes
-    assert ppo.epochs_at(config.apply_overrides(cfg, ["ppo.late_epochs=8"]).ppo, 0.9) is None
+    assert ppo.epochs_at(config_parse.apply_overrides(cfg, ["ppo.late_epochs=8"]).ppo, 0.9) is None
     # off: the preset before the key (its recorded runs keep their identity, the key left out at 0)
-    before = config.apply_overrides(cfg, ["ppo.late_epochs=0"])
+    before = config_parse.apply_overrides(cfg, ["ppo.late_epochs=0"])
     assert ppo.epochs_at(before.ppo, 0.9) is None
-    assert {"late_epochs", "late_from"}.isdisjoint(config.identity_dict(before)["ppo"])
+    assert {"late_epochs", "late_from"}.isdisjoint(config_history.identity_dict(before)["ppo"])
     with pytest.raises(config.ConfigError, match="ppo.late_from"):
-        config.apply_overrides(cfg, ["ppo.late_from=1.5"])
+        config_parse.apply_overrides(cfg, ["ppo.late_from=1.5"])

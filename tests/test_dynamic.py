@@ -13,6 +13,7 @@ import pytest
 from conftest import toy_config, toy_factory
 from sagrasp_jax import train
 from sagrasp_jax.task import config
+from sagrasp_jax.task import config_parse
 from sagrasp_jax.task import observation
 from sagrasp_jax.task import robot
 from sagrasp_jax.training import run_dir
@@ -23,7 +24,7 @@ N, T = 8, 4  # envs, steps
 
 
 def _cfg(mode: str, *sets: str) -> config.Config:
-    return config.apply_overrides(config.get_config("paper"), [f"env.control.mode={mode}", "env.task.obs_noise_std=0",
+    return config_parse.apply_overrides(config.get_config("paper"), [f"env.control.mode={mode}", "env.task.obs_noise_std=0",
                                                                  "env.sampling.obstacle_prob=0", *sets])
 
 
@@ -51,7 +52,7 @@ def _q(states, mode):
 
 @pytest.mark.parametrize("mode", ["kinematic", "dynamic"])
 def test_randomisation_is_off_by_default_and_draws_nothing(mode):
-    cfg = config.apply_overrides(config.get_config("paper"), [f"env.control.mode={mode}"])
+    cfg = config_parse.apply_overrides(config.get_config("paper"), [f"env.control.mode={mode}"])
     assert not config.randomization_enabled(cfg.env)
     env = GraspEnv(cfg.env)
     key = jax.random.PRNGKey(3)
@@ -65,10 +66,10 @@ def test_randomisation_is_off_by_default_and_draws_nothing(mode):
 def test_servo_and_latency_knobs_need_the_dynamic_mode():
     for key in ("env.randomize.servo_gain=0.2", "env.randomize.latency=1", "env.control.impl=warp"):
         with pytest.raises(config.ConfigError, match="needs env.control.mode=dynamic"):
-            config.apply_overrides(config.get_config("paper"), [key])
+            config_parse.apply_overrides(config.get_config("paper"), [key])
     for key in ("env.randomize.servo_gain=1.5", "env.randomize.target_error=-0.001"):
         with pytest.raises(config.ConfigError, match="env.randomize"):
-            config.apply_overrides(config.get_config("paper"), ["env.control.mode=dynamic", key])
+            config_parse.apply_overrides(config.get_config("paper"), ["env.control.mode=dynamic", key])
 
 
 # --------------------------------------------------------------------------------------- sensing knobs
@@ -264,7 +265,7 @@ def test_init_from_refuses_an_unusable_run_with_exit_2(toy_run, tmp_path, capsys
 def test_init_from_refuses_other_privileged_inputs(monkeypatch):
     """Same critic width is not enough: the privileged inputs must mean the same (the kinds' one-hot)."""
     def with_kinds(kinds: str) -> config.Config:
-        return config.apply_overrides(config.get_config("cpu-quick"), [f"env.sampling.obstacle_kinds={kinds}",
+        return config_parse.apply_overrides(config.get_config("cpu-quick"), [f"env.sampling.obstacle_kinds={kinds}",
                                                                        "train.init_from=/somewhere"])
 
     source = with_kinds("sphere,cylinder,box")

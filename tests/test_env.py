@@ -14,6 +14,7 @@ import jax.numpy as jnp
 
 from sagrasp_jax.task import collision
 from sagrasp_jax.task import config
+from sagrasp_jax.task import config_parse
 from sagrasp_jax.task import robot
 from sagrasp_jax.task import sampling
 from sagrasp_jax.task import shapes
@@ -534,7 +535,7 @@ def test_the_trainer_env_carries_the_configured_curriculum():
     """train.curriculum_replay reaches the training env's AutoReset; the evaluation env never replays."""
     from sagrasp_jax.train import default_envs
 
-    cfg = config.apply_overrides(config.get_config("cpu-quick"), ["train.curriculum_replay=0.5"])
+    cfg = config_parse.apply_overrides(config.get_config("cpu-quick"), ["train.curriculum_replay=0.5"])
     train_env, eval_env = default_envs(cfg)
     assert train_env.replay == 0.5 and not isinstance(eval_env, AutoReset)
     assert default_envs(config.get_config("cpu-quick"))[0].replay == 0.0  # off in the presets

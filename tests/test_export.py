@@ -14,7 +14,9 @@ import numpy as np
 import pytest
 
 from sagrasp_jax import export
-from sagrasp_jax.task.config import config_from_dict, config_hash, get_config
+from sagrasp_jax.task.config import get_config
+from sagrasp_jax.task.config_history import config_hash
+from sagrasp_jax.task.config_parse import config_from_dict
 from sagrasp_jax.task import observation
 from sagrasp_jax.task.policy_file import load_policy, save_policy_npz
 from tiny_run import REPO, tiny_run

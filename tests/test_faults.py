@@ -34,6 +34,8 @@ import pytest
 from conftest import toy_config, toy_factory
 
 from sagrasp_jax.task import config as config_mod
+from sagrasp_jax.task import config_history
+from sagrasp_jax.task import config_parse
 from sagrasp_jax import evaluate, export, train
 from sagrasp_jax.base import fileio
 from sagrasp_jax.training import launch, run_dir
@@ -453,7 +455,7 @@ def _tampered(path: str, edit: Callable[[dict[str, Any]], None], rehash: bool) -
     edit(cfg)
     arrays["config_json"] = np.asarray(json.dumps(cfg, sort_keys=True))
     if rehash:
-        arrays["config_hash"] = np.asarray(config_mod.config_hash(config_mod.config_from_dict(cfg)))
+        arrays["config_hash"] = np.asarray(config_history.config_hash(config_parse.config_from_dict(cfg)))
         arrays["action_scale"] = np.asarray(cfg["env"]["control"]["q_max"], np.float64)
     with open(path, "wb") as f:
         np.savez(f, **arrays)
@@ -809,7 +811,7 @@ def _retrained(run: str, seed: int) -> None:
 
     from sagrasp_jax.training import checkpoint
 
-    cfg = config_mod.apply_overrides(run_dir.load_config(run), [f"train.seed={seed}"])
+    cfg = config_parse.apply_overrides(run_dir.load_config(run), [f"train.seed={seed}"])
     ckpt = run_dir.load_checkpoint(run)
     trees = {name: dict(flat) for name, flat in ckpt.trees.items()}
     key = next(k for k in trees["train_state"] if "kernel" in k)
@@ -1017,8 +1019,8 @@ CONFIG_FILE_CASES = [
     ("date.yaml", "env: {task: {max_steps: 2001-12-14}}\n", "bad value '2001-12-14' for env.task.max_steps (int)"),
     ("laughs.yaml", _billion_laughs(), "an alias (*a) is not allowed in a config file"),
     ("deep.yaml", "a: " + "[" * 100_000 + "]" * 100_000 + "\n", "nested deeper than 32 levels"),
-    ("big.json", '{"train.seed": 1, "x": "' + "a" * (config_mod.MAX_CONFIG_BYTES + 1) + '"}',
-     f"bytes, over the {config_mod.MAX_CONFIG_BYTES} bytes a config file may hold; not read"),
+    ("big.json", '{"train.seed": 1, "x": "' + "a" * (config_parse.MAX_CONFIG_BYTES + 1) + '"}',
+     f"bytes, over the {config_parse.MAX_CONFIG_BYTES} bytes a config file may hold; not read"),
     ("null.json", "/dev/null", "is a character device, not a regular file"),
     ("fifo.json", "FIFO", "is a FIFO (named pipe), not a regular file"),
 ]
@@ -1065,10 +1067,10 @@ def test_40_4_dev_zero_and_a_billion_laughs_are_refused_in_bounded_memory(tmp_pa
     os.symlink("/dev/zero", zero)
     with open(laughs, "w") as f:
         f.write(_billion_laughs())
-    probe = ("import time\nfrom sagrasp_jax.task import config\n"
+    probe = ("import time\nfrom sagrasp_jax.task import config, config_parse\n"
              "for path in {paths!r}:\n"
              "    t = time.monotonic()\n"
-             "    try:\n        config.file_overrides(path)\n    except config.ConfigError as exc:\n"
+             "    try:\n        config_parse.file_overrides(path)\n    except config.ConfigError as exc:\n"
              "        print(f'{{time.monotonic() - t:.3f}} {{exc}}'.splitlines()[0])\n")
     res = _bounded_python(probe.format(paths=[zero, laughs]))
     assert res.returncode == 0 and "Traceback" not in res.stderr, res.stderr[-2000:]
@@ -1176,7 +1178,7 @@ def test_40_7_sysid_refuses_a_log_it_cannot_fit_and_says_what_it_could_not_ident
     good = _servo_log(latency=1.0)
     fit = sysid.identify(good)
     items = sysid.overrides(fit)  # a log the model fits: every item passes training's own check
-    assert config_mod.apply_overrides(get_config("cpu-quick"), items).env.randomize.latency == pytest.approx(2.0, abs=0.1)
+    assert config_parse.apply_overrides(get_config("cpu-quick"), items).env.randomize.latency == pytest.approx(2.0, abs=0.1)
     rng = np.random.default_rng(1)
     noise = sysid.RobotLog(good.time, rng.uniform(-1, 1, good.command.shape), rng.uniform(-1, 1, good.measured.shape))
     err = _sysid_refuses(noise, "log: cannot identify the arm from this log: the servo model explains only", tmp_path,
@@ -1287,7 +1289,7 @@ def test_40_a_policy_file_without_its_clearance_key_is_refused(policy_file, tmp_
     cfg = json.loads(str(arrays["config_json"]))
     del cfg["env"]["sampling"]["target_clearance"]
     arrays["config_json"] = np.asarray(json.dumps(cfg, sort_keys=True))
-    arrays["config_hash"] = np.asarray(config_mod.env_dict_hash(cfg["env"]))  # a consistent edit: the hash matches
+    arrays["config_hash"] = np.asarray(config_history.env_dict_hash(cfg["env"]))  # a consistent edit: the hash matches
     with open(path, "wb") as f:
         np.savez(f, **arrays)
     message = f"{path}: config_json does not record env.sampling.target_clearance"

@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 
 from sagrasp_jax.task import config
+from sagrasp_jax.task import config_parse
 from sagrasp_jax.task import control
 from sagrasp_jax.task import reward
 from sagrasp_jax.task import robot
@@ -44,7 +45,8 @@ def model() -> robot.RobotModel:
 
 def _env_config(tilt_weight: float) -> config.EnvConfig:
     """The README preset's env in the kinematic mode without transfer errors, with this tilt weight."""
-    cfg = config.apply_overrides(config.get_config("cpu-quick"), list(config.KNOBS_OFF) + ["env.control.mode=kinematic"])
+    cfg = config_parse.apply_overrides(config.get_config("cpu-quick"),
+                                       list(config.KNOBS_OFF) + ["env.control.mode=kinematic"])
     return dataclasses.replace(cfg.env, reward=dataclasses.replace(cfg.env.reward, tilt_weight=tilt_weight))
 
 

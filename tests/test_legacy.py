@@ -18,6 +18,7 @@ import pytest
 
 import sagrasp_jax  # noqa: F401
 from sagrasp_jax.task import config
+from sagrasp_jax.task import config_parse
 from sagrasp_jax.task import observation
 from sagrasp_jax.task.policy_file import load_policy
 
@@ -29,11 +30,11 @@ def test_legacy_config_gets_its_old_semantics():
     with open(os.path.join(DATA, "config.json"), encoding="utf-8") as f:
         raw = json.load(f)
     assert "obs_layout" not in raw["env"]["task"]  # written before the key existed
-    cfg = config.config_from_dict(raw)
+    cfg = config_parse.config_from_dict(raw)
     assert cfg.env.task.obs_layout == "paper"
     assert cfg.env.reward.near_miss_mode == "per_step"
     assert cfg.env.task.obstacle_geometry == "cover"
-    assert config.config_from_dict(config.config_to_dict(cfg)) == cfg  # a full dict round-trips unchanged
+    assert config_parse.config_from_dict(config.config_to_dict(cfg)) == cfg  # a full dict round-trips unchanged
 
 
 def test_legacy_policy_loads_with_the_paper_layout():

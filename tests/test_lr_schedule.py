@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from sagrasp_jax.task import config
+from sagrasp_jax.task import config_parse
 from sagrasp_jax.training import lr_schedule as L
 from sagrasp_jax.task.config import SAConfig
 
@@ -223,10 +224,10 @@ def test_legacy_sa_state_becomes_a_schedule_state() -> None:
 # ---------------------------------------------------------------------- config
 
 def test_rule_of_reads_one_initial_lr() -> None:
-    cfg = config.apply_overrides(config.get_config("paper"), ["ppo.learning_rate=1e-4", "lr.schedule=sa"])
+    cfg = config_parse.apply_overrides(config.get_config("paper"), ["ppo.learning_rate=1e-4", "lr.schedule=sa"])
     rule = L.rule_of(cfg)
     assert rule.lr0 == 1e-4 and L.init(rule).sa.lr == 1e-4  # SA starts where --set ppo.learning_rate says
-    cfg = config.apply_overrides(cfg, ["lr.schedule=kl-adaptive", "lr.desired_kl=0.02", "lr.kl_factor=2",
+    cfg = config_parse.apply_overrides(cfg, ["lr.schedule=kl-adaptive", "lr.desired_kl=0.02", "lr.kl_factor=2",
                                        "lr.kl_lr_min=1e-6", "lr.kl_lr_max=1e-3"])
     assert L.rule_of(cfg) == L.Rule("kl-adaptive", 1e-4, 1e-6, 0.02, 2.0, 1e-6, 1e-3)
     assert [L.Rule(n, LR0).mode for n in config.LR_SCHEDULES] == ["fixed", "fixed", "kl", "per_iteration",
@@ -256,9 +257,9 @@ def test_default_presets_keep_their_schedule_numbers() -> None:
 ])
 def test_bad_schedule_settings_are_refused(sets: list[str], message: str) -> None:
     with pytest.raises(config.ConfigError, match=message.replace("(", r"\(").replace(")", r"\)")):
-        config.apply_overrides(config.get_config("cpu-quick"), sets)
+        config_parse.apply_overrides(config.get_config("cpu-quick"), sets)
     # the SA floor only binds the sa schedule
-    assert config.apply_overrides(config.get_config("cpu-quick"), ["lr.schedule=constant", "ppo.learning_rate=1e-7"])
+    assert config_parse.apply_overrides(config.get_config("cpu-quick"), ["lr.schedule=constant", "ppo.learning_rate=1e-7"])
 
 
 def test_configs_saved_before_lr_schedules_mean_the_same_training() -> None:
@@ -267,13 +268,13 @@ def test_configs_saved_before_lr_schedules_mean_the_same_training() -> None:
     sa_run = json.loads(json.dumps(saved))
     sa_run["sa"].update(enabled=True, lr0=2e-4)
     sa_run["ppo"]["learning_rate"] = 3e-4  # ignored by SA-PPO before
-    cfg = config.config_from_dict(sa_run)
+    cfg = config_parse.config_from_dict(sa_run)
     assert cfg.lr.schedule == "sa" and cfg.ppo.learning_rate == 2e-4
     ppo_run = json.loads(json.dumps(saved))
     ppo_run["sa"].update(enabled=False, lr0=3e-4)
     ppo_run["ppo"]["learning_rate"] = 1e-4
-    cfg = config.config_from_dict(ppo_run)
+    cfg = config_parse.config_from_dict(ppo_run)
     assert cfg.lr.schedule == "constant" and cfg.ppo.learning_rate == 1e-4
-    assert config.config_from_dict(config.config_to_dict(cfg)) == cfg
+    assert config_parse.config_from_dict(config.config_to_dict(cfg)) == cfg
     with pytest.raises(config.ConfigError, match="sa.enabled"):
-        config.config_from_dict({**saved, "sa": {**saved["sa"], "enabled": "yes"}})
+        config_parse.config_from_dict({**saved, "sa": {**saved["sa"], "enabled": "yes"}})

@@ -12,6 +12,7 @@ import pytest
 import sagrasp_jax  # noqa: F401
 from sagrasp_jax.task import collision
 from sagrasp_jax.task import config
+from sagrasp_jax.task import config_parse
 from sagrasp_jax.task import observation
 from sagrasp_jax.task import robot
 from sagrasp_jax.task import sampling
@@ -194,7 +195,7 @@ def test_privileged_critic_inputs():
                                [0.0, 0.0, -0.15 / 0.25], atol=1e-9)
     assert extra["obstacle0_distance"] == pytest.approx(float(col.obstacle_dist[0]) / 0.25)
     assert all(extra[n] == 0.0 for n in names if n.startswith("obstacle1_"))  # empty slot
-    full = config.apply_overrides(config.get_config("paper"), ["ppo.privileged_critic=true"])
+    full = config_parse.apply_overrides(config.get_config("paper"), ["ppo.privileged_critic=true"])
     assert observation.critic_extra_size(full) == 25
     assert observation.critic_extra_size(config.get_config("paper")) == 0
 
@@ -311,6 +312,6 @@ def test_obstacle_shape_and_jax_agree_and_paper_layout_refuses_it():
     theta = observation.layout_of(cfg).index("theta_gz")
     np.testing.assert_allclose(np.delete(np.asarray(got), theta), np.delete(ref, theta), atol=2e-5)
     with pytest.raises(config.ConfigError, match="obs_obstacle_shape=true needs a relative observation layout"):
-        config.apply_overrides(config.get_config("paper"), ["env.task.obs_obstacle_shape=true"])
+        config_parse.apply_overrides(config.get_config("paper"), ["env.task.obs_obstacle_shape=true"])
     with pytest.raises(ValueError, match="relative layout"):
         observation.layout("paper", 2, obstacle_shape=True)

@@ -18,7 +18,8 @@ from sagrasp_jax.task import observation
 from sagrasp_jax.task import robot
 from sagrasp_jax.task import sampling
 from sagrasp_jax.deploy import sysid
-from sagrasp_jax.task.config import ConfigError, ControlConfig, apply_overrides, get_config
+from sagrasp_jax.task.config import ConfigError, ControlConfig, get_config
+from sagrasp_jax.task.config_parse import apply_overrides
 from sagrasp_jax.envs.grasp_env import GraspEnv
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

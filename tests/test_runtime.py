@@ -10,7 +10,8 @@ import sys
 import numpy as np
 import pytest
 
-from sagrasp_jax.task.config import Config, config_hash, get_config
+from sagrasp_jax.task.config import Config, get_config
+from sagrasp_jax.task.config_history import config_hash
 from sagrasp_jax.task.policy_file import (
     FORMAT_VERSION,
     OBS_LAYOUT,

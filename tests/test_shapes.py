@@ -22,6 +22,7 @@ import jax.numpy as jnp
 from sagrasp_jax.base import assets
 from sagrasp_jax.task import collision
 from sagrasp_jax.task import config
+from sagrasp_jax.task import config_parse
 from sagrasp_jax.task import reward
 from sagrasp_jax.task import robot
 from sagrasp_jax.task import sampling
@@ -39,7 +40,7 @@ ALL_KINDS = ["env.sampling.obstacle_kinds=sphere,cylinder,box,capsule", "env.sam
 
 
 def _cfg(sets: list[str]) -> config.EnvConfig:
-    return config.apply_overrides(config.get_config("paper"), sets).env
+    return config_parse.apply_overrides(config.get_config("paper"), sets).env
 
 
 # ------------------------------------------------------------------ default kinds: nothing moved

@@ -31,7 +31,8 @@ from typing import Any
 import numpy as np
 
 from sagrasp_jax.base import fileio
-from sagrasp_jax.task.config import SamplingConfig, parse_json
+from sagrasp_jax.task.config import SamplingConfig
+from sagrasp_jax.task.config_parse import parse_json
 from sagrasp_jax.task.policy_file import npy_header
 from sagrasp_jax.task.shapes import footprint_gap
 
@@ -123,7 +124,7 @@ def _npy_matrix(data: bytes, path: str) -> np.ndarray:
 def _read_matrix(path: str) -> np.ndarray:
     """The matrix a calibration file holds, read in bounded time and memory: through ``fileio.read_regular``
     (a FIFO, device or folder is named and refused before it is opened, a file over ``MAX_CALIBRATION_BYTES``
-    before it is read), JSON within the config files' bounds (``config.parse_json``: nesting, digits), a
+    before it is read), JSON within the config files' bounds (``config_parse.parse_json``: nesting, digits), a
     ``.npy`` header checked against its bytes; every parse error a ``CalibrationError`` naming the file."""
     ext = os.path.splitext(path)[1].lower()
     if ext not in (".json", ".npy", ".txt", ".csv", ".dat"):

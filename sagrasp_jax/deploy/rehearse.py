@@ -32,7 +32,8 @@ import numpy as np
 from sagrasp_jax.base import cli, extras, fileio
 from sagrasp_jax.task import robot
 from sagrasp_jax.task import sampling
-from sagrasp_jax.task.config import EVAL_CONDITIONS, Config, ConfigError, EnvConfig, apply_overrides, blocking_sampling
+from sagrasp_jax.task.config import EVAL_CONDITIONS, Config, ConfigError, EnvConfig, blocking_sampling
+from sagrasp_jax.task.config_parse import apply_overrides
 from sagrasp_jax.deploy import transfer
 from sagrasp_jax.deploy.calibration import ObstacleRejected, TargetRejected
 from sagrasp_jax.deploy.loop import DeployReport, obstacles_from_spec, run_episode

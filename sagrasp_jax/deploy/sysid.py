@@ -28,7 +28,7 @@ Bad logs (NaN, time not increasing, wrong columns, too short, another sample per
 moves, a fit that explains less than ``MIN_EXPLAINED`` of a joint's step-to-step motion (noise, shuffled columns),
 a latency beyond training's ``env.randomize.latency`` range (the search runs one step past it, so a longer one
 shows), a fitted gain or carry-over outside the model's range, or an override that training would refuse (each
-is checked by ``config.apply_overrides`` on the ``cpu-quick`` preset): the message says what could not be
+is checked by ``config_parse.apply_overrides`` on the ``cpu-quick`` preset): the message says what could not be
 identified, and nothing is written.  Nothing here imports jax: it runs on the robot PC.
 """
 
@@ -43,6 +43,7 @@ from typing import Any, NamedTuple, Sequence
 import numpy as np
 
 from sagrasp_jax.task import config
+from sagrasp_jax.task import config_parse
 from sagrasp_jax.task import control
 from sagrasp_jax.base import cli
 from sagrasp_jax.base import fileio
@@ -247,18 +248,18 @@ def overrides(result: SysIdResult, control_cfg: ControlConfig | None = None) -> 
 
 
 def check_overrides(items: list[str]) -> list[str]:
-    """``items`` if training accepts them over ``TRAINING_PRESET`` (``config.apply_overrides``: each key's
+    """``items`` if training accepts them over ``TRAINING_PRESET`` (``config_parse.apply_overrides``: each key's
     declared range and the rules across keys), else LogError naming each refused item and why."""
     base = config.get_config(TRAINING_PRESET)
     refused = []
     for item in items:
         try:
-            config.apply_overrides(base, [item])
+            config_parse.apply_overrides(base, [item])
         except config.ConfigError as exc:
             refused.append(f"--set {item} ({exc})")
     if not refused:
         try:
-            config.apply_overrides(base, items)
+            config_parse.apply_overrides(base, items)
         except config.ConfigError as exc:
             refused.append(f"the overrides together ({exc})")
     if refused:

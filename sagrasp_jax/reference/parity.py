@@ -50,7 +50,8 @@ from sagrasp_jax.task import scripted
 from sagrasp_jax.task import shapes
 from sagrasp_jax.reference import EPISODE_INFO
 from sagrasp_jax.task.episode import EPISODE_KEYS
-from sagrasp_jax.task.config import Config, EnvConfig, apply_overrides, get_config
+from sagrasp_jax.task.config import Config, EnvConfig, get_config
+from sagrasp_jax.task.config_parse import apply_overrides
 
 SOURCES = ("random", "scripted", "policy")
 FLAGS = ("done", "success", "collision", "timeout")

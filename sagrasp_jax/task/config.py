@@ -1,23 +1,22 @@
-"""Every tunable constant of the project, in one place, with named presets.
+"""Every tunable constant of the project, in one place, with named presets: the config's declarations.
 
 The config is a tree of frozen dataclasses.  Each key is declared once, by ``key(default, doc,
 valid)``: its type (the annotation; a ``Literal`` lists its choices), its meaning (``doc``, which
 ``--list-keys`` prints) and, for a number, its valid ``Range``.  ``get_config(preset)`` returns a
-preset, ``apply_overrides(cfg, ["ppo.num_envs=512", ...])`` changes keys with type checking, and
-``config_to_dict`` / ``config_from_dict`` round-trip it through JSON (run folders and checkpoints
-store it; ``upgrade_config_dict`` reads an older layout).  Values come from ``docs/task.md`` §2-§3;
-where a number is ours, not the paper's, the key says so.
+preset, ``key_specs`` reads the declarations back, ``validate`` checks a config against them and the
+rules across keys, and ``config_to_dict`` gives the dict run folders and checkpoints store.  Values
+come from ``docs/task.md`` §2-§3; where a number is ours, not the paper's, the key says so.
+
+Two modules sit on this one: ``config_history`` (the layouts configs were written in before, how an
+old config upgrades, and the hashes that identify a config across layouts) and ``config_parse``
+(``--set``, ``--config`` files, saved configs read back, ``--list-keys``).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import difflib
 import functools
-import hashlib
-import json
 import math
-import textwrap
 import typing
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -80,7 +79,7 @@ class Range:
         return (v > self.lo if self.open_low else v >= self.lo) and v <= self.hi
 
     def __str__(self) -> str:
-        return f"{'(' if self.open_low else '['}{_num(self.lo)}, {_num(self.hi)}]"
+        return f"{'(' if self.open_low else '['}{format_number(self.lo)}, {format_number(self.hi)}]"
 
 
 def within(lo: float, hi: float) -> Range:
@@ -570,6 +569,7 @@ def get_config(preset: str = "cpu-quick") -> Config:
 
 # ---------------------------------------------------------------------- the declarations, read back
 
+
 class KeySpec(typing.NamedTuple):
     """What a key's declaration says: the type of one value (of each entry of a list key), whether it is
     a list (of ``length`` entries if fixed) or may be unset (none), its meaning, range and choices."""
@@ -660,295 +660,13 @@ def check_range(name: str, value: Any, lo: float, hi: float) -> Any:
     return value
 
 
-def _num(v: float) -> str:
+def format_number(v: float) -> str:
+    """A number as ``--list-keys`` and the range messages write it: an int as is, a float in ``%g``."""
     return str(v) if isinstance(v, int) else f"{v:g}"
 
 
-# ---------------------------------------------------------------------- --set, --config, saved configs
-
-def _scalar(text: str, kind: type) -> Any:
-    text = text.strip()
-    if kind is bool:
-        if text.lower() not in ("true", "1", "yes", "false", "0", "no"):
-            raise ValueError("expected true/false")
-        return text.lower() in ("true", "1", "yes")
-    if kind is int:
-        number = float(text) if any(c in text for c in ".eE") else int(text)
-        if not float(number).is_integer():
-            raise ValueError("expected an integer")
-        return int(number)
-    return float(text) if kind is float else text
-
-
-def _parse(text: str, spec: KeySpec, name: str) -> Any:
-    """A value written as text (``--set``; files and saved configs are written so too): ``true``/``false``,
-    numbers, ``none`` for an unset optional key, a list as ``a,b,c`` or JSON."""
-    text = text.strip()
-    if spec.optional and text.lower() in ("none", "null"):
-        return None
-    try:
-        if not spec.listed:
-            return _scalar(text, spec.kind)
-        items = json.loads(text) if text.startswith("[") else [t for t in text.split(",") if t.strip()]
-        value = tuple(_scalar(v if isinstance(v, str) else json.dumps(v), spec.kind) for v in items)
-        if spec.length not in (None, len(value)):
-            raise ValueError(f"expected {spec.length} values, got {len(value)}")
-        return value
-    except (ValueError, OverflowError, TypeError) as exc:
-        raise ConfigError(f"bad value {text!r} for {name} ({spec.type_name}): {exc}") from None
-
-
-def current_name(name: str) -> str:
-    """A key as spelled now: a renamed key's new name (``RENAMED_KEYS``); a removed key is refused."""
-    if name in REMOVED_KEYS:
-        raise ConfigError(f"config key {name!r} was replaced by {REMOVED_KEYS[name]}")
-    return RENAMED_KEYS.get(name, name)
-
-
-def unknown_key_message(name: str) -> str:
-    """An unknown key names the nearest valid keys (difflib), not all of them."""
-    keys = valid_keys()
-    leaf = name.rsplit(".", 1)[-1]
-    near = difflib.get_close_matches(name, keys, n=4, cutoff=0.6)
-    near += [k for k in keys if k not in near and difflib.SequenceMatcher(None, leaf, k.rsplit(".", 1)[-1]).ratio() >= 0.8]
-    hint = f"; did you mean {', '.join(near[:5])}?" if near else ""
-    return f"unknown config key {name!r}{hint} (--list-keys lists every key)"
-
-
-def _replaced(section: Any, path: list[str], value: Any) -> Any:
-    inner = value if len(path) == 1 else _replaced(getattr(section, path[0]), path[1:], value)
-    return dataclasses.replace(section, **{path[0]: inner})
-
-
-def apply_overrides(cfg: Config, overrides: list[str]) -> Config:
-    """Apply ``key=value`` strings, e.g. ``ppo.num_envs=512``; validates the result."""
-    for item in overrides:
-        if "=" not in item:
-            raise ConfigError(f"override {item!r} is not of the form key=value")
-        name, text = item.split("=", 1)
-        name = current_name(name.strip())
-        if name not in key_specs():
-            section = any(k.startswith(name + ".") for k in key_specs())
-            raise ConfigError(f"{name!r} is a section, not a value; set one of its keys" if section
-                              else unknown_key_message(name))
-        cfg = _replaced(cfg, name.split("."), _parse(text, key_specs()[name], name))
-    validate(cfg)
-    return cfg
-
-
-def _flatten(data: Any, prefix: str, where: str) -> dict[str, Any]:
-    """A nested mapping of config keys as {dotted key: value}."""
-    if not isinstance(data, dict):
-        raise ConfigError(f"{where}: {prefix.rstrip('.') or 'it'} must be a mapping of config keys, got {data!r}")
-    out: dict[str, Any] = {}
-    for name, value in data.items():
-        out.update(_flatten(value, f"{prefix}{name}.", where) if isinstance(value, dict) else {prefix + name: value})
-    return out
-
-
-def _as_overrides(flat: dict[str, Any], where: str) -> list[str]:
-    """A file's or saved config's values as the ``--set`` texts that mean them (so all are checked alike)."""
-    out = []
-    for name, value in flat.items():
-        spec = key_specs().get(RENAMED_KEYS.get(name, name))
-        if value is None and not (spec and spec.optional):
-            raise ConfigError(f"{where}: {name} has no value (null)")
-        out.append(f"{name}={value if isinstance(value, str) else json.dumps(value)}")
-    return out
-
-
-# A --config file and a saved config.json are read within these bounds (refused, ConfigError / RunDirError,
-# beyond them): a config is a few kB with keys three sections deep.
-MAX_CONFIG_BYTES = 256 << 10  # 256 KiB, 50 full configs; checked before the file is read (pure-Python YAML
-# takes a few seconds for this much)
-MAX_CONFIG_DEPTH = 32  # nested mappings and lists
-MAX_NUMBER_DIGITS = 64  # digits of an integer, in any notation (Python's own int() stops at 4,300 with a ValueError)
-_JSON_TYPES = (str, int, float, bool, type(None))
-
-
-def check_int_literal(text: str) -> None:
-    """Refuse (ValueError) an integer literal of more than ``MAX_NUMBER_DIGITS`` digits before it is converted,
-    in every notation a config file may use: decimal, and YAML's hex ``0x``, octal ``0…``, binary ``0b``
-    and base-60 ``1:20``, with a sign and ``_`` separators (neither counts).  Hex digits count like decimal ones:
-    a bound on the characters, not the value (``check_int_value`` bounds that)."""
-    body = text.strip().lstrip("+-").replace("_", "")
-    if body[:2].lower() in ("0x", "0o", "0b"):
-        body = body[2:]
-    digits = sum(c.isalnum() for c in body)
-    if digits > MAX_NUMBER_DIGITS:
-        raise ValueError(f"an integer of {digits} digits (at most {MAX_NUMBER_DIGITS})")
-
-
-def check_int_value(value: int) -> int:
-    """``value`` if it has at most ``MAX_NUMBER_DIGITS`` decimal digits (a 64-digit hex literal has 78), else
-    ValueError: every integer a config file yields can be written out and read back as ``--set`` text."""
-    if abs(value) >= 10**MAX_NUMBER_DIGITS:
-        raise ValueError(f"an integer of {len(str(abs(value)))} digits (at most {MAX_NUMBER_DIGITS})")
-    return value
-
-
-def _bounded_int(text: str) -> int:
-    check_int_literal(text)
-    return check_int_value(int(text))
-
-
-def _check_plain(data: Any) -> None:
-    """Refuse (ValueError) nesting deeper than ``MAX_CONFIG_DEPTH`` and any value that is not a JSON
-    type (YAML's sets, dates, binary); iterative, so depth costs no recursion."""
-    stack = [(data, 1)]
-    while stack:
-        node, depth = stack.pop()
-        if depth > MAX_CONFIG_DEPTH:
-            raise ValueError(f"nested deeper than {MAX_CONFIG_DEPTH} levels")
-        if isinstance(node, dict):
-            for k, v in node.items():
-                if not isinstance(k, _JSON_TYPES):
-                    raise ValueError(f"a key of type {type(k).__name__} ({k!r}); keys are strings")
-                stack.append((v, depth + 1))
-        elif isinstance(node, list):
-            stack.extend((v, depth + 1) for v in node)
-        elif not isinstance(node, _JSON_TYPES):
-            raise ValueError(f"a value of type {type(node).__name__} ({str(node)[:60]!r}); a config holds mappings, "
-                             "lists, strings, numbers, booleans and null only")
-
-
-def parse_json(text: str | bytes) -> Any:
-    """JSON within the config bounds: integers of at most ``MAX_NUMBER_DIGITS`` digits, nesting of at
-    most ``MAX_CONFIG_DEPTH``; ValueError (``json.JSONDecodeError`` among them) otherwise."""
-    try:
-        data = json.loads(text, parse_int=_bounded_int)
-    except RecursionError:
-        raise ValueError(f"nested deeper than {MAX_CONFIG_DEPTH} levels") from None
-    _check_plain(data)
-    return data
-
-
-def _yaml_loader() -> type:
-    """PyYAML's SafeLoader, narrowed to JSON's types: no aliases (so no billion-laughs expansion), no
-    timestamps (``2001-12-14`` stays a string, which the key's type then refuses), no ``!!set``,
-    ``!!binary``, ``!!omap`` or ``!!pairs``, and integers bounded like ``parse_json``'s."""
-    import yaml
-
-    class ConfigLoader(yaml.SafeLoader):
-        def compose_node(self, parent: Any, index: Any) -> Any:
-            if self.check_event(yaml.AliasEvent):
-                event = self.peek_event()
-                raise yaml.composer.ComposerError(None, None, f"an alias (*{event.anchor}) is not allowed in a config "
-                                                  "file: write the value out", event.start_mark)
-            return super().compose_node(parent, index)
-
-        def fetch_flow_collection_start(self, token_class: Any) -> None:
-            if self.flow_level >= MAX_CONFIG_DEPTH:  # refused while scanning: its simple-key table grows as depth²
-                raise yaml.scanner.ScannerError(None, None, f"nested deeper than {MAX_CONFIG_DEPTH} levels",
-                                                self.get_mark())
-            super().fetch_flow_collection_start(token_class)
-
-        def construct_yaml_int(self, node: Any) -> int:
-            try:  # the literal's digits before PyYAML converts it (a hex one's letters count), then the value's
-                check_int_literal(str(node.value))
-                return check_int_value(super().construct_yaml_int(node))
-            except (ValueError, IndexError) as exc:  # IndexError: PyYAML's on an empty !!int "" or "-"
-                message = str(exc) if isinstance(exc, ValueError) else f"{str(node.value)[:40]!r} is not an integer"
-                raise yaml.constructor.ConstructorError(None, None, message, node.start_mark) from None
-
-        def refuse_tag(self, node: Any) -> Any:
-            raise yaml.constructor.ConstructorError(None, None, f"tag {node.tag} is not allowed in a config file "
-                                                    "(mappings, lists, strings, numbers, booleans and null only)",
-                                                    node.start_mark)
-
-    timestamp = "tag:yaml.org,2002:timestamp"
-    ConfigLoader.yaml_implicit_resolvers = {
-        first: [(tag, regexp) for tag, regexp in resolvers if tag != timestamp]
-        for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()}
-    ConfigLoader.add_constructor("tag:yaml.org,2002:int", ConfigLoader.construct_yaml_int)
-    for tag in ("timestamp", "set", "binary", "omap", "pairs"):
-        ConfigLoader.add_constructor(f"tag:yaml.org,2002:{tag}", ConfigLoader.refuse_tag)
-    return ConfigLoader
-
-
-def parse_yaml(text: str) -> Any:
-    """YAML through ``_yaml_loader`` within the config bounds; ValueError or ``yaml.YAMLError`` otherwise."""
-    import yaml
-
-    try:
-        data = yaml.load(text, Loader=_yaml_loader())  # noqa: S506 (a SafeLoader subclass)
-    except RecursionError:
-        raise ValueError(f"nested deeper than {MAX_CONFIG_DEPTH} levels") from None
-    _check_plain(data)
-    return data
-
-
-def file_overrides(path: str) -> list[str]:
-    """``--config FILE``: the file's keys as ``key=value`` overrides, applied over the chosen preset
-    like ``--set`` (keys it leaves out keep the preset's values).  JSON; YAML (``.yaml``/``.yml``)
-    when PyYAML is installed.  Sections may nest (``{"ppo": {"num_envs": 512}}``) or be dotted
-    (``{"ppo.num_envs": 512}``).  A file that cannot be read or parsed raises ConfigError: it must be
-    a regular file (not a FIFO or device: refused before it is opened) of at most ``MAX_CONFIG_BYTES``,
-    nested at most ``MAX_CONFIG_DEPTH`` deep, with integers of at most ``MAX_NUMBER_DIGITS`` digits in any
-    notation (hex, octal, binary, base 60), and YAML yields JSON's types only (no aliases, dates or sets)."""
-    from sagrasp_jax.base import fileio
-
-    where = f"--config {path}"
-    if not path.lower().endswith((".json", ".yaml", ".yml")):
-        raise ConfigError(f"{where}: expected a .json, .yaml or .yml file")
-    try:
-        text = fileio.read_regular(path, MAX_CONFIG_BYTES, "config file").decode("utf-8")
-    except (fileio.NotRegularFile, fileio.FileTooLarge) as exc:  # their messages start with the path
-        raise ConfigError(f"--config {exc}") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"{where}: cannot read it ({exc})") from None
-    if path.lower().endswith(".json"):
-        load, kind, errors = parse_json, "JSON", ()
-    else:
-        try:
-            import yaml
-        except ImportError:
-            raise ConfigError(f"{where}: reading YAML needs PyYAML (pip install pyyaml), or use JSON") from None
-        load, kind, errors = parse_yaml, "YAML", (yaml.YAMLError,)
-    try:
-        data = load(text)
-    except (ValueError, *errors) as exc:
-        raise ConfigError(f"{where}: not valid {kind} ({exc})") from None
-    return _as_overrides(_flatten(data, "", where), where)
-
-
-def config_to_dict(cfg: Any) -> dict[str, Any]:
-    return dataclasses.asdict(cfg)
-
-
-def config_from_dict(data: dict[str, Any]) -> Config:
-    """Build and validate a Config from its dict, read like ``--set`` over the defaults; an older layout
-    is upgraded first (keys it lacks get their legacy value)."""
-    if not isinstance(data, dict):
-        raise ConfigError(f"saved config must be a JSON object, got {type(data).__name__}")
-    return apply_overrides(Config(), _as_overrides(_upgraded(_flatten(data, "", "saved config")), "saved config"))
-
-
-def _shown(value: Any) -> str:
-    if isinstance(value, tuple):
-        return ",".join(_shown(v) for v in value)
-    if isinstance(value, bool) or value is None:
-        return str(value).lower()
-    return _num(value) if isinstance(value, (int, float)) else str(value)
-
-
-def describe_keys(preset: str = "cpu-quick") -> str:
-    """``--list-keys``: every key with its type, its value in ``preset``, its valid values (range or
-    choices), the other presets' values where they differ, and its description."""
-    cfg = get_config(preset)
-    others = {name: get_config(name) for name in PRESETS if name != preset}
-    lines = [f"config keys (values of preset {preset!r}; set with --set KEY=VALUE, a list as a,b,c):", ""]
-    for name, spec in key_specs().items():
-        value, each = get_key(cfg, name), "each " * spec.listed
-        valid = (f"; {each}in {spec.range}" if spec.range else "") + \
-            (f"; {each}one of {', '.join(map(str, spec.choices))}" if spec.choices else "")
-        differ = [f"{other} {_shown(get_key(c, name))}" for other, c in others.items() if get_key(c, name) != value]
-        lines.append(f"{name} = {_shown(value)}  ({spec.type_name}{valid})" + (f"  [{'; '.join(differ)}]" if differ else ""))
-        lines += textwrap.wrap(spec.doc, 100, initial_indent="    ", subsequent_indent="    ") or ["    (no description)"]
-    return "\n".join(lines)
-
-
 # ---------------------------------------------------------------------- rules across keys
+
 
 def validate(cfg: Config) -> None:
     """Reject values that would make training meaningless or crash later: each key's declaration
@@ -982,103 +700,7 @@ def validate(cfg: Config) -> None:
                           f"= {cfg.ppo.num_envs} × {cfg.ppo.unroll_length}")
 
 
-# ---------------------------------------------------------------------- old layouts
-
-# Keys added after the first release, with the value that reproduces what a saved config without
-# them meant (run folders, checkpoints and policy files of version 0.1 keep their behaviour).
-LEGACY_VALUES: dict[str, Any] = {
-    "env.reward.near_miss_mode": "per_step",
-    "env.task.obs_layout": "paper",
-    "env.task.obstacle_geometry": "cover",
-}
-
-# Keys removed since the first release, with what replaced them (``apply_overrides`` names the new key;
-# ``upgrade_config_dict`` turns a saved config that has them into the same training).
-REMOVED_KEYS: dict[str, str] = {
-    "sa.enabled": "lr.schedule (sa or constant; or --algo / --lr-schedule)",
-    "sa.lr0": "ppo.learning_rate (the initial learning rate of every lr schedule)",
-}
-
-# Keys renamed, old name -> new: a saved config, a ``--set`` or a ``--config`` file with the old name means the
-# new key.  The evaluation cadence of every lr schedule left the sa section.
-RENAMED_KEYS: dict[str, str] = {
-    "sa.cycle_steps": "eval.cycle_steps",
-    "sa.num_cycles": "eval.num_cycles",
-    "sa.eval_episodes": "eval.episodes",
-    "sa.eval_seed": "eval.seed",
-}
-
-# Values spelled differently now, key -> (old value, new value): the training mix was −1 for "the evaluation
-# mix's"; it is unset (none) now.
-RESPELLED_VALUES: dict[str, tuple[Any, Any]] = {"train.obstacle_prob": (-1.0, None), "train.blocking_prob": (-1.0, None)}
-# Keys added after run folders were written, with the value that does what a config without them did: a run's
-# identity and config hash leave them out at that value, so adding a key changes no earlier run's hash.
-# (The curriculum was off in every earlier run, which makes its retirement count moot there: the default stands in.)
-ADDED_KEYS: dict[str, Any] = {"env.reward.tilt_weight": 0.0, "env.reward.tilt_free_deg": 5.0, "env.reward.tilt_near": 0.0,
-                              "train.curriculum_replay": 0.0, "train.curriculum_max_replays": 8,
-                              "env.task.obs_obstacle_shape": False, "train.stop_success": 0.0, "train.stop_cycles": 20,
-                              "ppo.late_epochs": 0, "ppo.late_from": 0.3}
-
-
-def _upgraded(flat: dict[str, Any]) -> dict[str, Any]:
-    """A flattened saved config in today's layout (``upgrade_config_dict``)."""
-    out = dict(flat)
-    if "sa.enabled" in out or "sa.lr0" in out:  # before lr.schedule: SA ran from sa.lr0, plain PPO at ppo.learning_rate
-        enabled, lr0 = out.pop("sa.enabled", True), out.pop("sa.lr0", None)
-        if not isinstance(enabled, bool):
-            raise ConfigError(f"invalid value for sa.enabled in a saved config: {enabled!r} (expected true/false)")
-        out.setdefault("lr.schedule", "sa" if enabled else "constant")
-        if enabled and lr0 is not None:
-            out["ppo.learning_rate"] = lr0
-    for old, new in RENAMED_KEYS.items():
-        if old in out:
-            out.setdefault(new, out.pop(old))
-    for name, (old, new) in RESPELLED_VALUES.items():
-        if name in out and out[name] == old:
-            out[name] = new
-    for name, value in LEGACY_VALUES.items():
-        if any(k.startswith(name.rsplit(".", 1)[0] + ".") for k in flat):  # its section was saved
-            out.setdefault(name, value)
-    return out
-
-
-def _nested(flat: dict[str, Any]) -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for name, value in flat.items():
-        *path, leaf = name.split(".")
-        node = out
-        for part in path:
-            node = node.setdefault(part, {})
-        node[leaf] = value
-    return out
-
-
-def upgrade_config_dict(data: dict[str, Any]) -> dict[str, Any]:
-    """A saved config dict in today's layout: removed keys replaced by what means the same (``REMOVED_KEYS``),
-    renamed keys under their new names (``RENAMED_KEYS``), old spellings of values respelled
-    (``RESPELLED_VALUES``), and every key added since it was written at its legacy value (``LEGACY_VALUES``)."""
-    return _nested(_upgraded(_flatten(data, "", "saved config")))
-
-
-def identity_dict(cfg: Config) -> dict[str, Any]:
-    """``config_to_dict(cfg)`` with renamed keys and respelled values as they were first written: what a
-    run's identity hashes (``evaluate.trained_identity``), so a rename leaves it, and the evaluation files
-    that record it, unchanged."""
-    flat = _flatten(config_to_dict(cfg), "", "config")
-    for name, (old, new) in RESPELLED_VALUES.items():
-        if name in flat and flat[name] == new:
-            flat[name] = old
-    for old, new in RENAMED_KEYS.items():
-        flat[old] = flat.pop(new)
-    return _nested(_without_added(flat))
-
-
-def _without_added(flat: dict[str, Any]) -> dict[str, Any]:
-    """``flat`` without the ``ADDED_KEYS`` that hold the value a config without them meant."""
-    return {k: v for k, v in flat.items() if k not in ADDED_KEYS or v != ADDED_KEYS[k]}
-
-
-# ---------------------------------------------------------------------- derived envs and hashes
+# ---------------------------------------------------------------------- derived envs
 
 BLOCKING_SCENE_REDRAWS = 11  # whole-scene re-draws when blocking scenes are wanted (their fallbacks stay < 2 %)
 
@@ -1104,14 +726,32 @@ def randomization_enabled(env: EnvConfig) -> bool:
     return any(getattr(env.randomize, f.name) != 0 for f in dataclasses.fields(env.randomize))
 
 
-def config_hash(cfg: Config) -> str:
-    """Short stable hash of the env part: what a policy was trained on."""
-    return env_dict_hash(config_to_dict(cfg.env))
+# ---------------------------------------------------------------------- the config as dotted keys
 
 
-def env_dict_hash(env: dict[str, Any]) -> str:
-    """``config_hash`` of a saved config's env dict as written (a policy file's integrity check); ``ADDED_KEYS``
-    at the value that means their absence are left out, so older files and runs keep their hashes."""
-    env = _nested(_without_added(_flatten(env, "env.", "env")))["env"] if env else env
-    blob = json.dumps(env, sort_keys=True).encode()
-    return hashlib.sha256(blob).hexdigest()[:12]
+def config_to_dict(cfg: Any) -> dict[str, Any]:
+    """The config (or a section) as nested dicts: what run folders, checkpoints and policy files store
+    (``config_parse.config_from_dict`` reads it back)."""
+    return dataclasses.asdict(cfg)
+
+
+def flatten_keys(data: Any, prefix: str, where: str) -> dict[str, Any]:
+    """A nested mapping of config keys as {dotted key: value}."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where}: {prefix.rstrip('.') or 'it'} must be a mapping of config keys, got {data!r}")
+    out: dict[str, Any] = {}
+    for name, value in data.items():
+        out.update(flatten_keys(value, f"{prefix}{name}.", where) if isinstance(value, dict) else {prefix + name: value})
+    return out
+
+
+def nest_keys(flat: dict[str, Any]) -> dict[str, Any]:
+    """{dotted key: value} as the nested mapping ``config_to_dict`` writes (``flatten_keys`` undone)."""
+    out: dict[str, Any] = {}
+    for name, value in flat.items():
+        *path, leaf = name.split(".")
+        node = out
+        for part in path:
+            node = node.setdefault(part, {})
+        node[leaf] = value
+    return out

@@ -1,8 +1,8 @@
 """Run an exported policy with NumPy only, and the ``policy.npz`` format it reads.
 
 Deployment machines (the AUBO controller PC) run the policy without JAX, so this
-module imports nothing that imports jax: only NumPy, ``sagrasp_jax.task.config`` and the
-standard library.  It is the single source of truth for the policy file:
+module imports nothing that imports jax: only NumPy, the config modules (``sagrasp_jax.task.config``,
+``config_history``, ``config_parse``) and the standard library.  It is the single source of truth for the policy file:
 ``save_policy_npz`` writes it (the exporter calls it), ``load_policy`` reads and
 validates it.
 
@@ -27,7 +27,7 @@ obs_size          int64 ()                    17 (layout ``paper``) or 29 (``rel
 obs_layout        str (obs_size,)             name of each observation entry (``observation.layout``)
 action_scale      float64 ()                  q_max: rad per control step at |a| = 1
 config_json       str ()                      the full training ``Config`` as JSON
-config_hash       str ()                      ``config.env_dict_hash`` of that config's env part, as written
+config_hash       str ()                      ``config_history.env_dict_hash`` of that config's env part, as written
 package_version   str ()                      ``sagrasp_jax.__version__`` that wrote the file
 ================  ==========================  =================================================
 
@@ -52,9 +52,9 @@ import numpy as np
 from sagrasp_jax import __version__
 from sagrasp_jax.base import fileio
 from sagrasp_jax.task import observation
-from sagrasp_jax.task.config import (
-    Config, ConfigError, EnvConfig, config_from_dict, config_hash, config_to_dict, env_dict_hash, parse_json,
-)
+from sagrasp_jax.task.config import Config, ConfigError, EnvConfig, config_to_dict
+from sagrasp_jax.task.config_history import config_hash, env_dict_hash
+from sagrasp_jax.task.config_parse import config_from_dict, parse_json
 
 FORMAT_VERSION = 1
 # The cell a policy was trained for (env.sampling keys): recorded by every policy file (version 0.1's too,

@@ -28,7 +28,8 @@ from flax import serialization
 
 from sagrasp_jax import __version__
 from sagrasp_jax.base import fileio
-from sagrasp_jax.task.config import Config, ConfigError, config_from_dict, config_to_dict
+from sagrasp_jax.task.config import Config, ConfigError, config_to_dict
+from sagrasp_jax.task.config_parse import config_from_dict
 
 MAGIC = b"SAGRASP-CKPT\n"
 FORMAT_VERSION = 1
@@ -170,7 +171,7 @@ def config_differences(saved: dict[str, Any], current: dict[str, Any], prefix: s
 
 def check_config(ckpt: Checkpoint, config: Config) -> None:
     """Refuse to resume a run with a different config (the result would not be that run)."""
-    try:  # a checkpoint written before a key existed means that key's legacy value (config.LEGACY_VALUES)
+    try:  # a checkpoint written before a key existed means that key's legacy value (config_history.LEGACY_VALUES)
         saved = config_to_dict(config_from_dict(ckpt.header["config"]))
     except (ConfigError, TypeError, ValueError, AttributeError) as exc:
         raise CheckpointError(f"{ckpt.path}: the checkpoint's config does not load ({exc})") from None

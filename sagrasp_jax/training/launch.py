@@ -12,9 +12,8 @@ from typing import TextIO
 
 import jax
 
-from sagrasp_jax.task.config import (
-    LR_SCHEDULES, SEED_RANGE, Config, ConfigError, apply_overrides, check_range, file_overrides, get_config, validate,
-)
+from sagrasp_jax.task.config import LR_SCHEDULES, SEED_RANGE, Config, ConfigError, check_range, get_config, validate
+from sagrasp_jax.task.config_parse import apply_overrides, file_overrides
 from sagrasp_jax.training import distributed, restore, run_dir
 from sagrasp_jax.training.checkpoint import CheckpointError
 from sagrasp_jax.training.run_dir import CONFIG_FILE, RunDirError

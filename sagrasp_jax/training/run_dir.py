@@ -54,7 +54,8 @@ import numpy as np
 
 from sagrasp_jax.training import checkpoint
 from sagrasp_jax.base import fileio
-from sagrasp_jax.task.config import MAX_CONFIG_BYTES, Config, ConfigError, config_from_dict, config_to_dict, parse_json
+from sagrasp_jax.task.config import Config, ConfigError, config_to_dict
+from sagrasp_jax.task.config_parse import MAX_CONFIG_BYTES, config_from_dict, parse_json
 from sagrasp_jax.base import run_files
 from sagrasp_jax.base.run_files import CONFIG_FILE, METRICS_FILE, POLICY_FILE  # shared with the jax-free readers
 

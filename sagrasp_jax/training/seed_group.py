@@ -16,7 +16,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sagrasp_jax.task.config import Config, apply_overrides
+from sagrasp_jax.task.config import Config
+from sagrasp_jax.task.config_parse import apply_overrides
 from sagrasp_jax.training import actor_critic, lr_schedule, sharding
 
 
