@@ -68,6 +68,7 @@ Nothing here imports more than NumPy and the package's NumPy modules.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass
@@ -110,7 +111,7 @@ def _trained_obstacle_limits(cfg: SamplingConfig = SamplingConfig(), margin: flo
     return reach + margin, top + margin
 
 
-MAX_OBSTACLE_REACH_M, MAX_OBSTACLE_TOP_M = _trained_obstacle_limits()  # 0.25 m, 0.41 m
+MAX_OBSTACLE_REACH_M, MAX_OBSTACLE_TOP_M = _trained_obstacle_limits()  # 0.25 m, 0.41 m for the shipped kinds
 
 
 class PerceptionError(ValueError):
@@ -139,8 +140,10 @@ class PerceptionSettings:
     cube_side_tol: float = 0.35  # each side of its top face within ± this fraction of the cube's
     robot_margin_m: float = 0.02  # points this near the arm's primitives are the arm
     static_margin_m: float = 0.01  # ... and this near the cell's static parts
-    max_obstacle_radius_m: float = MAX_OBSTACLE_REACH_M  # a region reaching farther from its centre is no trained obstacle
-    max_obstacle_top_m: float = MAX_OBSTACLE_TOP_M  # ... and one whose top is higher above the table
+    # a region reaching farther from its centre is no trained obstacle, nor one whose top is higher above the table;
+    # None: the largest obstacle of any kind registered when perception runs (``_trained_obstacle_limits``)
+    max_obstacle_radius_m: float | None = None
+    max_obstacle_top_m: float | None = None
     # the obstacle kinds returned: the policy's env.sampling.obstacle_kinds (``for_policy``; default the paper's
     # sphere, cylinder, box).  A region no fit of these holds becomes the covering shape of one of them (``_cover``)
     kinds: tuple[str, ...] = SamplingConfig().obstacle_kinds
@@ -746,6 +749,11 @@ def detect_scene(cloud_mm: Any, rgb: Any = None, calibration: CameraCalibration 
     arm's joints when it may be in view.  ``detections``: a 2-D detector's boxes (YOLO) choosing the cube."""
     t0 = time.perf_counter()
     settings = settings or PerceptionSettings()
+    if settings.max_obstacle_radius_m is None or settings.max_obstacle_top_m is None:
+        reach, top = _trained_obstacle_limits()  # every registered kind's largest, now
+        settings = dataclasses.replace(
+            settings, max_obstacle_radius_m=reach if settings.max_obstacle_radius_m is None else settings.max_obstacle_radius_m,
+            max_obstacle_top_m=top if settings.max_obstacle_top_m is None else settings.max_obstacle_top_m)
     calibration = calibration or CameraCalibration.default()
     size = _check_target_size(target_size if target_size is not None else SamplingConfig().target_size)
     _check_kinds(settings.kinds)

@@ -141,6 +141,9 @@ class ObstacleShape:
     cli_lengths: tuple[str, ...]  # deployment CLI: the lengths after X Y Z (full lengths, not halves)
     from_lengths: Callable[[Sequence[float]], tuple[float, float, float]]  # CLI lengths -> size
     perception: Perceived  # how the depth camera's perception fits it, tells it apart and covers it
+    # deploy --help: what each of cli_lengths means ("": said with another; unset: the bare letters).  The first
+    # kind to use a letter says what it means.
+    cli_help: tuple[str, ...] = ()
 
     @property
     def tilt_matrix(self) -> np.ndarray:
@@ -253,6 +256,7 @@ SPHERE_SHAPE = ObstacleShape(
     bounding_radius=lambda xp, size: size[..., 0], footprint=_round_footprint,
     extent=lambda xp, yaw, size: xp.stack([size[..., 0]] * 3, axis=-1),
     cli_lengths=("R",), from_lengths=lambda ls: (ls[0], 0.0, 0.0), perception=SPHERE_PERCEIVED,
+    cli_help=("R radius",),
 )
 
 
@@ -311,6 +315,7 @@ CYLINDER_SHAPE = ObstacleShape(
     bounding_radius=lambda xp, size: xp.sqrt(size[..., 0] ** 2 + size[..., 1] ** 2), footprint=_round_footprint,
     extent=lambda xp, yaw, size: xp.stack([size[..., 0], size[..., 0], size[..., 1]], axis=-1),
     cli_lengths=("R", "H"), from_lengths=lambda ls: (ls[0], ls[1] / 2, 0.0), perception=CYLINDER_PERCEIVED,
+    cli_help=("R radius", "H height"),
 )
 
 
@@ -391,6 +396,7 @@ BOX_SHAPE = ObstacleShape(
     footprint=_box_footprint, extent=_box_extent,
     cli_lengths=("LX", "LY", "LZ"), from_lengths=lambda ls: (ls[0] / 2, ls[1] / 2, ls[2] / 2),
     perception=BOX_PERCEIVED,
+    cli_help=("LX LY LZ full side lengths (LX along the camera's x axis turned by YAW_DEG about its optical axis)", "", ""),
 )
 
 
@@ -483,6 +489,7 @@ CAPSULE_SHAPE = ObstacleShape(
     sdf=_capsule_sdf, surface=_capsule_surface, bounding_radius=lambda xp, size: size[..., 0] + size[..., 1],
     footprint=_capsule_footprint, extent=_capsule_extent, cli_lengths=("R", "L"), from_lengths=_capsule_from_lengths,
     perception=CAPSULE_PERCEIVED,
+    cli_help=("R radius", "L length tip to tip (lying on the table, along the camera's x axis turned by YAW_DEG)"),
 )
 
 
@@ -531,6 +538,8 @@ def register(shape: ObstacleShape) -> ObstacleShape:
         problems.append(f"primitive {shape.primitive} is not one of robot.SPHERE, CAPSULE, BOX, CYLINDER {PRIMITIVES}")
     if np.asarray(shape.tilt).shape != (3, 3):
         problems.append("tilt must be a 3 × 3 rotation")
+    if shape.cli_help and len(shape.cli_help) != len(shape.cli_lengths):
+        problems.append("cli_help must say what each of cli_lengths means")
     if not isinstance(shape.perception, Perceived):
         problems.append("perception must be a shapes.Perceived")
     if problems:
