@@ -529,7 +529,7 @@ def register(shape: ObstacleShape) -> ObstacleShape:
     (``scene_mjcf.load_scene_spec``), the PyBullet twin, perception and the YOLO classes."""
     problems = []
     if shape.id in BY_ID:
-        problems.append(f"id {shape.id} is {BY_ID[shape.id].name!r}'s")
+        problems.append(f"id {shape.id} is taken by {BY_ID[shape.id].name!r}")
     if shape.name in BY_NAME:
         problems.append(f"name {shape.name!r} is taken")
     if not shape.name.isidentifier():
