@@ -640,7 +640,7 @@ def fit_obstacle(region: _Region, plane_z: float, kinds: Sequence[str]) -> Obsta
         raise PerceptionError("no obstacle kind fits a region")
     best = min(fits, key=lambda f: f.residual)
     flat = [f for f in fits if shapes.BY_NAME[f.kind].perception.top_misfit is not None]
-    if best in flat and len(flat) >= 2:
+    if len(flat) >= 2 and any(f is best for f in flat):
         best = min(flat, key=lambda f: shapes.BY_NAME[f.kind].perception.top_misfit(face))
     return best
 
