@@ -292,6 +292,7 @@ class TrackingCamera:
     """
 
     def __init__(self, mujoco: Any, scene: Any, width: int, height: int) -> None:
+        from sagrasp_jax.task import scene_mjcf
         from sagrasp_jax.task import shapes
 
         self.mujoco = mujoco
@@ -301,7 +302,7 @@ class TrackingCamera:
         usable = max(1.0 - 2.0 * banner_height(height) / height, 0.3)  # the banner covers the top: fit below it
         self.tan_v = math.tan(math.radians(TRACK_FOVY) / 2) * usable
         self.tan_h = math.tan(math.radians(TRACK_FOVY) / 2) * width / height
-        self.obstacles = [self.model.geom(f"obstacle_{slot}_{shapes.BY_ID[int(spec.obstacle_kind[slot])].name}").id
+        self.obstacles = [self.model.geom(scene_mjcf.obstacle_geom_name(slot, shapes.BY_ID[int(spec.obstacle_kind[slot])])).id
                           for slot in np.nonzero(np.asarray(spec.obstacle_active))[0]]
         self.cube = self.model.geom("target_geom").id
         self.gripper = [self.model.body(name).id for name in TRACK_GRIPPER_BODIES]
@@ -414,12 +415,13 @@ def _smooth(values: np.ndarray, window: int) -> np.ndarray:
 def prepare_model(mujoco: Any, model: Any, camera: str) -> None:
     """Colour the episode's obstacle geoms amber; for the tracking camera hide the gantry and its camera (the
     scene's fixed parts over the table), whose pillars and shadows would cross the close view."""
+    from sagrasp_jax.task import scene_mjcf
     from sagrasp_jax.task import shapes
     from sagrasp_jax.task.scene import SCENE
 
     for slot in range(SCENE.obstacles.count):
         for shape in shapes.SHAPES:
-            gid = model.geom(f"obstacle_{slot}_{shape.name}").id
+            gid = model.geom(scene_mjcf.obstacle_geom_name(slot, shape)).id
             model.geom_rgba[gid, :3] = OBSTACLE_RGBA[:3]  # the inactive ones keep alpha 0
     if camera == "tracking":
         for part in SCENE.static_parts:

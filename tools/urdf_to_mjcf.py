@@ -29,7 +29,8 @@ from sagrasp_jax.base import assets  # noqa: E402
 from sagrasp_jax.base.fileio import atomic_write_text  # noqa: E402
 from sagrasp_jax.task.robot import ARM_JOINTS, FINGER_JOINTS, URDF_PATH, URDFError, parse_urdf  # noqa: E402
 from sagrasp_jax.task.scene import SCENE  # noqa: E402
-from sagrasp_jax.task.shapes import SHAPES  # noqa: E402
+from sagrasp_jax.task import scene_mjcf  # noqa: E402
+from sagrasp_jax.task import shapes  # noqa: E402
 
 # Position servo gains per arm joint (N·m/rad) and velocity feedback (N·m·s/rad). With gravity
 # compensation on, the servo only fights inertia; these track a 0.05 rad step within one 0.05 s
@@ -127,12 +128,10 @@ def add_scene(spec: mujoco.MjSpec) -> None:
         contype=1,
         conaffinity=1,
     )
-    kind_to_geom = {0: mujoco.mjtGeom.mjGEOM_SPHERE, 1: mujoco.mjtGeom.mjGEOM_CAPSULE,
-                    2: mujoco.mjtGeom.mjGEOM_BOX, 3: mujoco.mjtGeom.mjGEOM_CYLINDER}
     for part in SCENE.static_parts:
         world.add_geom(
             name=part.name,
-            type=kind_to_geom[part.kind],
+            type=scene_mjcf.GEOM_TYPES[part.kind],
             pos=list(part.pos),
             quat=_quat(part.rot),
             size=list(part.size),
@@ -161,21 +160,9 @@ def add_scene(spec: mujoco.MjSpec) -> None:
         friction=[1.5, 0.01, 0.001],
     )
     for slot in range(SCENE.obstacles.count):
-        body = world.add_body(name=f"obstacle_{slot}", mocap=True, pos=[0.0, 0.0, PARK_Z])
-        for shape in SHAPES:  # one geom per registered kind; the body carries the yaw, the geom the tilt
-            # Unit sizes; the renderer and the physical check set sizes per episode.
-            geom = body.add_geom(
-                name=f"obstacle_{slot}_{shape.name}",
-                type=kind_to_geom[shape.primitive],
-                size=[0.05, 0.05, 0.05],
-                rgba=list(SCENE.obstacles.rgba),
-                contype=0,
-                conaffinity=0,
-            )
-            if not np.allclose(shape.tilt_matrix, np.eye(3)):
-                quat = np.zeros(4)
-                mujoco.mju_mat2Quat(quat, shape.tilt_matrix.flatten())
-                geom.quat = quat.tolist()
+        body = world.add_body(name=scene_mjcf.slot_body_name(slot), mocap=True, pos=[0.0, 0.0, PARK_Z])
+        for shape in shapes.SHAPES:  # one geom per registered kind; the body carries the yaw, the geom the tilt
+            scene_mjcf.add_obstacle_geom(body, slot, shape)  # unit size: the renderer and the physical check size it
 
 
 def generate(urdf_path: str) -> dict[str, str]:

@@ -198,16 +198,15 @@ class _Parser(cli.Parser):
         super().error(message)
 
 
-# What the sizes after --obstacle KIND X Y Z are (shapes.SHAPES's cli_lengths), for --help; "" = said with another.
-LENGTH_MEANING = {"R": "R radius", "H": "H height", "LX": "LX LY LZ full side lengths (LX along the camera's x axis "
-                  "turned by YAW_DEG about its optical axis)", "LY": "", "LZ": "",
-                  "L": "L length tip to tip (lying on the table, along the camera's x axis turned by YAW_DEG)"}
-
-
 def _obstacle_help() -> str:
+    """--obstacle's help: every registered kind's numbers and what they mean (``shapes.SHAPES``' ``cli_lengths``
+    and ``cli_help``)."""
     kinds = " | ".join(f"{s.name} {s.cli_usage}" for s in shapes.SHAPES)
-    letters = dict.fromkeys(n for s in shapes.SHAPES for n in s.cli_lengths)
-    meaning = ", ".join(m for m in (LENGTH_MEANING.get(n, n) for n in letters) if m)
+    meanings: dict[str, str] = {}
+    for shape in shapes.SHAPES:
+        for letter, text in zip(shape.cli_lengths, shape.cli_help or shape.cli_lengths):
+            meanings.setdefault(letter, text)
+    meaning = ", ".join(m for m in meanings.values() if m)
     return ("a detected obstacle, repeatable (at most the policy's env.sampling.max_obstacles, 2): its kind, then X Y Z "
             "the top of the obstacle (the highest point the depth camera sees on it) in the camera frame, then its "
             f"sizes; every number but YAW_DEG (degrees) in --units: {kinds}; {meaning}")

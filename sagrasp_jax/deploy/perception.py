@@ -41,11 +41,12 @@ as a ``deploy.loop.Obstacle`` (kind, centre, MuJoCo size, yaw).  Steps (``detect
 6. **Obstacles.** What is seen of an obstacle is never dropped, and every obstacle returned holds every
    point seen of it (to the noise): the safety layer keeps the arm out of the obstacles, so it needs an
    over-approximation, never a miss.  Every other region is fitted as each allowed kind (``kinds``: the
-   policy's ``env.sampling.obstacle_kinds``) as it rests in the cell (sphere: least-squares sphere;
-   cylinder: upright, top disc's area and centroid; box: top face's minimum-area rectangle with its area
-   matched to the measured one; capsule: lying, radius half the height, axis along the outline's long
-   side), and the kind whose exact surface (``shapes.sdf``) lies nearest the region's points wins, box
-   against cylinder by the top's outline (``outline_kind``).  A fit that does not hold the region's points
+   policy's ``env.sampling.obstacle_kinds``) as it rests in the cell, by the kind's own fit in its registry
+   entry (``shapes.SHAPES``' ``perception.fit``; sphere: least-squares sphere; cylinder: upright, top disc's
+   area and centroid; box: top face's minimum-area rectangle with its area matched to the measured one;
+   capsule: lying, radius half the height, axis along the outline's long side), and the kind whose exact
+   surface (``shapes.sdf``) lies nearest the region's points wins, flat-topped kinds (box, cylinder) told
+   apart by the top's outline (each entry's ``perception.top_misfit``).  A fit that does not hold the region's points
    (``_uncovered``: a partly hidden obstacle whose visible part does not fix its shape, an object of a kind
    the policy was not trained with) is replaced by a covering shape of an allowed kind (``_cover``: the
    visible points' footprint, with the fit's own guess of it, from the table up to their highest point).
@@ -67,6 +68,7 @@ Nothing here imports more than NumPy and the package's NumPy modules.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass
@@ -76,6 +78,7 @@ import numpy as np
 
 from sagrasp_jax.task import geometry
 from sagrasp_jax.task import shapes
+from sagrasp_jax.task.point_fits import convex_hull, fit_circle, min_area_rect, polygon_area, wrap  # noqa: F401
 from sagrasp_jax.task.config import SamplingConfig
 from sagrasp_jax.deploy.calibration import CameraCalibration, detected_top_to_cube_centre
 from sagrasp_jax.deploy.loop import Obstacle
@@ -93,19 +96,22 @@ OCCLUDER_JUMP_M = 0.01  # a neighbour this much nearer (camera z) and not of the
 COVER_SHARE, COVER_SHARE_HIDDEN = 0.02, 0.002
 LEFTOVER_HELD = 0.05  # a leftover cluster an obstacle holds all but this share of is part of it (_obstacle_parts)
 MIN_RED_PIXELS = 12  # red pixels in a region that is not mostly red: a cube on or against something
-BOX_FILL = 0.89  # hull area / minimum-area rectangle: a disc's π/4 = 0.785, a rectangle's 1
 
 
 def _trained_obstacle_limits(cfg: SamplingConfig = SamplingConfig(), margin: float = 0.05) -> tuple[float, float]:
-    """(reach, top) of the largest obstacle the sampler draws, plus ``margin``: horizontal distance from its
-    centre to its farthest point (a capsule's tip), and its top above the table (a floating sphere's)."""
-    reach = max(cfg.sphere_radius[1], cfg.cylinder_radius[1], math.sqrt(2) * cfg.box_half[1],
-                cfg.capsule_length[1] / 2 + cfg.capsule_radius[1])
-    top = max(cfg.sphere_z[1] + cfg.sphere_radius[1], cfg.cylinder_height[1], 2 * cfg.box_half[1], 2 * cfg.capsule_radius[1])
+    """(reach, top) of the largest obstacle the sampler draws of any registered kind, plus ``margin``: horizontal
+    distance from its centre to its farthest point (a capsule's tip), and its top above the table (a floating
+    sphere's).  A kind's largest size is its size from uniforms of 1 (``sample_size``)."""
+    reach = top = 0.0
+    for shape in shapes.SHAPES:
+        size = shape.sample_size(np, cfg, 1.0, 1.0, 1.0)
+        half = float(shape.half_height(size))
+        reach = max(reach, shape.perception.reach(size))
+        top = max(top, getattr(cfg, shape.float_z)[1] + half if shape.float_z else 2 * half)
     return reach + margin, top + margin
 
 
-MAX_OBSTACLE_REACH_M, MAX_OBSTACLE_TOP_M = _trained_obstacle_limits()  # 0.25 m, 0.41 m
+MAX_OBSTACLE_REACH_M, MAX_OBSTACLE_TOP_M = _trained_obstacle_limits()  # 0.25 m, 0.41 m for the shipped kinds
 
 
 class PerceptionError(ValueError):
@@ -134,8 +140,10 @@ class PerceptionSettings:
     cube_side_tol: float = 0.35  # each side of its top face within ± this fraction of the cube's
     robot_margin_m: float = 0.02  # points this near the arm's primitives are the arm
     static_margin_m: float = 0.01  # ... and this near the cell's static parts
-    max_obstacle_radius_m: float = MAX_OBSTACLE_REACH_M  # a region reaching farther from its centre is no trained obstacle
-    max_obstacle_top_m: float = MAX_OBSTACLE_TOP_M  # ... and one whose top is higher above the table
+    # a region reaching farther from its centre is no trained obstacle, nor one whose top is higher above the table;
+    # None: the largest obstacle of any kind registered when perception runs (``_trained_obstacle_limits``)
+    max_obstacle_radius_m: float | None = None
+    max_obstacle_top_m: float | None = None
     # the obstacle kinds returned: the policy's env.sampling.obstacle_kinds (``for_policy``; default the paper's
     # sphere, cylinder, box).  A region no fit of these holds becomes the covering shape of one of them (``_cover``)
     kinds: tuple[str, ...] = SamplingConfig().obstacle_kinds
@@ -430,47 +438,7 @@ def label_regions(mask: np.ndarray, points: np.ndarray, max_gap: float, valid: n
 
 
 # ---------------------------------------------------------------------------------------------- 2-D outline maths
-
-
-def convex_hull(xy: np.ndarray) -> np.ndarray:
-    """Convex hull (K, 2), counter-clockwise (Andrew's monotone chain)."""
-    pts = np.unique(np.asarray(xy, dtype=float), axis=0)
-    if len(pts) < 3:
-        return pts
-
-    def half(points: np.ndarray) -> list[np.ndarray]:
-        out: list[np.ndarray] = []
-        for p in points:
-            while len(out) >= 2:
-                o, a = out[-2], out[-1]
-                if (a[0] - o[0]) * (p[1] - o[1]) - (a[1] - o[1]) * (p[0] - o[0]) > 0:
-                    break
-                out.pop()
-            out.append(p)
-        return out
-
-    lower, upper = half(pts), half(pts[::-1])
-    return np.array(lower[:-1] + upper[:-1])
-
-
-def min_area_rect(xy: np.ndarray) -> tuple[np.ndarray, tuple[float, float], float]:
-    """Minimum-area rectangle around points (N, 2): centre (2,), side lengths (along the angle, across)
-    and the angle of its first side (rad, in [−π/2, π/2)); rotating calipers over the hull's edges."""
-    hull = convex_hull(xy)
-    if len(hull) < 3:
-        centre = hull.mean(axis=0) if len(hull) else np.zeros(2)
-        return centre, (0.0, 0.0), 0.0
-    edges = np.roll(hull, -1, axis=0) - hull
-    angles = np.unique(np.mod(np.arctan2(edges[:, 1], edges[:, 0]), math.pi / 2))
-    c, s = np.cos(angles), np.sin(angles)
-    u = hull[:, 0][None] * c[:, None] + hull[:, 1][None] * s[:, None]  # (A, K) along
-    v = -hull[:, 0][None] * s[:, None] + hull[:, 1][None] * c[:, None]  # across
-    area = np.ptp(u, axis=1) * np.ptp(v, axis=1)
-    i = int(np.argmin(area))
-    mu, mv = (u[i].max() + u[i].min()) / 2, (v[i].max() + v[i].min()) / 2
-    centre = np.array([mu * c[i] - mv * s[i], mu * s[i] + mv * c[i]])
-    angle = float((angles[i] + math.pi / 2) % math.pi - math.pi / 2)
-    return centre, (float(np.ptp(u[i])), float(np.ptp(v[i]))), angle
+# (convex_hull, min_area_rect, polygon_area, fit_circle, wrap: task/point_fits.py)
 
 
 def _grown_sides(sides: tuple[float, float], area: float) -> tuple[float, float]:
@@ -480,11 +448,6 @@ def _grown_sides(sides: tuple[float, float], area: float) -> tuple[float, float]
     disc = (l1 + l2) ** 2 - 4.0 * (l1 * l2 - area)
     delta = (-(l1 + l2) + math.sqrt(max(disc, 0.0))) / 2.0
     return l1 + delta, l2 + delta
-
-
-def wrap(angle: float, period: float) -> float:
-    """``angle`` wrapped into [−period/2, period/2)."""
-    return float((angle + period / 2) % period - period / 2)
 
 
 # ---------------------------------------------------------------------------------------------- region features
@@ -631,13 +594,6 @@ def _top_face(region: _Region) -> TopFace:
     return face
 
 
-def fit_circle(xy: np.ndarray) -> tuple[np.ndarray, float]:
-    """Least-squares circle (Kåsa's algebraic fit) through points (N, 2): centre, radius."""
-    a = np.c_[2 * xy, np.ones(len(xy))]
-    sol, *_ = np.linalg.lstsq(a, (xy**2).sum(axis=1), rcond=None)
-    return sol[:2], math.sqrt(max(float(sol[2] + sol[:2] @ sol[:2]), 0.0))
-
-
 def _red_count(rgb: np.ndarray, region: _Region, margin: float) -> int:
     """The region's red pixels: r − max(g, b) ≥ ``margin``."""
     colour = rgb[region.pixels[:, 0], region.pixels[:, 1]]
@@ -656,22 +612,6 @@ class ObstacleFit(NamedTuple):
     conservative: bool = False  # a covering shape of the visible points (``_cover``), not a fit of the object
 
 
-def _fit_sphere(pts: np.ndarray) -> tuple[np.ndarray, float]:
-    """Least-squares sphere (algebraic, then a few Gauss-Newton steps on the geometric distance)."""
-    a = np.c_[2 * pts, np.ones(len(pts))]
-    sol, *_ = np.linalg.lstsq(a, (pts**2).sum(axis=1), rcond=None)
-    c = sol[:3]
-    r = math.sqrt(max(sol[3] + c @ c, 1e-12))
-    for _ in range(5):
-        d = pts - c
-        dist = np.linalg.norm(d, axis=1)
-        dist = np.maximum(dist, 1e-9)
-        jac = np.c_[-d / dist[:, None], -np.ones(len(pts))]
-        step, *_ = np.linalg.lstsq(jac, -(dist - r), rcond=None)
-        c, r = c + step[:3], r + step[3]
-    return c, abs(float(r))
-
-
 def _surface_residual(kind: str, centre: np.ndarray, size: np.ndarray, yaw: float, pts: np.ndarray) -> float:
     """Trimmed RMS (best 90 %) of |signed distance| from the points to the fitted shape's surface."""
     shape = shapes.BY_NAME[kind]
@@ -681,88 +621,28 @@ def _surface_residual(kind: str, centre: np.ndarray, size: np.ndarray, yaw: floa
 
 
 def fit_obstacle(region: _Region, plane_z: float, kinds: Sequence[str]) -> ObstacleFit:
-    """The best-fitting kind for a region (smallest surface residual) and its pose and size."""
+    """The best-fitting kind for a region and its pose and size: each kind's own fit (its registry entry's
+    ``perception.fit``), the one whose surface lies nearest the points (smallest residual) wins; when that is a
+    flat-topped kind and another was fitted too, the top's outline decides between them (``top_misfit``)."""
     pts = region.world
-    fits: list[ObstacleFit] = []
-    top = region.top
     face = _top_face(region)
-    base_z = plane_z  # the table under the object, world z
+    seen = shapes.Seen(pts, region.area, region.height, region.top, plane_z, face)  # plane_z: the table under it
+    fits: list[ObstacleFit] = []
     for kind in kinds:
-        if kind == "sphere":
-            c, r = _fit_sphere(pts)
-            if not (0.005 < r < 0.3) or c[2] - r < base_z - 0.01:
-                continue  # a sphere reaching into the table is no sphere of the cell
-            size, yaw, centre = np.array([r, 0.0, 0.0]), 0.0, c
-        elif kind == "cylinder":
-            half = top / 2
-            if face.occluded:  # the rim's visible arc
-                xy, r = fit_circle(face.rim_xy)
-                r += face.pitch / 2  # outline pixel centres lie half a pixel inside the rim
-            else:
-                xy, r = face.centroid[:2], math.sqrt(face.area / math.pi)
-            centre = np.array([xy[0], xy[1], base_z + half])
-            size, yaw = np.array([r, half, 0.0]), 0.0
-        elif kind == "box":
-            half = top / 2
-            centre = np.array([face.centre_xy[0], face.centre_xy[1], base_z + half])
-            size, yaw = np.array([face.sides[0] / 2, face.sides[1] / 2, half]), wrap(face.angle, math.pi)
-        elif kind == "capsule":
-            r = top / 2
-            upper = region.height >= r
-            xy = pts[upper, :2]
-            wts = region.area[upper]
-            mean = (xy * wts[:, None]).sum(axis=0) / wts.sum()
-            cov = np.cov((xy - mean).T, aweights=wts)
-            evals, evecs = np.linalg.eigh(cov)
-            axis = evecs[:, 1]
-            along = (xy - mean) @ axis
-            across = (xy - mean) @ np.array([-axis[1], axis[0]])
-            lo, hi = float(along.min()), float(along.max())
-            mid_across = float(np.average(across, weights=wts))
-            length = hi - lo + math.sqrt(float(np.median(region.area)))  # end pixels' centres: half a pitch short each
-            half_axis = max(length / 2 - r, 0.0)
-            centre_xy = mean + axis * (lo + hi) / 2 + np.array([-axis[1], axis[0]]) * mid_across
-            centre = np.array([centre_xy[0], centre_xy[1], base_z + r])
-            size, yaw = np.array([r, half_axis, 0.0]), wrap(math.atan2(axis[1], axis[0]), math.pi)
-        else:
+        if kind not in shapes.BY_NAME:
             raise PerceptionError(f"unknown obstacle kind {kind!r}; known: {', '.join(shapes.NAMES)}")
+        found = shapes.BY_NAME[kind].perception.fit(seen)
+        if found is None:
+            continue  # the points cannot be this kind (a "sphere" reaching into the table)
+        centre, size, yaw = found
         fits.append(ObstacleFit(kind, centre, size, yaw, _surface_residual(kind, centre, size, yaw, pts)))
     if not fits:
         raise PerceptionError("no obstacle kind fits a region")
     best = min(fits, key=lambda f: f.residual)
-    flat = {f.kind: f for f in fits if f.kind in ("box", "cylinder")}
-    if best.kind in flat and len(flat) == 2:
-        best = flat[outline_kind(face)]
+    flat = [f for f in fits if shapes.BY_NAME[f.kind].perception.top_misfit is not None]
+    if len(flat) >= 2 and any(f is best for f in flat):
+        best = min(flat, key=lambda f: shapes.BY_NAME[f.kind].perception.top_misfit(face))
     return best
-
-
-def polygon_area(poly: np.ndarray) -> float:
-    """Area of a simple polygon (K, 2) (shoelace)."""
-    x, y = poly[:, 0], poly[:, 1]
-    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
-
-
-def outline_kind(face: TopFace) -> str:
-    """"cylinder" or "box" from the top face's outline, whose horizontal positions barely move with depth
-    noise (it acts along the rays), where the 3-D residuals, noise-dominated, cannot tell the two
-    flat-topped kinds apart.  Whole: the convex hull fills π/4 of its minimum-area rectangle for a disc,
-    all of it for a rectangle (threshold ``BOX_FILL``; the hull shrugs off a ragged, partly dropped
-    outline).  Partly hidden: whether the visible outline points lie nearer a circle or the rectangle."""
-    if not face.occluded:
-        hull = convex_hull(face.outline_xy)
-        _, sides, _ = min_area_rect(face.outline_xy)
-        fill = polygon_area(hull) / max(sides[0] * sides[1], 1e-12) if len(hull) >= 3 else 1.0
-        return "box" if fill >= BOX_FILL else "cylinder"
-    xy = face.rim_xy
-    centre, r = fit_circle(xy)
-    circle = float(np.sqrt(np.mean((np.linalg.norm(xy - centre, axis=1) - r) ** 2)))
-    rect_centre, sides, angle = min_area_rect(face.outline_xy)
-    c, s = math.cos(angle), math.sin(angle)
-    d = xy - rect_centre
-    u, v = np.abs(d @ np.array([c, s])), np.abs(d @ np.array([-s, c]))
-    to_side = np.minimum(np.abs(sides[0] / 2 - u), np.abs(sides[1] / 2 - v))
-    rect = float(np.sqrt(np.mean(to_side**2)))
-    return "cylinder" if circle < rect else "box"
 
 
 # ---------------------------------------------------------------------------------------------- the pipeline
@@ -869,6 +749,11 @@ def detect_scene(cloud_mm: Any, rgb: Any = None, calibration: CameraCalibration 
     arm's joints when it may be in view.  ``detections``: a 2-D detector's boxes (YOLO) choosing the cube."""
     t0 = time.perf_counter()
     settings = settings or PerceptionSettings()
+    if settings.max_obstacle_radius_m is None or settings.max_obstacle_top_m is None:
+        reach, top = _trained_obstacle_limits()  # every registered kind's largest, now
+        settings = dataclasses.replace(
+            settings, max_obstacle_radius_m=reach if settings.max_obstacle_radius_m is None else settings.max_obstacle_radius_m,
+            max_obstacle_top_m=top if settings.max_obstacle_top_m is None else settings.max_obstacle_top_m)
     calibration = calibration or CameraCalibration.default()
     size = _check_target_size(target_size if target_size is not None else SamplingConfig().target_size)
     _check_kinds(settings.kinds)
@@ -924,7 +809,7 @@ def detect_scene(cloud_mm: Any, rgb: Any = None, calibration: CameraCalibration 
     yaw = wrap(face.angle, math.pi / 2)
     obstacles, fits = [], []
     leftovers, strays = _leftovers(data, mask, regions, settings, top_tol, int(labels.max()) + 1)
-    cube_fit = ObstacleFit("box", np.asarray(target, float), size / 2, yaw, 0.0)
+    cube_fit = ObstacleFit(shapes.BOX_SHAPE.name, np.asarray(target, float), size / 2, yaw, 0.0)
     parts, held = _obstacle_parts(data, [reg for i, reg in enumerate(regions) if i != found[0]], leftovers, strays,
                                   cube_fit, top_tol, settings)
     for reg, fit, pieces in parts:
@@ -1039,21 +924,9 @@ def _uncovered(data: _Cloud, fits: Sequence[ObstacleFit], pts: np.ndarray) -> np
 
 
 def _shape_points(fit: ObstacleFit) -> np.ndarray:
-    """Points (K, 3) whose horizontal convex hull holds the fitted shape's footprint and whose highest is its top:
-    a box's corners, polygons circumscribing the circles of the other kinds' horizontal extremes."""
-    c, s = math.cos(fit.yaw), math.sin(fit.yaw)
-    axis, across = np.array([c, s]), np.array([-s, c])
-    r, h = float(fit.size[0]), float(fit.size[1])
-    if fit.kind == "box":
-        hx, hy, hz = (float(v) for v in fit.size)
-        xy = np.array([fit.centre[:2] + i * hx * axis + j * hy * across for i in (-1, 1) for j in (-1, 1)])
-        return np.c_[np.r_[xy, xy], np.r_[[fit.centre[2] - hz] * 4, [fit.centre[2] + hz] * 4]]
-    turn = np.arange(16) * math.pi / 8
-    ring = np.stack([np.cos(turn), np.sin(turn)], axis=1) / math.cos(math.pi / 16)  # holds the unit circle
-    ends = [fit.centre[:2] + k * h * axis for k in (-1, 1)] if fit.kind == "capsule" else [fit.centre[:2]]
-    xy = np.concatenate([e + r * ring for e in ends])
-    z_half = h if fit.kind == "cylinder" else r
-    return np.c_[np.r_[xy, xy], np.r_[[fit.centre[2] - z_half] * len(xy), [fit.centre[2] + z_half] * len(xy)]]
+    """Points (K, 3) whose horizontal convex hull holds the fitted shape's footprint and whose highest is its top
+    (the kind's ``perception.hull_points``: a box's corners, polygons circumscribing a round kind's circles)."""
+    return shapes.BY_NAME[fit.kind].perception.hull_points(fit.centre, fit.size, float(fit.yaw))
 
 
 def _cover(data: _Cloud, region: _Region, plane_z: float, settings: PerceptionSettings, strays: np.ndarray,
@@ -1084,18 +957,10 @@ def _cover(data: _Cloud, region: _Region, plane_z: float, settings: PerceptionSe
     a, b = a + 2 * margin, b + 2 * margin
     half = top / 2
     centre = np.array([centre_xy[0], centre_xy[1], plane_z + half])
-    long_axis = angle if a >= b else angle + math.pi / 2
-    r_caps = math.hypot(min(a, b) / 2, half)
-    r_cyl = float(np.max(np.linalg.norm(xy - centre_xy, axis=1))) + margin
-    r_sph = math.sqrt((a / 2) ** 2 + (b / 2) ** 2 + half**2)
-    options = {  # kind: (size, yaw, volume)
-        "box": (np.array([a / 2, b / 2, half]), wrap(angle, math.pi), a * b * top),
-        "cylinder": (np.array([r_cyl, half, 0.0]), 0.0, math.pi * r_cyl**2 * top),
-        "sphere": (np.array([r_sph, 0.0, 0.0]), 0.0, 4.0 / 3.0 * math.pi * r_sph**3),
-        "capsule": (np.array([r_caps, max(a, b) / 2, 0.0]), wrap(long_axis, math.pi),
-                    math.pi * r_caps**2 * max(a, b) + 4.0 / 3.0 * math.pi * r_caps**3),
-    }
-    kind = min((k for k in settings.kinds if k in options), key=lambda k: options[k][2])
+    r_round = float(np.max(np.linalg.norm(xy - centre_xy, axis=1))) + margin
+    box = shapes.CoverBox(a, b, angle, top, r_round)
+    options = {k: shapes.BY_NAME[k].perception.cover(box) for k in settings.kinds}  # kind: (size, yaw, volume)
+    kind = min(settings.kinds, key=lambda k: options[k][2])
     size, yaw, _ = options[kind]
     return ObstacleFit(kind, centre, size, yaw, _surface_residual(kind, centre, size, yaw, region.world), True)
 

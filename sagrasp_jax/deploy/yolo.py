@@ -26,7 +26,16 @@ from sagrasp_jax.task import shapes
 from sagrasp_jax.deploy.calibration import CameraCalibration
 from sagrasp_jax.deploy.perception import Detection, PerceptionError, SceneDetection, detect_scene
 
-CLASSES: tuple[str, ...] = ("target", *shapes.NAMES)  # class id = index (the dataset's labels)
+def classes() -> tuple[str, ...]:
+    """The dataset's labels, class id = index: the cube, then every registered obstacle kind (``shapes.NAMES``,
+    read now: a kind registered after import is a class too)."""
+    return ("target", *shapes.NAMES)
+
+
+def __getattr__(name: str) -> Any:
+    if name == "CLASSES":  # the old constant, kept live: ``classes()``
+        return classes()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def detections_from_arrays(xyxy: Any, cls: Any, conf: Any, names: Mapping[int, str] | Sequence[str]) -> list[Detection]:

@@ -1,19 +1,19 @@
 """Labelled images for the YOLO option: ``python -m sagrasp_jax.deploy.yolo_dataset --out DIR --images N``.
 
     python -m sagrasp_jax.deploy.yolo_dataset --out DIR --images N [--seed S] [--resolution F]
-        [--val-fraction F] [--obstacle-prob P] [--blocking-prob P] [--kinds sphere,cylinder,box,capsule]
+        [--val-fraction F] [--obstacle-prob P] [--blocking-prob P] [--kinds KIND,KIND,...]
         [--arm-visible-prob P]
 
 Renders N scenes drawn by the training sampler (``sampling.sample_reset``: the target region, every
-obstacle kind of ``--kinds``, blocking placements) with the twin camera (``deploy.twin_camera``: the
-Mech-Eye's optics at ``--resolution`` × 1920 × 1200), each with domain-randomised colours (target
+obstacle kind of ``--kinds`` (default every registered kind), blocking placements) with the twin camera
+(``deploy.twin_camera``: the Mech-Eye's optics at ``--resolution`` × 1920 × 1200), each with domain-randomised colours (target
 red-ish, obstacles light, table any muted colour) and lighting (direction, warmth, strength, shadows),
 the arm in view (at its start pose) in a share ``--arm-visible-prob`` of them.  Writes the Ultralytics
 YOLO layout::
 
     DIR/images/{train,val}/000000.png   RGB
     DIR/labels/{train,val}/000000.txt   one "class x_centre y_centre width height" line per visible object
-    DIR/dataset.yaml                    path, train, val, names (``deploy.yolo.CLASSES``: target + shapes)
+    DIR/dataset.yaml                    path, train, val, names (``deploy.yolo.classes()``: target + shapes.NAMES)
 
 A box is the object's visible pixels (the render's segmentation), normalised to the image; an object
 with fewer than ``MIN_PIXELS`` visible pixels gets none.  Every file is written atomically and
@@ -77,9 +77,17 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--val-fraction", type=float, default=0.1, help="share of images for validation (default 0.1)")
     p.add_argument("--obstacle-prob", type=float, default=0.8, help="share of scenes with obstacles (default 0.8)")
     p.add_argument("--blocking-prob", type=float, default=0.3, help="share of obstacle scenes with blocking placement")
-    p.add_argument("--kinds", default=",".join(("sphere", "cylinder", "box", "capsule")), help="obstacle kinds, comma-separated")
+    p.add_argument("--kinds", default=None, help="obstacle kinds, comma-separated (default: every registered kind, "
+                   "shapes.NAMES)")
     p.add_argument("--arm-visible-prob", type=float, default=0.5, help="share of images with the arm in view")
     return p
+
+
+def _kinds(args: argparse.Namespace) -> tuple[str, ...]:
+    """--kinds as names; unset: every registered kind."""
+    from sagrasp_jax.task import shapes
+
+    return shapes.NAMES if args.kinds is None else tuple(k.strip() for k in args.kinds.split(",") if k.strip())
 
 
 def _check(args: argparse.Namespace) -> list[str]:
@@ -94,7 +102,7 @@ def _check(args: argparse.Namespace) -> list[str]:
         value = getattr(args, name)
         if not (math.isfinite(value) and 0.0 <= value <= 1.0):
             problems.append(f"--{name.replace('_', '-')} {value} must be in [0, 1]")
-    kinds = [k.strip() for k in args.kinds.split(",") if k.strip()]
+    kinds = _kinds(args)
     unknown = [k for k in kinds if k not in shapes.BY_NAME]
     if unknown or not kinds:
         problems.append(f"--kinds {args.kinds!r}: each must be one of {', '.join(shapes.NAMES)}")
@@ -117,7 +125,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from sagrasp_jax.task.config import EnvConfig, blocking_sampling
     from sagrasp_jax.deploy.twin import PyBulletTwin
     from sagrasp_jax.deploy.twin_camera import TwinCamera, random_colours, random_lighting
-    from sagrasp_jax.deploy.yolo import CLASSES
+    from sagrasp_jax.deploy.yolo import classes
     from sagrasp_jax.base.fileio import NotWritable, atomic_write_bytes, atomic_write_text, check_writable
 
     try:
@@ -125,7 +133,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except NotWritable as exc:
         print(f"{prog}: error: {exc}", file=sys.stderr)
         return 2
-    kinds = tuple(k.strip() for k in args.kinds.split(",") if k.strip())
+    kinds = _kinds(args)
+    classes_ = classes()
     cfg = EnvConfig()
     cfg = dataclasses.replace(cfg, sampling=blocking_sampling(
         dataclasses.replace(cfg.sampling, obstacle_kinds=kinds), args.obstacle_prob, args.blocking_prob))
@@ -133,7 +142,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     rng = np.random.default_rng(args.seed)
     camera = TwinCamera(args.resolution)
     n_val = int(round(args.val_fraction * args.images))
-    counts = dict.fromkeys(CLASSES, 0)
+    counts = dict.fromkeys(classes_, 0)
     t0 = time.perf_counter()
     for i in range(args.images):
         split = "val" if i < n_val else "train"
@@ -143,16 +152,16 @@ def main(argv: Sequence[str] | None = None) -> int:
                                    lighting=random_lighting(rng), hide_robot=bool(rng.random() >= args.arm_visible_prob))
             active = np.nonzero(np.asarray(spec.obstacle_active))[0]
             bodies = [(twin.target_body, 0)] + [
-                (body, CLASSES.index(shapes.BY_ID[int(spec.obstacle_kind[j])].name)) for body, j in zip(twin.obstacle_bodies, active)]
+                (body, classes_.index(shapes.BY_ID[int(spec.obstacle_kind[j])].name)) for body, j in zip(twin.obstacle_bodies, active)]
         lines = yolo_labels(frame.segmentation, bodies)
         for line in lines:
-            counts[CLASSES[int(line.split()[0])]] += 1
+            counts[classes_[int(line.split()[0])]] += 1
         name = f"{i:06d}"
         atomic_write_bytes(os.path.join(args.out, "images", split, name + ".png"), png_bytes(frame.rgb))
         atomic_write_text(os.path.join(args.out, "labels", split, name + ".txt"), "".join(f"{ln}\n" for ln in lines))
     yaml = (f"# written by {prog} --images {args.images} --seed {args.seed} --resolution {args.resolution}\n"
             f"path: {os.path.abspath(args.out)}\ntrain: images/train\nval: images/val\nnames:\n"
-            + "".join(f"  {i}: {name}\n" for i, name in enumerate(CLASSES)))
+            + "".join(f"  {i}: {name}\n" for i, name in enumerate(classes_)))
     atomic_write_text(os.path.join(args.out, "dataset.yaml"), yaml)
     print(f"{args.images} images ({args.images - n_val} train, {n_val} val) in {args.out}, "
           f"{time.perf_counter() - t0:.1f} s; labelled objects: " + ", ".join(f"{k} {v}" for k, v in counts.items()))

@@ -30,6 +30,7 @@ import numpy as np
 
 from sagrasp_jax.base import assets
 from sagrasp_jax.task import robot as robot_mod
+from sagrasp_jax.task import scene_mjcf
 from sagrasp_jax.task import shapes
 from sagrasp_jax.task.robot import lift_pose
 from sagrasp_jax.task.sampling import ResetSpec
@@ -90,14 +91,14 @@ class GraspScene:
         """Compile the scene with the target made free and the episode's obstacles in their slots."""
         if not os.path.isfile(xml_path):
             raise FileNotFoundError(f"{xml_path}: MuJoCo scene not found")
-        mj = mujoco.MjSpec.from_file(xml_path)
+        mj = scene_mjcf.load_scene_spec(xml_path)  # every registered kind's geom in every slot
         target = mj.body("target")
         target.mocap = False
         target.add_freejoint()
         target.pos = spec.target_pos.tolist()
         target.quat = _yaw_quat(float(spec.target_yaw)).tolist()
         for slot in range(spec.obstacle_pos.shape[0]):
-            body = mj.body(f"obstacle_{slot}")
+            body = mj.body(scene_mjcf.slot_body_name(slot))
             if body is None:
                 raise PhysicalCheckError(f"{xml_path} has no obstacle slot {slot}")
             active = bool(spec.obstacle_active[slot])
@@ -108,7 +109,7 @@ class GraspScene:
                 body.pos = spec.obstacle_pos[slot].tolist()
                 body.quat = _yaw_quat(float(spec.obstacle_yaw[slot])).tolist()
             for shape in shapes.SHAPES:  # the slot has one geom per kind (its tilt is the geom's own)
-                geom = mj.geom(f"obstacle_{slot}_{shape.name}")
+                geom = mj.geom(scene_mjcf.obstacle_geom_name(slot, shape))
                 chosen = active and shape.id == kind
                 size = spec.obstacle_size[slot]
                 if chosen:

@@ -46,7 +46,7 @@ RcMode = Literal["entry", "per_step"]  # env.reward.rc_mode (reward.py)
 NearMissMode = Literal["change", "per_step"]  # env.reward.near_miss_mode (reward.py)
 ObsLayout = Literal["paper", "relative", "relative_lag"]  # env.task.obs_layout (observation.py)
 ObstacleGeometry = Literal["fine", "cover"]  # env.task.obstacle_geometry (collision.py)
-ShapeName = Literal[shapes.NAMES]  # type: ignore[valid-type]  # env.sampling.obstacle_kinds (shapes.py)
+ShapeName = Literal[shapes.NAMES]  # type: ignore[valid-type]  # env.sampling.obstacle_kinds (shapes.py; live: _kinds_changed)
 Activation = Literal["tanh", "relu", "silu", "elu"]  # ppo.network.activation (ppo.py: flax.linen's functions)
 LRSchedule = Literal["constant", "sa", "kl-adaptive", "cosine", "linear"]  # lr.schedule (lr_schedule.py)
 SAMetric = Literal["return", "success"]  # sa.metric
@@ -616,6 +616,17 @@ def key_specs() -> dict[str, KeySpec]:
 
     walk(Config, "")
     return out
+
+
+def _kinds_changed() -> None:
+    """A kind registered (``shapes.register``) or the registry restored: ``env.sampling.obstacle_kinds`` takes the
+    registry's names (the annotations are read back at ``key_specs`` time, through this module's ``ShapeName``)."""
+    global ShapeName
+    ShapeName = Literal[shapes.NAMES]  # type: ignore[valid-type]
+    key_specs.cache_clear()
+
+
+shapes.on_change(_kinds_changed)
 
 
 def valid_keys() -> list[str]:
