@@ -12,7 +12,7 @@ import pytest
 
 import sagrasp_jax  # noqa: F401
 from sagrasp_jax.task import collision
-from sagrasp_jax.task import config
+from sagrasp_jax.task import config, config_history, config_parse
 from sagrasp_jax.task import robot
 from sagrasp_jax.task import sampling
 from sagrasp_jax.task import shapes
@@ -96,7 +96,7 @@ def post():
 
 
 def _cfg(overrides=()):
-    return config.apply_overrides(config.get_config("paper"), ["env.sampling.obstacle_kinds=sphere,cylinder,box,post",
+    return config_parse.apply_overrides(config.get_config("paper"), ["env.sampling.obstacle_kinds=sphere,cylinder,box,post",
                                                                *overrides])
 
 
@@ -130,7 +130,7 @@ def test_a_registered_kind_is_known_everywhere_and_forgotten_after():
         cfg = _cfg()
         assert cfg.env.sampling.obstacle_kinds[-1] == "post"
         assert "post" in config.key_specs()["env.sampling.obstacle_kinds"].choices
-        assert "env.sampling.obstacle_kinds" not in config.ADDED_KEYS  # no config key of its own: nothing to add
+        assert "env.sampling.obstacle_kinds" not in config_history.ADDED_KEYS  # no config key of its own: nothing to add
         from sagrasp_jax.deploy import yolo
         assert yolo.classes()[-1] == "post" and yolo.CLASSES == yolo.classes()
         with pytest.raises(ValueError, match="name 'post' is taken"):

@@ -26,7 +26,7 @@ Everything that differs between kinds is in the entry, and everything else reads
   points, and its horizontal reach; the YOLO dataset's classes are ``NAMES``.
 
 Adding a shape is one entry here (plus size-range keys in ``config.SamplingConfig`` if it needs new
-ones; only new keys need ``config.ADDED_KEYS``) and its tests: the scene MJCF gets its slot geoms
+ones; only new keys need ``config_history.ADDED_KEYS``) and its tests: the scene MJCF gets its slot geoms
 when loaded (``scene_mjcf.load_scene_spec``) and ``env.sampling.obstacle_kinds`` accepts its name.
 A kind defined outside this module (a plugin, a test's toy kind) is added with ``register`` or, for a
 block, ``registered`` (which restores the registry after); modules read ``shapes.SHAPES`` /
