@@ -33,7 +33,7 @@ def unit_weight(p, cfg: RewardConfig):
     return 1.0 + 0 * p
 
 
-TOY = reward.RewardTerm("r_toy", "f_toy", remaining_distance_cost, unit_weight, "test: remaining-distance cost")
+TOY = reward.RewardTerm("r_toy", "f_toy", remaining_distance_cost, unit_weight)  # the one registry entry
 
 
 def _step(**kw):

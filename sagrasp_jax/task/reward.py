@@ -132,7 +132,6 @@ class RewardTerm:
     weight_key: str
     value: Callable[[Any, RewardConfig, StepInputs], Any]
     weight: Callable[[Any, RewardConfig], Any]
-    doc: str = ""
 
 
 def distance_value(xp: Any, cfg: RewardConfig, step: StepInputs) -> Any:
@@ -197,9 +196,9 @@ def obstacle_weight(p: Any, cfg: RewardConfig) -> Any:
     return cfg.f_o + 0 * p  # same shape/type as the other two
 
 
-DISTANCE = RewardTerm("r_distance", "f_d", distance_value, distance_weight, "approach shaping and grab zone")
-SUCCESS = RewardTerm("r_success", "f_s", success_value, success_weight, "the episode's verdict")
-OBSTACLE = RewardTerm("r_obstacle", "f_o", obstacle_value, obstacle_weight, "collision, near miss, clean pass")
+DISTANCE = RewardTerm("r_distance", "f_d", distance_value, distance_weight)  # approach shaping and grab zone
+SUCCESS = RewardTerm("r_success", "f_s", success_value, success_weight)  # the episode's verdict
+OBSTACLE = RewardTerm("r_obstacle", "f_o", obstacle_value, obstacle_weight)  # collision, near miss, clean pass
 DEFAULT_TERMS = (DISTANCE, SUCCESS, OBSTACLE)  # summed in this order: the packaged policy's float32 sums
 
 _registry: tuple[RewardTerm, ...] = DEFAULT_TERMS
