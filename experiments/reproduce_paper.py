@@ -41,6 +41,7 @@ from experiments import study
 from experiments.study import Study, git_state, load_curves, machine
 from sagrasp_jax import evaluate
 from sagrasp_jax.plot import pyplot, save, smooth  # the package's plotting helpers (python -m sagrasp_jax.plot)
+from sagrasp_jax.task import reward
 from sagrasp_jax.training import run_dir
 from sagrasp_jax.training.stats import BAND_LABELS, band, band_kind, curve_matrix, mean_ci
 from sagrasp_jax.training import stats
@@ -66,7 +67,7 @@ PAPER = {  # docs/task.md §4 / paper §5.3: SB3 + PyBullet, 20M steps
 }
 # (file, row key, y label, title) of the training-episode curves, after the paper's figures.
 CURVES = (
-    ("fig11_distance_reward.png", "r_distance", "distance reward per episode", "Fig. 11 - distance reward"),
+    ("fig11_distance_reward.png", reward.DISTANCE.key, "distance reward per episode", "Fig. 11 - distance reward"),
     ("fig12_mean_reward.png", "return", "reward per episode", "Fig. 12 - mean reward"),
     ("fig13_success_rate.png", "success", "success rate", "Fig. 13 - success rate"),
     ("fig14_steps_per_episode.png", "episode_steps", "steps per episode", "Fig. 14 - steps per episode"),

@@ -19,7 +19,7 @@ from brax.training import acting
 
 from sagrasp_jax import envs
 from sagrasp_jax.task.config import get_config
-from sagrasp_jax.task.episode import EPISODE_KEYS
+from sagrasp_jax.task.episode import episode_keys
 
 MAX_STEPS = 5  # the task's own timeout: zero actions time out every 5 steps
 N_ENVS = 3
@@ -71,7 +71,7 @@ def test_training_wrap_restarts_fresh_episodes_with_stable_dtypes_and_keys(wrap)
     assert list(t_done) == [MAX_STEPS - 1, 2 * MAX_STEPS - 1, 3 * MAX_STEPS - 1] and (done == done[:, :1]).all()
     extras = data.extras["state_extras"]
     episode = jax.tree.map(np.asarray, extras["episode"])
-    assert set(episode) == set(EPISODE_KEYS)
+    assert set(episode) == set(episode_keys())
     # every finished episode is MAX_STEPS long and timed out: the counters restarted with the episode
     assert (episode["steps"][done] == MAX_STEPS).all() and (episode["timeout"][done] == 1).all()
     assert (np.asarray(extras["steps"])[t_done] == MAX_STEPS).all()  # brax's EpisodeWrapper counter restarts too

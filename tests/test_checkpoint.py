@@ -166,3 +166,47 @@ def test_a_checkpoint_of_the_trainer_before_its_split_resumes_with_its_numbers(t
                 assert value == pytest.approx(want[key], rel=1e-4, abs=1e-7), (i, key)
             else:
                 assert value == want[key], (i, key)
+
+
+def test_a_checkpoint_from_before_the_reward_term_registry_restores_its_term_sums(tmp_path):
+    """Before ``reward.terms`` the env state's tracker held each term's episode sum as a field of its own
+    (``….info['tracker'].r_distance``); now they sit in ``term_sums``.  Such a checkpoint restores into
+    today's template with every leaf where it was, and a leaf missing from both places is still refused."""
+    from typing import Any, NamedTuple
+
+    from sagrasp_jax.task import episode, reward
+
+    class OldTracker(NamedTuple):  # the tracker's fields as the checkpoints before the registry wrote them
+        steps: Any
+        d_prev: Any
+        obstacle_dist_prev: Any
+        clean: Any
+        blocking: Any
+        ret: Any
+        r_distance: Any
+        r_success: Any
+        r_obstacle: Any
+        min_obstacle_dist: Any
+
+    class State(NamedTuple):
+        info: Any
+
+    f = lambda v: np.full(4, v, np.float32)  # noqa: E731
+    old = State(info={"tracker": OldTracker(np.arange(4, dtype=np.int32), f(0.3), f(0.2), np.ones(4, bool),
+                                            np.zeros(4, bool), f(1.5), f(0.75), f(-1.0), f(-0.25), f(0.1)),
+                      "steps": np.arange(4, dtype=np.int32)})
+    template = State(info={"tracker": episode.Tracker(np.zeros(4, np.int32), f(0), f(0), np.zeros(4, bool),
+                                                      np.zeros(4, bool), f(0), {k: f(0) for k in reward.term_keys()},
+                                                      f(0)),
+                           "steps": np.zeros(4, np.int32)})
+    flat = checkpoint.flatten_tree(old)
+    assert ".info['tracker'].r_distance" in flat
+    restored = checkpoint.restore_tree(template, flat, "env_state", "old.ckpt").info["tracker"]
+    assert {k: float(v[0]) for k, v in restored.term_sums.items()} == {"r_distance": 0.75, "r_success": -1.0,
+                                                                        "r_obstacle": -0.25}
+    assert float(restored.ret[0]) == 1.5 and float(restored.min_obstacle_dist[0]) == np.float32(0.1)
+    with reward.registered(reward.RewardTerm("r_new", "f_new", lambda xp, cfg, s: s.d_now, lambda p, cfg: p)):
+        grown = template._replace(info=dict(template.info, tracker=template.info["tracker"]._replace(
+            term_sums={k: f(0) for k in reward.term_keys()})))
+        with pytest.raises(CheckpointError, match=r"missing \[\"\.info\['tracker'\]\.term_sums\['r_new'\]\"\]"):
+            checkpoint.restore_tree(grown, flat, "env_state", "old.ckpt")

@@ -20,7 +20,7 @@ from sagrasp_jax.task import observation  # noqa: E402
 from sagrasp_jax.task import robot  # noqa: E402
 from sagrasp_jax.task import sampling  # noqa: E402
 from sagrasp_jax.reference import ENV_ID, ENV_IDS, EPISODE_INFO, MAX_EPISODE_STEPS  # noqa: E402
-from sagrasp_jax.task.episode import EPISODE_KEYS
+from sagrasp_jax.task.episode import episode_keys
 from sagrasp_jax.reference.pybullet_env import PyBulletGraspEnv  # noqa: E402
 
 ROBOT = robot.load_robot()
@@ -227,7 +227,7 @@ def test_timeout_ends_the_episode_with_its_metrics():
             assert term is False  # Gymnasium's time-limit convention: a timeout truncates
             assert trunc is (t == 4)
         ep = info[EPISODE_INFO]
-        assert set(ep) == set(EPISODE_KEYS)
+        assert set(ep) == set(episode_keys())
         assert ep["timeout"] == 1.0 and ep["steps"] == 5.0 and ep["success"] == 0.0 and info["is_success"] is False
         # zero action, no movement: the return is the weighted −1 timeout verdict alone (F_s = 0.5 + p)
         assert ep["return"] == pytest.approx(-1.0 * (0.5 + 0.5), abs=1e-9)

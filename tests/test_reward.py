@@ -43,9 +43,9 @@ def reward(cfg: RewardConfig = CFG, xp=np, **kw):
 
 
 def test_weights() -> None:
-    assert reward_weights(0.0, CFG) == (2.0, 0.5, 0.5)
-    assert reward_weights(1.0, CFG) == (1.0, 1.5, 0.5)
-    assert reward_weights(0.25, CFG) == (1.75, 0.75, 0.5)
+    assert reward_weights(0.0, CFG) == {"f_d": 2.0, "f_s": 0.5, "f_o": 0.5}
+    assert reward_weights(1.0, CFG) == {"f_d": 1.0, "f_s": 1.5, "f_o": 0.5}
+    assert reward_weights(0.25, CFG) == {"f_d": 1.75, "f_s": 0.75, "f_o": 0.5}
 
 
 # (name, cfg, kwargs, (r_distance, r_success, r_obstacle), total at p=0, total at p=1)
@@ -177,9 +177,10 @@ CASES = [
 def test_hand_built_cases(case, progress: float) -> None:
     _, cfg, kw, terms, total0, total1 = case
     total, t = reward(cfg, progress=progress, **kw)
-    np.testing.assert_allclose([t.r_distance, t.r_success, t.r_obstacle], terms, atol=1e-12)
+    assert list(t.values) == ["r_distance", "r_success", "r_obstacle"]
+    np.testing.assert_allclose(list(t.values.values()), terms, atol=1e-12)
     np.testing.assert_allclose(total, total0 if progress == 0.0 else total1, atol=1e-12)
-    np.testing.assert_allclose([t.f_d, t.f_s, t.f_o], reward_weights(progress, cfg), atol=1e-15)
+    assert t.weights == pytest.approx(reward_weights(progress, cfg), abs=1e-15)
 
 
 def test_resolve_outcome_precedence() -> None:
@@ -248,7 +249,7 @@ def test_lingering_near_an_obstacle_beats_crashing_only_under_change(gamma: floa
 def test_near_miss_change_telescopes() -> None:
     """Under "change" the near-miss terms of an episode sum to −0.5·(c_end − c_0)."""
     dists = [0.2, 0.04, 0.01, 0.03, 0.02, 0.045]
-    total = sum(float(reward(CFG, obstacle_dist=b, prev_obstacle_dist=a, obstacle_present=True, clean_so_far=False)[1].r_obstacle)
+    total = sum(float(reward(CFG, obstacle_dist=b, prev_obstacle_dist=a, obstacle_present=True, clean_so_far=False)[1].values["r_obstacle"])
                 for a, b in zip(dists[:-1], dists[1:]))
     c_end = 1 - 0.045 / 0.05
     assert total == pytest.approx(-0.5 * (c_end - 0.0), abs=1e-12)
@@ -335,8 +336,11 @@ def test_numpy_and_jax_agree_batched() -> None:
     fn = jax.jit(jax.vmap(lambda p, kw: step_reward(jnp, CFG, progress=p, **kw)))
     total, terms = fn(jnp.asarray(progress, dtype=jnp.float32), {k: jnp.asarray(v) for k, v in batch.items()})
     np.testing.assert_allclose(np.asarray(total), ref_total, atol=1e-5)
-    for r, g in zip(ref_terms, terms):
-        np.testing.assert_allclose(np.asarray(g), r, atol=1e-5)
+    for part in ("values", "weights"):
+        ref, got = getattr(ref_terms, part), getattr(terms, part)
+        assert set(got) == set(ref)  # jit hands dicts back in sorted key order
+        for key in ref:
+            np.testing.assert_allclose(np.asarray(got[key]), ref[key], atol=1e-5)
     succ = jax.jit(lambda c, t, th: success_flag(jnp, TASK, c, t, th))
     centre, target, theta = _pose_state(0.0, 0.0, 0.01)
     assert bool(succ(jnp.asarray(centre), jnp.asarray(target), jnp.asarray(theta)))

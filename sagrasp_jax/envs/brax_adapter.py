@@ -27,7 +27,7 @@ wrappers) and ``brax.training.acting.generate_unroll`` run the task correctly:
   may add one at reset, as brax's ``EvalWrapper`` adds ``reward``), so scan carries match.
 * **Progress** (the reward weights' p) is ``state.info["progress"]``, as for ``GraspEnv``.
 * **Finished episodes**: on the step where ``done == 1``, ``state.info["episode"]`` holds that
-  episode's metrics (``episode.EPISODE_KEYS``), as in ``GraspEnv``.
+  episode's metrics (``episode.episode_keys()``), as in ``GraspEnv``.
 * **Privileged critic** (``privileged=True``): the observation is the dict MuJoCo Playground
   uses, ``{"state": policy observation, "privileged_state": policy observation + privileged
   inputs}`` (brax's PPO: ``policy_obs_key="state"``, ``value_obs_key="privileged_state"``).
@@ -54,7 +54,7 @@ from flax import struct
 
 from sagrasp_jax.task import config as config_mod
 from sagrasp_jax.envs.grasp_env import GraspEnv
-from sagrasp_jax.task.episode import EPISODE_KEYS
+from sagrasp_jax.task.episode import episode_keys
 
 # name -> env.control.mode: exact tracking, MJX servos, the fitted servo model (the presets' training mode)
 ENVS = {"grasp-kinematic": "kinematic", "grasp-dynamic": "dynamic", "grasp-lagged": "lagged"}
@@ -112,7 +112,7 @@ class BraxGraspEnv(Env):
         key_start, key_chain = jax.random.split(rng)
         inner = self.inner.reset(key_start)
         zero = inner.reward
-        info = {"reset_key": key_chain, "progress": zero, "episode": {k: zero for k in EPISODE_KEYS}}
+        info = {"reset_key": key_chain, "progress": zero, "episode": {k: zero for k in episode_keys()}}
         return GraspState(pipeline_state=self._pack(inner, pending=True), obs=self._obs(inner), reward=zero,
                           done=inner.done, metrics=dict(inner.metrics), info=info)
 

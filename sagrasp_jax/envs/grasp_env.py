@@ -34,6 +34,7 @@ from sagrasp_jax.task import collision
 from sagrasp_jax.task import control
 from sagrasp_jax.task import episode
 from sagrasp_jax.task import observation
+from sagrasp_jax.task import reward
 from sagrasp_jax.task import robot
 from sagrasp_jax.task import sampling
 from sagrasp_jax.task import config as config_mod
@@ -43,6 +44,13 @@ MJCF_SCENE = assets.MJCF_SCENE
 MJCF_ROBOT = assets.MJCF_ROBOT  # the dynamic mode's model
 
 OBS_SIZE = observation.OBS_SIZE  # the paper layout's 17; an env's own size is ``GraspEnv.observation_size``
+POSE_METRICS = ("distance", "tilt", "slowed", "finetuned")  # state.metrics besides the reward terms (step_metric_keys)
+
+
+def step_metric_keys() -> tuple[str, ...]:
+    """``state.metrics`` of a step: each registered reward term's value (``reward.term_keys``) and
+    ``POSE_METRICS`` (distance to the target, tilt, the slow-down and fine-tune flags)."""
+    return reward.term_keys() + POSE_METRICS
 
 
 class ServoState(NamedTuple):
@@ -284,7 +292,7 @@ class GraspEnv:
             "q_target": q0,
             "reset": spec,
             "tracker": episode.start(jnp, self.cfg, d0, tilt, col, blocking),
-            "episode": {k: zero for k in episode.EPISODE_KEYS},
+            "episode": {k: zero for k in episode.episode_keys()},
         }
         if randomize is not None:
             info["randomize"] = randomize
@@ -295,7 +303,7 @@ class GraspEnv:
         if self.privileged:
             info["privileged"] = observation.privileged(jnp, self.cfg, spec, col, kin.gripper_centre, info["steps"], zero,
                                                         blocking)
-        metrics = {k: zero for k in ("r_distance", "r_success", "r_obstacle", "distance", "tilt", "slowed", "finetuned")}
+        metrics = {k: zero for k in step_metric_keys()}
         return State(
             pipeline_state=self._initial_pipeline(q0),
             obs=obs,
@@ -348,9 +356,7 @@ class GraspEnv:
             new_info["privileged"] = observation.privileged(jnp, cfg, spec, col, kin.gripper_centre, step.tracker.steps,
                                                             info["progress"], step.tracker.blocking)
         metrics = {
-            "r_distance": step.terms.r_distance,
-            "r_success": step.terms.r_success,
-            "r_obstacle": step.terms.r_obstacle,
+            **step.terms.values,
             "distance": d_now,
             "tilt": tilt,
             "slowed": ctl.slowed.astype(dtype),

@@ -23,7 +23,7 @@ from sagrasp_jax.task.config import get_config
 from sagrasp_jax.task.observation import LAYOUT_NAMES
 
 ENV_ID = "SAGrasp-PyBullet-v0"  # the paper layout
-EPISODE_INFO = "task_episode"  # info key of a finished episode's task metrics (episode.EPISODE_KEYS)
+EPISODE_INFO = "task_episode"  # info key of a finished episode's task metrics (episode.episode_keys())
 MAX_EPISODE_STEPS = get_config("paper").env.task.max_steps  # the registered TimeLimit: the env's own timeout
 ENTRY_POINT = "sagrasp_jax.reference.pybullet_env:PyBulletGraspEnv"
 

@@ -49,15 +49,20 @@ from sagrasp_jax.task import sampling
 from sagrasp_jax.task import scripted
 from sagrasp_jax.task import shapes
 from sagrasp_jax.reference import EPISODE_INFO
-from sagrasp_jax.task.episode import EPISODE_KEYS
+from sagrasp_jax.task.episode import episode_keys
+from sagrasp_jax.task.reward import term_keys
 from sagrasp_jax.task.config import Config, EnvConfig, get_config
 from sagrasp_jax.task.config_parse import apply_overrides
 
 SOURCES = ("random", "scripted", "policy")
 FLAGS = ("done", "success", "collision", "timeout")
-REWARD_KEYS = ("reward", "r_distance", "r_success", "r_obstacle")
 SCRIPTED_NOISE = 0.3  # amplitude of the uniform noise added to the scripted controller's actions
 MAX_LISTED_DISAGREEMENTS = 20
+
+
+def reward_keys() -> tuple[str, ...]:
+    """The compared reward columns: the total and each registered reward term (``reward.term_keys``)."""
+    return ("reward",) + term_keys()
 
 
 @dataclass(frozen=True)
@@ -178,8 +183,7 @@ class JaxSide:
             qd = state.pipeline_state.qvel[:, :6] if dynamic else jnp.zeros_like(q)
             return {
                 "obs": state.obs, "reward": state.reward, "done": state.done,
-                "r_distance": state.metrics["r_distance"], "r_success": state.metrics["r_success"],
-                "r_obstacle": state.metrics["r_obstacle"],
+                **{key: state.metrics[key] for key in term_keys()},
                 "success": ep["success"], "collision": ep["collision"], "timeout": ep["timeout"],
                 "episode": ep, "q": q, "qd": qd, "q_target": state.info["q_target"],
                 "d_prev": state.info["tracker"].d_prev, "clean": state.info["tracker"].clean,
@@ -259,7 +263,7 @@ def _compare_step(errs: Errors, j_obs: np.ndarray, j: dict[str, float], p_obs: n
     errs.obs_entry_max = np.maximum(errs.obs_entry_max, diff)
     agree = j_flags == p_flags
     if agree:
-        for key in REWARD_KEYS:
+        for key in reward_keys():
             errs.add(key, abs(j[key] - p[key]))
     return agree
 
@@ -268,8 +272,7 @@ def _compare_step(errs: Errors, j_obs: np.ndarray, j: dict[str, float], p_obs: n
 # the run
 # --------------------------------------------------------------------------------------------
 def _pybullet_row(reward: float, info: dict[str, Any]) -> dict[str, float]:
-    return {"reward": float(reward), "r_distance": info["r_distance"], "r_success": info["r_success"],
-            "r_obstacle": info["r_obstacle"]}
+    return {"reward": float(reward), **{key: info[key] for key in term_keys()}}
 
 
 class _SourceRun:
@@ -317,7 +320,7 @@ class _SourceRun:
             j_obs = jout["obs"][:n]
             for k in range(n):
                 was_alive = bool(j_alive[k])
-                j_row = {key: float(jout[key][k]) for key in REWARD_KEYS}
+                j_row = {key: float(jout[key][k]) for key in reward_keys()}
                 j_flags = _flags_of(jout["done"][k], jout["success"][k], jout["collision"][k], jout["timeout"][k])
                 if p_alive[k]:
                     p_obs[k], p_alive[k], comparing[k], ok = self._step_pybullet(
@@ -349,7 +352,7 @@ class _SourceRun:
                 self.disagreements.append({"episode": episode_id, "step": t + 1, "jax": j_flags, "pybullet": p_flags,
                                            "gripper_gap": float(np.linalg.norm(j_obs[6:9] - obs[6:9]))})
             elif ok and j_flags["done"]:
-                for key in EPISODE_KEYS:
+                for key in episode_keys():
                     diff = abs(float(jout["episode"][key][k]) - float(info[EPISODE_INFO][key]))
                     self.episode_err[key] = max(self.episode_err.get(key, 0.0), diff)
             comparing = not (j_flags["done"] or p_flags["done"])
@@ -441,7 +444,7 @@ def _checks(report: dict[str, Any], tol: Tolerances) -> list[dict[str, Any]]:
             ("gripper_centre", worst("gripper_centre"), tol.gripper_centre, "≤"),
             ("obs", max(worst("obs"), sec["reset_obs_max_error"]), tol.obs, "≤"),
         ]
-        items += [(key, worst(key), tol.reward, "≤") for key in REWARD_KEYS]
+        items += [(key, worst(key), tol.reward, "≤") for key in reward_keys()]
         items.append(("flag_agreement", sec["flag_agreement"], tol.flag_agreement, "≥"))
         for key, value, limit, op in items:
             if limit is None:
@@ -547,11 +550,11 @@ def format_report(report: dict[str, Any]) -> str:
              f"({', '.join(f'{n} {k}' for k, n in report.get('obstacles_per_kind', {}).items()) or 'none'}), "
              f"observation layout {report.get('obs_layout', 'paper')}"]
     tol = report["tolerances"]
-    limits = {"gripper_centre": tol["gripper_centre"], "obs": tol["obs"], **{k: tol["reward"] for k in REWARD_KEYS}}
+    limits = {"gripper_centre": tol["gripper_centre"], "obs": tol["obs"], **{k: tol["reward"] for k in reward_keys()}}
     for name, sec in report["sources"].items():
         lines.append(f"\n[{name}] {sec['steps_compared']} steps compared; reset obs max error {_fmt(sec['reset_obs_max_error'])}")
         lines.append(f"  {'quantity':<16}{'max':>11}{'mean':>11}{'p99':>11}{'tolerance':>11}")
-        for key in ("gripper_centre", "obs") + REWARD_KEYS:
+        for key in ("gripper_centre", "obs") + reward_keys():
             s = sec["trajectory"].get(key)
             if s is None:
                 continue

@@ -484,9 +484,7 @@ class PyBulletGraspEnv(gym.Env if gym is not None else object):  # type: ignore[
             "gripper_centre": kin.gripper_centre.copy(),
             "distance": d_now,
             "tilt": tilt,
-            "r_distance": float(terms.r_distance),
-            "r_success": float(terms.r_success),
-            "r_obstacle": float(terms.r_obstacle),
+            **{key: float(value) for key, value in terms.values.items()},  # each reward term (reward.term_keys)
             "success": bool(outcome.success),
             "collision": bool(outcome.collision),
             "timeout": bool(outcome.timeout),

@@ -16,12 +16,8 @@ from sagrasp_jax.task import collision
 from sagrasp_jax.task import reward
 from sagrasp_jax.task.config import EnvConfig
 
-# Per-episode metrics that every simulator reports when an episode ends (info["episode"]).
-EPISODE_KEYS = (
-    "return",
-    "r_distance",
-    "r_success",
-    "r_obstacle",
+# Per-episode metrics besides the return and the reward terms' sums (``episode_keys``).
+OUTCOME_KEYS = (
     "success",
     "collision",
     "timeout",
@@ -34,6 +30,13 @@ EPISODE_KEYS = (
 ) + tuple(f"hit_{name}" for name in collision.HIT_KINDS)
 
 
+def episode_keys() -> tuple[str, ...]:
+    """The metrics every simulator reports when an episode ends (info["episode"]; the training rows of
+    metrics.jsonl average them): the return, each registered reward term's sum (``reward.term_keys``:
+    r_distance, r_success, r_obstacle), then ``OUTCOME_KEYS``.  Read from the registry at each call."""
+    return ("return",) + reward.term_keys() + OUTCOME_KEYS
+
+
 class Tracker(NamedTuple):
     """What an episode carries from step to step besides the robot state."""
 
@@ -42,10 +45,8 @@ class Tracker(NamedTuple):
     obstacle_dist_prev: Any  # () Δpo after the previous step (near-miss potential)
     clean: Any  # () bool: an obstacle was never nearer than near_miss_distance
     blocking: Any  # () bool: the straight approach path passes within blocking_margin of an obstacle
-    ret: Any  # () accumulated reward and its three terms
-    r_distance: Any
-    r_success: Any
-    r_obstacle: Any
+    ret: Any  # () accumulated reward
+    term_sums: dict[str, Any]  # reward term key (reward.term_keys) -> () its sum over the episode so far
     min_obstacle_dist: Any  # () smallest Δpo so far
 
 
@@ -55,7 +56,7 @@ class Step(NamedTuple):
     outcome: reward.Outcome
     done: Any  # () bool
     tracker: Tracker
-    episode: dict[str, Any]  # the episode's metrics (EPISODE_KEYS) as if it ended on this step
+    episode: dict[str, Any]  # the episode's metrics (episode_keys()) as if it ended on this step
 
 
 def start(xp: Any, cfg: EnvConfig, d0: Any, tilt0: Any, col: collision.CollisionResult, blocking: Any) -> Tracker:
@@ -70,9 +71,7 @@ def start(xp: Any, cfg: EnvConfig, d0: Any, tilt0: Any, col: collision.Collision
         clean=xp.ones((), dtype=bool),
         blocking=xp.asarray(blocking, dtype=bool),
         ret=zero,
-        r_distance=zero,
-        r_success=zero,
-        r_obstacle=zero,
+        term_sums={key: zero for key in reward.term_keys()},
         min_obstacle_dist=xp.asarray(col.nearest_obstacle_dist, dtype=d0.dtype),
     )
 
@@ -102,17 +101,13 @@ def advance(xp: Any, cfg: EnvConfig, tracker: Tracker, reset: Any, *, progress: 
         clean=clean,
         blocking=tracker.blocking,
         ret=tracker.ret + total,
-        r_distance=tracker.r_distance + terms.r_distance,
-        r_success=tracker.r_success + terms.r_success,
-        r_obstacle=tracker.r_obstacle + terms.r_obstacle,
+        term_sums={key: tracker.term_sums[key] + value for key, value in terms.values.items()},
         min_obstacle_dist=xp.minimum(tracker.min_obstacle_dist, dist),
     )
     as_float = lambda v: xp.asarray(v).astype(dtype)  # noqa: E731
     episode = {
         "return": new.ret,
-        "r_distance": new.r_distance,
-        "r_success": new.r_success,
-        "r_obstacle": new.r_obstacle,
+        **new.term_sums,
         "success": as_float(outcome.success),
         "collision": as_float(outcome.collision),
         "timeout": as_float(outcome.timeout),
@@ -125,4 +120,4 @@ def advance(xp: Any, cfg: EnvConfig, tracker: Tracker, reset: Any, *, progress: 
     } | {f"hit_{name}": as_float(outcome.collision & hit) for name, hit in col.hits.items()}
     done = outcome.collision | outcome.success | outcome.timeout
     return Step(reward=total, terms=terms, outcome=outcome, done=done, tracker=new,
-                episode={k: episode[k] for k in EPISODE_KEYS})
+                episode={k: episode[k] for k in episode_keys()})

@@ -18,6 +18,7 @@ import sagrasp_jax  # noqa: F401  (sets XLA_FLAGS before jax is imported)
 
 import hashlib
 import json
+import re
 import struct
 from dataclasses import dataclass
 from typing import Any
@@ -66,10 +67,30 @@ def flatten_tree(tree: Any) -> dict[str, np.ndarray]:
     return out
 
 
+# A reward term's episode sum in the env state's tracker, and where checkpoints written before the reward-term
+# registry (reward.terms) kept it: ``….info['tracker'].r_distance``, now ``….info['tracker'].term_sums['r_distance']``.
+_TERM_SUM_PATH = re.compile(r"(.*\.info\['tracker'\])\.term_sums\['(r_\w+)'\]")
+
+
+def _with_moved_paths(keys: list[str], flat: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """``flat`` with the leaves a checkpoint wrote under an older path (``_TERM_SUM_PATH``) under today's, so
+    a run started before the move still resumes exactly."""
+    moved = {}
+    for key in keys:
+        match = _TERM_SUM_PATH.fullmatch(key)
+        if key not in flat and match and f"{match[1]}.{match[2]}" in flat:
+            moved[key] = f"{match[1]}.{match[2]}"
+    if not moved:
+        return flat
+    old = set(moved.values())
+    return {k: v for k, v in flat.items() if k not in old} | {new: flat[o] for new, o in moved.items()}
+
+
 def restore_tree(template: Any, flat: dict[str, np.ndarray], name: str, path: str) -> Any:
     """Fill ``template``'s structure with the saved leaves; paths, shapes and dtypes must match."""
     leaves, treedef = jax.tree_util.tree_flatten_with_path(template)
     keys = [jax.tree_util.keystr(p) for p, _ in leaves]
+    flat = _with_moved_paths(keys, flat)
     missing = sorted(set(keys) - set(flat))
     extra = sorted(set(flat) - set(keys))
     if missing or extra:
