@@ -114,6 +114,8 @@ def env_overrides(cfg: Config, overrides: list[str] | None) -> Config:
 
 
 def check_options(episodes: int, seed: int | None, max_steps: int | None) -> None:
+    """The evaluation's ranges, named as the command's options; checked before any work (the command
+    checks them before it locks its result file, ``evaluate_run`` again for library callers)."""
     check_range("--episodes", episodes, 1, MAX_EPISODES)
     if seed is not None:
         check_range("--seed", seed, *SEED_RANGE)
