@@ -11,7 +11,7 @@ Variants (``--variants``, default the five schedules; ``--ablation`` adds the fo
 
 The variants are a table (``VARIANTS``) over ``experiments.study``.  Every run trains ``--total-steps``
 env steps of ``--preset`` (in process, ``train.run``; seeds 0 … K−1) into
-``--runs-dir/<variant>/seed<S>/``, then ``evaluate.evaluate_run`` plays ``--eval-episodes`` fixed held-out episodes of the
+``--runs-dir/<variant>/seed<S>/``, then ``evaluation.evaluate_run`` plays ``--eval-episodes`` fixed held-out episodes of the
 evaluation mix (success overall, without obstacle, with obstacle, blocking; steps per success)
 and ``--blocking-episodes`` of blocking-only scenes.  From ``metrics.jsonl``: env steps and
 training wall clock until the per-cycle evaluation (``eval.episodes`` fixed episodes) first
@@ -45,7 +45,8 @@ from typing import Any, Mapping, Sequence
 
 from experiments import reproduce_paper, study
 from sagrasp_jax.training import stats
-from sagrasp_jax import evaluate, plot
+from sagrasp_jax import plot
+from sagrasp_jax.training import evaluation
 from sagrasp_jax.base import extras
 from sagrasp_jax.training import run_dir
 from sagrasp_jax.task.config import LR_SCHEDULES
@@ -319,7 +320,7 @@ def recorded_reference(args: argparse.Namespace, spec: study.Study, table: study
         differ.append(f"seeds {[r.get('seed') for r in runs]} (here {list(spec.seeds)})")
     else:
         trained = [r.get("mix", {}).get("config_sha256") for r in runs]
-        here = [evaluate.config_identity(spec.config(table[reference], s)) for s in spec.seeds]
+        here = [evaluation.config_identity(spec.config(table[reference], s)) for s in spec.seeds]
         if trained != here:
             differ.append(f"its runs were trained with another config (config_sha256 {trained}, here {here}: "
                           "preset, budget, overrides or a default changed)")

@@ -10,7 +10,7 @@ section that fails is recorded as an error row (its message kept) while the othe
    ``tests/test_dynamic.py``).  Without the ``warp`` package the warp rows say "not installed".
 2. ``train``: the ``gpu`` preset for its 20M env steps (the whole check's budget assumes an H200), in process (``train.run``): compile time,
    env-steps/s (median iteration and overall, SA evaluations included), wall time, success on
-   1,000 held-out episodes (``evaluate.evaluate_run``) and peak device memory
+   1,000 held-out episodes (``evaluation.evaluate_run``) and peak device memory
    (``jax.Device.memory_stats()["peak_bytes_in_use"]``; CPUs report none).
 3. ``seeds``: a 5-seed group of the README preset as one program,
    ``python -m sagrasp_jax.train --preset cpu-quick --seeds 0-4 --out DIR``, in a subprocess that is
@@ -74,7 +74,8 @@ import numpy as np
 
 from experiments import bench_env, study
 from experiments.study import watch_trainer
-from sagrasp_jax import evaluate, train
+from sagrasp_jax import train
+from sagrasp_jax.training import evaluation
 from sagrasp_jax.task import config
 from sagrasp_jax.task import config_parse
 from sagrasp_jax.training import run_dir
@@ -187,7 +188,7 @@ def train_section(quick: bool, work: str) -> dict[str, Any]:
     rows = run_dir.read_metrics(os.path.join(out, run_dir.METRICS_FILE))
     last = rows[-1]
     rates = sorted(r["steps_per_s"] for r in rows if r.get("steps_per_s"))
-    res = evaluate.evaluate_run(out, size("eval_episodes", quick))
+    res = evaluation.evaluate_run(out, size("eval_episodes", quick))
     return {
         "preset": preset, "overrides": list(size("train_sets", quick)), "total_steps": cfg.train.total_steps,
         "num_envs": cfg.ppo.num_envs, "env_steps": last["env_steps"], "wall_s": wall, "train_s": last["time_s"],

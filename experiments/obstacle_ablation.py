@@ -16,7 +16,7 @@ Variants (``VARIANTS``, a table over ``experiments.study``): ``base`` (all off =
 with the calibrated SA tolerance), each lever alone, ``all`` (= the cpu-quick preset), and with
 ``--leave-one-out`` each lever removed from ``all``.  Every run trains ``--total-steps`` env steps
 of ``--preset`` into ``--runs-dir/<variant>/seed<S>/``, then is evaluated on ``--eval-episodes``
-fixed-seed episodes of the evaluation mix and of blocking-only scenes (``evaluate.evaluate_run``),
+fixed-seed episodes of the evaluation mix and of blocking-only scenes (``evaluation.evaluate_run``),
 and its exported policy is played seeing vs blind on ``--blind-episodes`` obstacle and blocking
 episodes (``blind_study``, below: every obstacle entry replaced by its "no obstacle" value, ``observation.blind``).  Re-running skips finished runs (``--resume``
 continues stopped ones).  Prints a table and writes JSON with per-seed numbers, means and 95 %

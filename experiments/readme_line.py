@@ -179,7 +179,7 @@ def measure_eval_slots(run: str, condition: str, episodes: int, slot_counts: lis
     import jax
     import numpy as np
 
-    from sagrasp_jax import evaluate as ev
+    from sagrasp_jax.training import evaluation as ev
     from sagrasp_jax.task.config import EVAL_CONDITIONS
     from sagrasp_jax.training import actor_critic, restore, run_dir
     from sagrasp_jax.training import fixed_seed_eval as policy_eval

@@ -3,7 +3,7 @@
 A study over ``experiments.study`` with two variants, the paper's algorithms: ``ppo`` (the constant
 learning rate) and ``sa-ppo`` (the SA schedule, docs/task.md §3), K seeds each on one preset and
 step budget.  Every final policy is evaluated on ``--eval-episodes`` fixed-seed episodes
-(``evaluate.evaluate_run``: deterministic policy, reward weights at p = 1, held-out seeds), and
+(``evaluation.evaluate_run``: deterministic policy, reward weights at p = 1, held-out seeds), and
 ``--out-dir`` gets (the report's part below, which ``compare_schedules`` uses too for its ``constant`` / ``sa``
 runs):
 
@@ -39,7 +39,7 @@ import numpy as np
 
 from experiments import study
 from experiments.study import Study, git_state, load_curves, machine
-from sagrasp_jax import evaluate
+from sagrasp_jax.training import evaluation
 from sagrasp_jax.plot import pyplot, save, smooth  # the package's plotting helpers (python -m sagrasp_jax.plot)
 from sagrasp_jax.task import reward
 from sagrasp_jax.training import run_dir
@@ -89,7 +89,7 @@ def summarise_algo(evals: list[dict[str, Any]], seeds: Sequence[int]) -> dict[st
         s_g = sum(round(g.get("success_rate", 0.0) * g["episodes"]) for g in gs)
         c_g = sum(round(g.get("collision_rate", 0.0) * g["episodes"]) for g in gs)
         return {"episodes": n_g, "success_pct": 100.0 * s_g / n_g if n_g else None,
-                "success_ci95_wilson_pct": [100.0 * v for v in evaluate.wilson_interval(s_g, n_g)] if n_g else None,
+                "success_ci95_wilson_pct": [100.0 * v for v in evaluation.wilson_interval(s_g, n_g)] if n_g else None,
                 "collision_pct": 100.0 * c_g / n_g if n_g else None}
 
     def pct(x: dict[str, Any]) -> dict[str, Any]:
@@ -103,9 +103,9 @@ def summarise_algo(evals: list[dict[str, Any]], seeds: Sequence[int]) -> dict[st
         "pooled": {
             "episodes": n,
             "success_pct": 100.0 * succ / n,
-            "success_ci95_wilson_pct": [100.0 * v for v in evaluate.wilson_interval(succ, n)],
+            "success_ci95_wilson_pct": [100.0 * v for v in evaluation.wilson_interval(succ, n)],
             "collision_pct": 100.0 * coll / n,
-            "collision_ci95_wilson_pct": [100.0 * v for v in evaluate.wilson_interval(coll, n)],
+            "collision_ci95_wilson_pct": [100.0 * v for v in evaluation.wilson_interval(coll, n)],
             "timeout_pct": 100.0 * tout / n,
             "successes": succ,
             "steps_per_success": steps_sum / succ if succ else None,

@@ -39,6 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from sagrasp_jax import evaluate
+from sagrasp_jax.training import evaluation
 from sagrasp_jax.deploy import sysid
 from sagrasp_jax.envs.grasp_env import GraspEnv
 from sagrasp_jax.task import config, config_parse, robot, scripted
@@ -72,15 +73,15 @@ def summary(result: dict[str, Any]) -> dict[str, Any]:
 def evaluate_conditions(folder: str, episodes: int, conditions: dict[str, tuple[str, ...]], blocking: bool,
                         physical: bool) -> dict[str, Any]:
     cfg = run_dir.load_config(folder)
-    seed, steps = evaluate.resolve_options(cfg, None, None)
+    seed, steps = evaluation.resolve_options(cfg, None, None)
     out: dict[str, Any] = {}
     for name, overrides in conditions.items():
-        out[name] = summary(evaluate.evaluate_run(folder, episodes, overrides=list(overrides)))
+        out[name] = summary(evaluation.evaluate_run(folder, episodes, overrides=list(overrides)))
         print(f"{folder} {name}: {out[name]}", file=sys.stderr, flush=True)
     if blocking:
-        res = evaluate.evaluate_run(folder, episodes, overrides=list(EVAL_CONDITIONS["robot"]), scenes="blocking")
+        res = evaluation.evaluate_run(folder, episodes, overrides=list(EVAL_CONDITIONS["robot"]), scenes="blocking")
         out["robot_blocking_scenes"] = summary(res)
-        res = evaluate.evaluate_run(folder, episodes, overrides=list(EVAL_CONDITIONS["kinematic"]), scenes="blocking")
+        res = evaluation.evaluate_run(folder, episodes, overrides=list(EVAL_CONDITIONS["kinematic"]), scenes="blocking")
         out["kinematic_blocking_scenes"] = summary(res)
     if physical:
         for name in ("kinematic", "kinematic-target-error"):
@@ -369,7 +370,7 @@ def sysid_check_main(argv: list[str] | None = None) -> int:
 TWIN_DOC = """The robot's grasp against the simulator's: MJX success and physical hold beside the twin's held cube.
 
 For each ``--run NAME=FOLDER`` and each named condition (``config.EVAL_CONDITIONS``) on each scene set
-(the evaluation mix, blocking-only scenes): the MJX evaluation (``evaluate.evaluate_run``: kinematic
+(the evaluation mix, blocking-only scenes): the MJX evaluation (``evaluation.evaluate_run``: kinematic
 success; with ``--physical``, every success closed and lifted in CPU MuJoCo, ``evaluate.evaluate_physical``)
 and the deployment at scale on the PyBullet twin (``deploy.rehearse``: the run's ``policy.npz`` through the
 deploy loop, judged by the cube held after the lift).  Prints a Markdown table and writes JSON (the twin's
@@ -381,12 +382,12 @@ TWIN_CASES = ("kinematic:mix", "robot:mix", "kinematic:blocking", "robot:blockin
 def mjx_case(folder: str, condition: str, scenes: str, episodes: int, physical: bool) -> dict[str, Any]:
     """MJX success (and physical hold) of one run in one condition on one scene set."""
     overrides = list(EVAL_CONDITIONS[condition])
-    res = evaluate.evaluate_run(folder, episodes, overrides=overrides, scenes=scenes)
+    res = evaluation.evaluate_run(folder, episodes, overrides=overrides, scenes=scenes)
     key = "blocking" if scenes == "blocking" else "overall"
     out = {"success": res[key].get("success_rate"), "obstacle_success": res["obstacle_present"].get("success_rate"),
            "episodes": episodes, "steps_per_success": res[key].get("mean_steps_per_success")}
     if physical:
-        seed, steps = evaluate.resolve_options(evaluate.run_dir.load_config(folder), None, None)
+        seed, steps = evaluation.resolve_options(run_dir.load_config(folder), None, None)
         ph = evaluate.evaluate_physical(folder, episodes, seed, steps, overrides=overrides, scenes=scenes)
         out["physical"] = ph["physical_success_rate"]
         out["physical_given_kinematic"] = ph["physical_given_kinematic"]

@@ -18,7 +18,7 @@ repository root as ``python -m experiments.NAME`` (``experiments`` is a package:
   budget would not give), checkpointed there, and evaluates nothing (``screen_study``); the same
   study without it and with ``--resume`` continues every run to the end, a seed group as one group.
 * **Evaluations.** A study's ``measure(folder, variant, seed)`` returns the run's record; ``Evaluation``
-  plays fixed-seed episodes through ``evaluate.evaluate_run`` in the run's env or in a named
+  plays fixed-seed episodes through ``evaluation.evaluate_run`` in the run's env or in a named
   ``config.EVAL_CONDITIONS`` condition (what ``python -m sagrasp_jax.evaluate --condition NAME`` plays),
   and ``--condition NAME`` adds such an evaluation to every study.  The record is saved in the run
   folder and re-used while its identity (episode counts, conditions) is unchanged.
@@ -48,7 +48,8 @@ import time
 from dataclasses import dataclass
 from typing import Any, Callable, Mapping, Sequence
 
-from sagrasp_jax import evaluate, train
+from sagrasp_jax import train
+from sagrasp_jax.training import evaluation
 from sagrasp_jax.base import fileio
 from sagrasp_jax.training import run_dir
 from sagrasp_jax.training.checkpoint import CheckpointError
@@ -331,7 +332,7 @@ class Evaluation:
 
     def __call__(self, folder: str) -> dict[str, Any]:
         overrides = list(EVAL_CONDITIONS[self.condition]) if self.condition else None
-        return evaluate.evaluate_run(folder, self.episodes, scenes=self.scenes, overrides=overrides)
+        return evaluation.evaluate_run(folder, self.episodes, scenes=self.scenes, overrides=overrides)
 
 
 def current_record(out: str, record_file: str, identity: Mapping[str, Any]) -> dict[str, Any] | None:

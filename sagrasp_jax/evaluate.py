@@ -18,6 +18,13 @@ that still fails afterwards prints the result and exits 2.
 (``evaluate_physical``, ``sagrasp_jax.reference.grasp_check``).  ``--set env.KEY=VALUE`` evaluates the run's
 policy in another env than it was trained in (e.g. ``env.control.mode=dynamic`` for a kinematic
 policy, or ``env.randomize.*``); the result file's name then carries a short hash of those changes.
+
+This module is the command: its options, the result file's name, lock and replacement rule, the twin
+backend's dispatch, the table and exit codes.  The evaluation itself is ``sagrasp_jax.training.evaluation``
+(``evaluate_run``, ``summarise``, ``wilson_interval``, ``trained_identity``, ...).  Only the physical check's
+composition stays here (``evaluate_physical``, ``physical_grasp_pose``): it joins the training layer's replay,
+the deploy loop's closing slide (``deploy.loop.centring_pose``) and the reference layer's MuJoCo check, and
+only the commands sit above all three (docs/architecture.md, "Layers").
 """
 
 from __future__ import annotations
@@ -25,107 +32,23 @@ from __future__ import annotations
 import sagrasp_jax  # noqa: F401  (sets XLA_FLAGS before jax is imported)
 
 import argparse
-import dataclasses
-import math
 import os
 import sys
-import time
-from typing import Any, Callable, NamedTuple
+from typing import Any
 
 from sagrasp_jax.base import cli, extras
 
 if __name__ == "__main__":  # a missing extra ends in one line naming it (exit 2), not an import traceback
     extras.require_cli("train", prog="python -m sagrasp_jax.evaluate")
 
-import jax  # noqa: E402
-import numpy as np
+import numpy as np  # noqa: E402
 
-from sagrasp_jax.training import actor_critic
-from sagrasp_jax.training import fixed_seed_eval as policy_eval
-from sagrasp_jax.training import rollout
+from sagrasp_jax.training import evaluation
 from sagrasp_jax.training import run_dir
-from sagrasp_jax.training import restore
 from sagrasp_jax.training.checkpoint import CheckpointError
-from sagrasp_jax.task.config import EVAL_CONDITIONS, SEED_RANGE, Config, ConfigError, blocking_sampling, check_range
+from sagrasp_jax.task.config import EVAL_CONDITIONS, ConfigError
 from sagrasp_jax.task.config_parse import file_overrides
 from sagrasp_jax.training.run_dir import RunDirError
-
-EvalEnvFactory = Callable[[Config], rollout.Env]
-SCENE_SETS = ("mix", "blocking")
-MAX_EPISODES = 100_000  # one batch: every episode's start state is in memory at once
-MAX_STEPS = 100_000
-# On CPU the episodes run this many at a time, each slot taking the next episode when its own ends
-# (fixed_seed_eval.evaluate_policy; accelerators run every episode at once): 1,000 `robot` episodes of the
-# README policy in 0.78 s instead of 4.58 s all at once on 2 cores (32 slots: 0.83 s, 128: 1.01 s); the same
-# episodes, their floats within 3.8e-6 (docs/results.md §17).
-CPU_SLOTS = 64
-
-
-def default_eval_env(cfg: Config) -> rollout.Env:
-    from sagrasp_jax.envs.grasp_env import GraspEnv
-
-    return GraspEnv(cfg.env)
-
-
-def scene_config(cfg: Config, scenes: str) -> Config:
-    """The evaluation's config: ``mix`` = the run's own env (the evaluation mix, obstacle_prob 0.2);
-    ``blocking`` = every episode has an obstacle on the straight approach path (sampling.py's
-    blocking placement, docs/task.md §1 feasibility rules kept)."""
-    if scenes not in SCENE_SETS:
-        raise ConfigError(f"--scenes must be one of {', '.join(SCENE_SETS)}, got {scenes!r}")
-    if scenes == "mix":
-        return cfg
-    env = dataclasses.replace(cfg.env, sampling=blocking_sampling(cfg.env.sampling, 1.0, 1.0))
-    return dataclasses.replace(cfg, env=env)
-
-
-def wilson_interval(successes: float, n: int, z: float = 1.959964) -> tuple[float, float]:
-    """Wilson score interval for a binomial proportion (sane at 0 % and 100 %, unlike Wald)."""
-    if n <= 0:
-        return (math.nan, math.nan)
-    p = successes / n
-    denom = 1.0 + z * z / n
-    centre = (p + z * z / (2 * n)) / denom
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
-    return (max(0.0, centre - half), min(1.0, centre + half))
-
-
-def summarise(episodes: dict[str, np.ndarray], mask: np.ndarray) -> dict[str, Any]:
-    """Rates over the episodes selected by ``mask``."""
-    n = int(mask.sum())
-    if n == 0:
-        return {"episodes": 0}
-    sel = {k: np.asarray(v)[mask] for k, v in episodes.items()}
-    success = sel["success"] > 0
-    lo, hi = wilson_interval(float(success.sum()), n)
-    hits = {k[4:]: float(np.mean(v > 0)) for k, v in sorted(sel.items()) if k.startswith("hit_")}
-    return {
-        "episodes": n,
-        "success_rate": float(success.mean()),
-        "success_ci95": [lo, hi],
-        "mean_steps_per_success": float(sel["steps"][success].mean()) if success.any() else None,
-        "collision_rate": float(np.mean(sel["collision"] > 0)),
-        "collision_by": hits,
-        "timeout_rate": float(np.mean(sel["timeout"] > 0)),
-        "unfinished": int(np.sum(sel["finished"] == 0)),
-        "mean_return": float(sel["return"].mean()),
-    }
-
-
-def env_overrides(cfg: Config, overrides: list[str] | None) -> Config:
-    """``cfg`` with ``--set`` changes of the evaluated env (``env.*`` keys only; the policy's
-    observation layout must stay the same)."""
-    from sagrasp_jax.task import observation
-    from sagrasp_jax.task.config_parse import apply_overrides
-
-    overrides = list(overrides or [])
-    bad = [o for o in overrides if not o.strip().startswith("env.")]
-    if bad:
-        raise ConfigError(f"--set changes the evaluated env only (env.* keys), not {', '.join(bad)}")
-    out = apply_overrides(cfg, overrides)
-    if observation.layout_of(out.env) != observation.layout_of(cfg.env):
-        raise ConfigError(f"--set {' '.join(overrides)} changes the observation layout the policy was trained with")
-    return out
 
 
 def overrides_tag(overrides: list[str] | None) -> str | None:
@@ -135,85 +58,6 @@ def overrides_tag(overrides: list[str] | None) -> str | None:
     if not overrides:
         return None
     return "set" + hashlib.sha256("\n".join(sorted(o.strip() for o in overrides)).encode()).hexdigest()[:8]
-
-
-def check_options(episodes: int, seed: int | None, max_steps: int | None) -> None:
-    check_range("--episodes", episodes, 1, MAX_EPISODES)
-    if seed is not None:
-        check_range("--seed", seed, *SEED_RANGE)
-    if max_steps is not None:
-        check_range("--max-steps", max_steps, 1, MAX_STEPS)
-
-
-def resolve_options(cfg: Config, seed: int | None, max_steps: int | None) -> tuple[int, int]:
-    """The evaluation seed (default ``eval.seed + 1``, held out) and step cap (default the config's)."""
-    seed = (cfg.eval.seed + 1) % (SEED_RANGE[1] + 1) if seed is None else seed
-    return seed, cfg.env.task.max_steps if max_steps is None else max_steps
-
-
-def evaluate_run(run: str, episodes: int = 1000, seed: int | None = None, max_steps: int | None = None,
-                 env_factory: EvalEnvFactory | None = None, scenes: str = "mix",
-                 overrides: list[str] | None = None) -> dict[str, Any]:
-    """Play ``episodes`` fixed-seed episodes with the run's policy and summarise them (in the run's env,
-    or with ``overrides`` of it)."""
-    check_options(episodes, seed, max_steps)
-    cfg = run_dir.load_config(run)
-    ckpt = run_dir.load_checkpoint(run, cfg)  # verified before the env is built
-    counters = run_dir.checkpoint_counters(ckpt)
-    trained = trained_identity(cfg, ckpt)
-    env = (env_factory or default_eval_env)(scene_config(env_overrides(cfg, overrides), scenes))
-    params, normaliser = restore.restore_policy(cfg, ckpt, env.observation_size, env.action_size)
-    networks = actor_critic.make_networks(cfg.ppo.network, env.observation_size, env.action_size, cfg.ppo.obs_clip)
-    seed, steps = resolve_options(cfg, seed, max_steps)
-    t = time.perf_counter()
-    keys = policy_eval.eval_keys(seed, episodes)
-    evaluator = policy_eval.make_evaluator(networks, env, steps, slots=policy_eval.slots_for_backend(CPU_SLOTS))
-    result = jax.device_get(evaluator(params, normaliser, keys))
-    wall = time.perf_counter() - t
-    eps = {k: np.asarray(v) for k, v in result.episodes.items()}
-    present = eps["obstacle_present"] > 0 if "obstacle_present" in eps else np.zeros(episodes, bool)
-    blocking = present & (eps["blocking"] > 0) if "blocking" in eps else np.zeros(episodes, bool)
-    everyone = np.ones(episodes, bool)
-    return {
-        "run": os.path.abspath(run),
-        "episodes": episodes,
-        "scenes": scenes,
-        **({"env_overrides": list(overrides)} if overrides else {}),
-        "seed": seed,
-        "max_steps": steps,
-        "progress_weights": 1.0,
-        "policy": "deterministic",
-        "checkpoint_iteration": counters.get("iteration"),
-        "checkpoint_env_steps": counters.get("env_steps"),
-        **trained,
-        "wall_s": wall,
-        "overall": summarise(eps, everyone),
-        "obstacle_present": summarise(eps, present),
-        "blocking": summarise(eps, blocking),
-        "obstacle_absent": summarise(eps, ~present),
-        "fallback_episodes": int(np.sum(eps["fallback"] > 0)) if "fallback" in eps else 0,
-    }
-
-
-def config_identity(cfg: Config) -> str:
-    """A hash of a run's whole config (seed included; ``config_history.config_hash`` covers the env only), in its
-    first-written layout (``config_history.identity_dict``), so a key's rename keeps older runs' evaluation files valid."""
-    import hashlib
-    import json
-
-    from sagrasp_jax.task.config_history import identity_dict
-
-    return hashlib.sha256(json.dumps(identity_dict(cfg), sort_keys=True).encode()).hexdigest()[:16]
-
-
-def trained_identity(cfg: Config, ckpt: Any) -> dict[str, Any]:
-    """What was trained, in an evaluation's identity: ``config_identity`` and the checkpoint's payload digest
-    (a retrained run at the same iteration is another evaluation)."""
-    return {"config_sha256": config_identity(cfg), "checkpoint_sha256": ckpt.header.get("payload_sha256")}
-
-
-def write_results(path: str, results: dict[str, Any]) -> str:
-    return run_dir.write_json(path, results)
 
 
 def evaluate_physical(run: str, episodes: int, seed: int, max_steps: int, lift: float | None = None,
@@ -233,7 +77,7 @@ def evaluate_physical(run: str, episodes: int, seed: int, max_steps: int, lift: 
     from sagrasp_jax.reference import grasp_check as physical
 
     lift = physical.LIFT_HEIGHT if lift is None else lift
-    replay = replay_final_poses(run, episodes, seed, max_steps, overrides, scenes)
+    replay = evaluation.replay_final_poses(run, episodes, seed, max_steps, overrides, scenes)
     successes = np.nonzero(replay.episodes["success"] > 0)[0]
     checks = [physical.physical_grasp_check(physical_grasp_pose(replay, i), replay.spec(i), lift=lift)
               for i in successes]
@@ -260,7 +104,7 @@ def evaluate_physical(run: str, episodes: int, seed: int, max_steps: int, lift: 
 SLIDE_CHECKS = 8  # collision checks along the final slide (it moves a few mm)
 
 
-def physical_grasp_pose(replay: "FinalPoses", i: int) -> np.ndarray:
+def physical_grasp_pose(replay: evaluation.FinalPoses, i: int) -> np.ndarray:
     """Where the deploy loop closes after episode ``i``: its final pose slid over the detected cube
     (``deploy.loop.centring_pose``), stopped before the first step that collides (the safety layer's
     refusal), or the final pose itself when no slide is found."""
@@ -281,64 +125,6 @@ def physical_grasp_pose(replay: "FinalPoses", i: int) -> np.ndarray:
             return last
         last = pose
     return last
-
-
-class FinalPoses(NamedTuple):
-    """``evaluate_run``'s episodes replayed with each episode's final arm joints (``replay_final_poses``)."""
-
-    episodes: dict[str, np.ndarray]  # per-episode records, as ``evaluate_run`` summarises them
-    q_final: np.ndarray  # (episodes, 6) the arm's measured joints when each episode ended
-    specs: Any  # the episodes' true scenes, a ResetSpec of (episodes, ...) arrays
-    target_error: np.ndarray  # (episodes, 3) the detection error each episode's policy saw (0 without one)
-    env_cfg: Any  # the evaluated env's EnvConfig
-
-    def spec(self, i: int) -> Any:
-        """Episode ``i``'s true scene as a ResetSpec of NumPy arrays."""
-        return type(self.specs)(*(np.asarray(leaf)[i] for leaf in self.specs))
-
-
-def replay_final_poses(run: str, episodes: int, seed: int, max_steps: int,
-                       overrides: list[str] | None = None, scenes: str = "mix") -> FinalPoses:
-    """Replay ``evaluate_run``'s episodes (same keys, same jitted evaluator, the env wrapped to copy the final
-    joints into the episode record) for what happens after them: the physical grasp check, the detection
-    ceiling study."""
-    from sagrasp_jax.envs.grasp_env import GraspEnv
-
-    env_cfg = scene_config(env_overrides(run_dir.load_config(run), overrides), scenes).env
-    env = _FinalPoseRecorder(GraspEnv(env_cfg))
-    cfg, params, normaliser, _ = restore.load_policy_state(run, env.observation_size, env.action_size)
-    networks = actor_critic.make_networks(cfg.ppo.network, env.observation_size, env.action_size, cfg.ppo.obs_clip)
-    keys = policy_eval.eval_keys(seed, episodes)
-    evaluator = policy_eval.make_evaluator(networks, env, max_steps, slots=policy_eval.slots_for_backend(CPU_SLOTS))
-    result = jax.device_get(evaluator(params, normaliser, keys))
-    first = jax.device_get(jax.jit(jax.vmap(env.reset))(keys).info)
-    target_error = np.asarray(first["randomize"]["target_error"]) if "randomize" in first else np.zeros((episodes, 3))
-    eps = {k: np.asarray(v) for k, v in result.episodes.items()}
-    q_final = np.stack([eps[f"final_q{i + 1}"] for i in range(_FinalPoseRecorder.ARM_DOF)], axis=-1)
-    return FinalPoses(eps, q_final, first["reset"], target_error, env_cfg)
-
-
-class _FinalPoseRecorder:
-    """Env wrapper that copies the measured arm joints (``GraspEnv.measured_joints``) into ``info["episode"]``
-    as scalar entries ``final_q1..6`` (scalars, so ``fixed_seed_eval.evaluate_policy`` keeps them per episode)."""
-
-    ARM_DOF = 6
-
-    def __init__(self, env: Any) -> None:
-        self.env = env
-        self.observation_size = env.observation_size
-        self.action_size = env.action_size
-
-    def _record(self, state: Any) -> Any:
-        q = self.env.measured_joints(state)
-        episode = dict(state.info["episode"], **{f"final_q{i + 1}": q[i] for i in range(self.ARM_DOF)})
-        return state.replace(info=dict(state.info, episode=episode))
-
-    def reset(self, rng: Any) -> Any:
-        return self._record(self.env.reset(rng))
-
-    def step(self, state: Any, action: Any) -> Any:
-        return self._record(self.env.step(state, action))
 
 
 def format_table(results: dict[str, Any]) -> str:
@@ -385,7 +171,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--episodes", type=int, default=1000)
     p.add_argument("--seed", type=int, default=None, help="evaluation seed (default eval.seed + 1)")
     p.add_argument("--max-steps", type=int, default=None, help="step cap per episode (default env.task.max_steps)")
-    p.add_argument("--scenes", default="mix", choices=SCENE_SETS,
+    p.add_argument("--scenes", default="mix", choices=evaluation.SCENE_SETS,
                    help="mix: the task's evaluation mix (20 %% obstacle episodes); blocking: every episode has an obstacle "
                         "on the straight approach path (the file name says so)")
     p.add_argument("--out", default=None,
@@ -453,18 +239,18 @@ def _evaluate_cli(args: argparse.Namespace, state: dict[str, Any]) -> tuple[dict
         args.overrides = file_overrides(args.config) + list(args.overrides)
     if args.condition:  # the named condition first, then the file, then --set
         args.overrides = [*EVAL_CONDITIONS[args.condition], *args.overrides]
-    check_options(args.episodes, args.seed, args.max_steps)
+    evaluation.check_options(args.episodes, args.seed, args.max_steps)
     cfg = run_dir.load_config(args.run)
     ckpt = run_dir.load_checkpoint(args.run, cfg)
     counters = run_dir.checkpoint_counters(ckpt)
-    env_overrides(cfg, args.overrides)  # refused before any work
-    seed, steps = resolve_options(cfg, args.seed, args.max_steps)
+    evaluation.env_overrides(cfg, args.overrides)  # refused before any work
+    seed, steps = evaluation.resolve_options(cfg, args.seed, args.max_steps)
     path = args.out or run_dir.path(args.run, run_dir.evaluation_file(
         args.episodes, seed, None if steps == cfg.env.task.max_steps else steps, args.scenes,
         overrides_tag(args.overrides)))
     identity = {"run": os.path.abspath(args.run), "episodes": args.episodes, "seed": seed, "max_steps": steps,
                 "checkpoint_iteration": counters.get("iteration"),
-                "checkpoint_env_steps": counters.get("env_steps"), **trained_identity(cfg, ckpt),
+                "checkpoint_env_steps": counters.get("env_steps"), **evaluation.trained_identity(cfg, ckpt),
                 "physical_check": args.physical,
                 "scenes": args.scenes, **({"env_overrides": list(args.overrides)} if args.overrides else {})}
     folder = os.path.dirname(os.path.abspath(path))
@@ -474,14 +260,14 @@ def _evaluate_cli(args: argparse.Namespace, state: dict[str, Any]) -> tuple[dict
     with lock:
         run_dir.check_writable(folder, "output folder")  # before the evaluation, not after it
         run_dir.check_replace(path, identity, args.force)
-        results = evaluate_run(args.run, args.episodes, seed, steps, scenes=args.scenes, overrides=args.overrides)
+        results = evaluation.evaluate_run(args.run, args.episodes, seed, steps, scenes=args.scenes, overrides=args.overrides)
         results["physical_check"] = args.physical
         if args.physical:
             results["physical"] = evaluate_physical(args.run, args.episodes, seed, steps, overrides=args.overrides,
                                                     scenes=args.scenes)
         try:
             with cli.deferred():
-                write_results(path, results)
+                evaluation.write_results(path, results)
                 state["written"] = True
         except OSError as exc:  # e.g. the disk filled up meanwhile: show what was evaluated, then refuse
             print(format_table(results))

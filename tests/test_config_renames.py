@@ -13,7 +13,7 @@ import os
 
 import pytest
 
-from sagrasp_jax import evaluate
+from sagrasp_jax.training import evaluation
 from sagrasp_jax.task import config
 from sagrasp_jax.task import config_history
 from sagrasp_jax.task import config_parse
@@ -47,13 +47,13 @@ def test_hashes_of_old_configs_do_not_change():
     assert json.loads(json.dumps(config_history.identity_dict(cfg))) == _before()
     legacy = run_dir.load_config(LEGACY_RUN)
     ckpt = run_dir.load_checkpoint(LEGACY_RUN, legacy)  # its checkpoint's saved config still matches
-    assert evaluate.trained_identity(legacy, ckpt)["config_sha256"] == "3b75a691daca2740"
+    assert evaluation.trained_identity(legacy, ckpt)["config_sha256"] == "3b75a691daca2740"
 
 
 def test_an_evaluation_file_written_before_the_renames_still_matches(tmp_path):
     cfg = run_dir.load_config(LEGACY_RUN)
     ckpt = run_dir.load_checkpoint(LEGACY_RUN, cfg)
-    identity = {"run": LEGACY_RUN, "episodes": 8, **evaluate.trained_identity(cfg, ckpt)}
+    identity = {"run": LEGACY_RUN, "episodes": 8, **evaluation.trained_identity(cfg, ckpt)}
     old = tmp_path / "evaluation.json"
     old.write_text(json.dumps({**identity, "config_sha256": "3b75a691daca2740", "overall": {}}))
     run_dir.check_replace(str(old), identity)  # the same evaluation: no refusal

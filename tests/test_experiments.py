@@ -459,7 +459,7 @@ def test_sooner_levers_each_change_what_they_name_and_nothing_else(capsys: pytes
     still the config its recorded runs were trained with, and today's preset is the combination that won;
     bad options exit 2."""
     from experiments import sooner, study
-    from sagrasp_jax import evaluate
+    from sagrasp_jax.training import evaluation
     from sagrasp_jax.task.config import config_to_dict
 
     spec = study.Study("cpu-quick", 3_000_000, (0,), "unused")
@@ -478,20 +478,20 @@ def test_sooner_levers_each_change_what_they_name_and_nothing_else(capsys: pytes
     assert sooner.REFERENCE in sooner.DEFAULT and set(sooner.DEFAULT) <= set(sooner.LEVERS)
     changes_only_what_it_names(base, sooner._LEVERS, "")
     # the recorded baseline runs (sooner_levers3_3M.json, seed 0) were trained with exactly this config
-    assert evaluate.config_identity(spec.config(sooner.LEVERS["baseline"], 0)) == "0d6b7c82eeef9d39"
+    assert evaluation.config_identity(spec.config(sooner.LEVERS["baseline"], 0)) == "0d6b7c82eeef9d39"
     assert SUITE_PPO == list(sooner.BEFORE)  # the suite's short runs keep the shape the levers are measured over
     round_1 = flat(spec.config(sooner.ROUND_1, 0))  # BEFORE + the first round's winning lever
     changes_only_what_it_names(round_1, sooner._OVER_ADOPTED, "adopted+")  # the second round's levers
     # the first round's recorded runs (sooner_combo_10M.json, seed 0) keep their identity: a key added since
     # (obs_obstacle_shape) left it unchanged
-    assert evaluate.config_identity(spec.config(sooner.ROUND_1, 0)) == "f2dcda76602f32b5"
+    assert evaluation.config_identity(spec.config(sooner.ROUND_1, 0)) == "f2dcda76602f32b5"
     # the third round is measured over the second round's winner, pinned, and its winner is today's preset
     round_2 = flat(spec.config(sooner.ROUND_2, 0))
     assert round_2 == flat(spec.config(sooner.LEVERS["adopted+lr-6e-4+decay-0.96"], 0))
     assert flat(spec.config(sooner.LEVERS["round-2+late-epochs-4"], 0)) == flat(spec.config(sooner.LEVERS["adopted"], 0))
     # ... and the recorded runs it is paired with (sooner_lr6_decay96_10M.json, seed 0) keep their identity
     full = study.Study("cpu-quick", 10_000_000, (0,), "unused")
-    assert evaluate.config_identity(full.config(sooner.ROUND_2, 0)) == "e15bf1772faa0ce7"
+    assert evaluation.config_identity(full.config(sooner.ROUND_2, 0)) == "e15bf1772faa0ce7"
     changes_only_what_it_names(round_2, sooner._OVER_ROUND_2, "round-2+")  # the third round's levers
     assert sooner.main(["--variants", "adopted", "--reference", "nope", "--runs-dir", "unused"]) == 2
     assert "--reference 'nope' is not a variant here" in capsys.readouterr().err
@@ -568,11 +568,11 @@ def test_reference_from_an_earlier_result_is_checked_before_anything_trains(
     (each seed's config identity, evaluation episodes, conditions, seeds); anything else exits 2 naming the
     difference, before a run is trained (the runs folder stays absent)."""
     from experiments import sooner
-    from sagrasp_jax import evaluate
+    from sagrasp_jax.training import evaluation
 
     spec = study.Study("cpu-quick", 3_000_000, (0, 1), "unused")
     runs_rec = [{"seed": s, "conditions": {},
-                 "mix": {"config_sha256": evaluate.config_identity(spec.config(sooner.LEVERS["baseline"], s))}}
+                 "mix": {"config_sha256": evaluation.config_identity(spec.config(sooner.LEVERS["baseline"], s))}}
                 for s in (0, 1)]
     recorded = {"eval_episodes": 1000, "blocking_episodes": 0, "runs": {"baseline": runs_rec},
                 "summary": {"baseline": {"seeds": [0, 1], "per_seed": [{"seed": 0}, {"seed": 1}]}}}

@@ -37,6 +37,7 @@ from sagrasp_jax.task import config as config_mod
 from sagrasp_jax.task import config_history
 from sagrasp_jax.task import config_parse
 from sagrasp_jax import evaluate, export, train
+from sagrasp_jax.training import evaluation
 from sagrasp_jax.base import fileio
 from sagrasp_jax.training import launch, run_dir
 from sagrasp_jax.training import trainer as trainer_mod
@@ -268,7 +269,7 @@ def test_3_4_each_damaged_run_file_is_refused_by_each_reader(run_copy, tmp_path,
 
 @pytest.mark.parametrize("how", ["truncated", "garbled", "emptied"])
 def test_9_a_damaged_earlier_evaluation_is_not_replaced_without_force(run_copy, how, capsys, monkeypatch):
-    monkeypatch.setattr(evaluate, "evaluate_run", lambda *a, **k: pytest.fail("evaluated before refusing"))
+    monkeypatch.setattr(evaluation, "evaluate_run", lambda *a, **k: pytest.fail("evaluated before refusing"))
     cfg = run_dir.load_config(run_copy)
     path = run_dir.path(run_copy, run_dir.evaluation_file(8, cfg.eval.seed + 1))
     run_dir.write_json(path, {"episodes": 8, "overall": {"success_rate": 0.5}})
@@ -430,7 +431,7 @@ def test_6_a_run_killed_before_its_first_checkpoint_restarts_with_resume(toy_run
 def test_7_read_only_outputs_are_refused_before_any_work(policy_file, run_copy, tmp_path, capsys, monkeypatch):
     readonly = readonly_location(tmp_path)
     monkeypatch.setattr(launch, "Trainer", lambda *a, **k: pytest.fail("the env was built before refusing"))
-    monkeypatch.setattr(evaluate, "evaluate_run", lambda *a, **k: pytest.fail("evaluated before refusing"))
+    monkeypatch.setattr(evaluation, "evaluate_run", lambda *a, **k: pytest.fail("evaluated before refusing"))
     before = snapshot(run_copy)
     target = os.path.join(readonly, "sagrasp-fault-test")
     code, _, err = call(train.main, ["--out", target, "--no-progress"], capsys)
@@ -503,7 +504,7 @@ def test_8_obstacle_inside_the_training_clearance_is_refused_before_moving(polic
 # ---------------------------------------------------------------------- 9: evaluation outputs
 
 def test_9_evaluate_names_its_output_and_refuses_to_replace_another_evaluation(run_copy, capsys, monkeypatch):
-    monkeypatch.setattr(evaluate, "default_eval_env", lambda cfg: toy_factory()(cfg)[1])
+    monkeypatch.setattr(evaluation, "default_eval_env", lambda cfg: toy_factory()(cfg)[1])
     cfg = run_dir.load_config(run_copy)
     seed = cfg.eval.seed + 1
     assert call(evaluate.main, ["--run", run_copy, "--episodes", "16"], capsys)[0] == 0
@@ -739,7 +740,7 @@ def _enospc(*args: Any) -> typing.NoReturn:
 
 def test_27_4_a_full_disk_is_refused_before_any_work(run_copy, tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(launch, "Trainer", lambda *a, **k: pytest.fail("the env was built before refusing"))
-    monkeypatch.setattr(evaluate, "evaluate_run", lambda *a, **k: pytest.fail("evaluated before refusing"))
+    monkeypatch.setattr(evaluation, "evaluate_run", lambda *a, **k: pytest.fail("evaluated before refusing"))
     before_run = snapshot(run_copy)
     with _full_file_system(tmp_path) as full:
         if full is None:  # no tmpfs to be had: the probe's write meets ENOSPC, as on a full disk
@@ -796,7 +797,7 @@ def test_27_4_b_out_of_space_during_training_exits_2_and_the_run_resumes(toy_run
 
 
 def test_27_4_c_evaluate_that_cannot_write_its_result_shows_it_and_exits_2(run_copy, tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr(evaluate, "default_eval_env", lambda cfg: toy_factory()(cfg)[1])
+    monkeypatch.setattr(evaluation, "default_eval_env", lambda cfg: toy_factory()(cfg)[1])
     out = str(tmp_path / "results" / "e.json")
     _atomic_write_failing(monkeypatch, "e.json")
     code, stdout, err = call(evaluate.main, ["--run", run_copy, "--episodes", "8", "--out", out], capsys)
@@ -825,7 +826,7 @@ def _retrained(run: str, seed: int) -> None:
 
 
 def test_27_5_a_retrained_run_is_another_evaluation(run_copy, tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr(evaluate, "default_eval_env", lambda cfg: toy_factory()(cfg)[1])
+    monkeypatch.setattr(evaluation, "default_eval_env", lambda cfg: toy_factory()(cfg)[1])
     out = str(tmp_path / "results" / "e.json")
     argv = ["--run", run_copy, "--episodes", "16", "--out", out]
     assert call(evaluate.main, argv, capsys)[0] == 0
@@ -933,11 +934,11 @@ def test_27_9_sigterm_stops_training_with_a_message_and_the_run_resumes(toy_run,
 
 def test_27_10_evaluations_of_different_runs_write_into_one_results_folder_at_once(run_copy, toy_run, tmp_path, capsys,
                                                                                     monkeypatch):
-    monkeypatch.setattr(evaluate, "default_eval_env", lambda cfg: toy_factory()(cfg)[1])
+    monkeypatch.setattr(evaluation, "default_eval_env", lambda cfg: toy_factory()(cfg)[1])
     results = str(tmp_path / "results")
     a, b = os.path.join(results, "a.json"), os.path.join(results, "b.json")
     inner: dict[str, tuple[int, str, str]] = {}
-    evaluate_run = evaluate.evaluate_run
+    evaluate_run = evaluation.evaluate_run
 
     def evaluating(run: str, *args: Any, **kwargs: Any) -> dict[str, Any]:  # meanwhile, two more evaluations
         if not inner:
@@ -945,7 +946,7 @@ def test_27_10_evaluations_of_different_runs_write_into_one_results_folder_at_on
             inner["other file"] = call(evaluate.main, ["--run", toy_run, "--episodes", "8", "--out", b], capsys)
         return evaluate_run(run, *args, **kwargs)
 
-    monkeypatch.setattr(evaluate, "evaluate_run", evaluating)
+    monkeypatch.setattr(evaluation, "evaluate_run", evaluating)
     code, _, err = call(evaluate.main, ["--run", run_copy, "--episodes", "8", "--out", a], capsys)
     assert code == 0, err
     code, _, err = inner["same file"]
@@ -1135,7 +1136,7 @@ def _write_log(path: str, log: Any) -> str:
 def test_40_6_8_outputs_that_are_devices_or_fifos_are_refused(run_copy, tmp_path, capsys, monkeypatch):
     from sagrasp_jax.deploy import sysid
 
-    monkeypatch.setattr(evaluate, "evaluate_run", lambda *a, **k: pytest.fail("evaluated before refusing"))
+    monkeypatch.setattr(evaluation, "evaluate_run", lambda *a, **k: pytest.fail("evaluated before refusing"))
     log = _write_log(str(tmp_path / "log.csv"), _servo_log())
     results = tmp_path / "results"
     results.mkdir()
@@ -1423,7 +1424,7 @@ def test_54_3_outputs_that_name_a_file_of_another_kind_are_refused_even_with_for
     from sagrasp_jax.deploy import rehearse
 
     monkeypatch.setattr(rehearse, "rehearse", lambda *a, **k: pytest.fail("ran before refusing"))
-    monkeypatch.setattr(evaluate, "evaluate_run", lambda *a, **k: pytest.fail("evaluated before refusing"))
+    monkeypatch.setattr(evaluation, "evaluate_run", lambda *a, **k: pytest.fail("evaluated before refusing"))
     run = str(tmp_path / "twin-run")
     os.makedirs(run)
     shutil.copy(runtime.pretrained_path("pretrained"), os.path.join(run, "policy.npz"))

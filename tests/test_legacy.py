@@ -46,7 +46,7 @@ def test_legacy_policy_loads_with_the_paper_layout():
 
 
 def test_legacy_run_folder_evaluates_and_exports(tmp_path):
-    from sagrasp_jax.evaluate import evaluate_run
+    from sagrasp_jax.training.evaluation import evaluate_run
     from sagrasp_jax.export import export_run
 
     run = tmp_path / "legacy_run"

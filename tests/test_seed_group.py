@@ -18,7 +18,8 @@ import pytest
 
 from conftest import toy_config, toy_factory
 
-from sagrasp_jax import evaluate, train
+from sagrasp_jax import train
+from sagrasp_jax.training import evaluation
 from sagrasp_jax.training import actor_critic
 from sagrasp_jax.training import lr_schedule
 from sagrasp_jax.training import run_dir
@@ -80,7 +81,7 @@ def test_each_seed_gets_a_run_folder_like_a_single_run(runs):
         for key in (k for k in a.files if k.startswith("layer_")):
             np.testing.assert_allclose(a[key], b[key], atol=0.05, err_msg=key)  # 6 iterations of float32 rounding apart
     # every seed folder is a run folder: it evaluates and resumes on its own
-    results = [evaluate.evaluate_run(f, episodes=64, env_factory=lambda cfg: toy_factory()(cfg)[1])["overall"]
+    results = [evaluation.evaluate_run(f, episodes=64, env_factory=lambda cfg: toy_factory()(cfg)[1])["overall"]
                for f in (folder, alone)]
     assert abs(results[0]["success_rate"] - results[1]["success_rate"]) <= 0.005
     resumed = train.Trainer(train.seed_config(_cfg(), ALONE), folder, env_factory=toy_factory(), progress=False,

@@ -95,7 +95,7 @@ def upgrade_config_dict(data: dict[str, Any]) -> dict[str, Any]:
 
 def identity_dict(cfg: Config) -> dict[str, Any]:
     """``config_to_dict(cfg)`` with renamed keys and respelled values as they were first written: what a
-    run's identity hashes (``evaluate.trained_identity``), so a rename leaves it, and the evaluation files
+    run's identity hashes (``training.evaluation.trained_identity``), so a rename leaves it, and the evaluation files
     that record it, unchanged."""
     flat = flatten_keys(config_to_dict(cfg), "", "config")
     for name, (old, new) in RESPELLED_VALUES.items():

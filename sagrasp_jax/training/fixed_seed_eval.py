@@ -1,8 +1,8 @@
 """Evaluation of a policy during training: deterministic episodes on a fixed set of reset keys.
 
 The SA metric and every cycle's ``eval_*`` fields come from here; the same function serves
-``sagrasp_jax.evaluate``'s offline evaluations.  Episodes stop at their first ``done`` and run
-in a few slots at a time on CPU (see ``evaluate_policy``).
+``training.evaluation``'s offline evaluations (``python -m sagrasp_jax.evaluate``).  Episodes stop
+at their first ``done`` and run in a few slots at a time on CPU (see ``evaluate_policy``).
 """
 
 from __future__ import annotations
