@@ -7,7 +7,7 @@ section that fails is recorded as an error row (its message kept) while the othe
    in a jitted scan, ``experiments.bench_env.bench_jax``) with ``env.control.impl=jax`` and
    ``env.control.impl=warp`` (MuJoCo Warp through MJX), and their equality: the same envs from the
    same keys under the same actions, joint positions equal within ``EQUAL_ATOL`` (the tolerance of
-   ``tests/test_dynamic.py``).  Without the ``warp`` package the warp rows say "not installed".
+   ``tests/envs/test_dynamic.py``).  Without the ``warp`` package the warp rows say "not installed".
 2. ``train``: the ``gpu`` preset for its 20M env steps (the whole check's budget assumes an H200), in process (``train.run``): compile time,
    env-steps/s (median iteration and overall, SA evaluations included), wall time, success on
    1,000 held-out episodes (``evaluation.evaluate_run``) and peak device memory
@@ -82,7 +82,7 @@ from sagrasp_jax.training import run_dir
 from sagrasp_jax.envs.grasp_env import GraspEnv
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-EQUAL_ATOL = 1e-5  # |Δ joint position| (rad) between the jax and warp backends, as tests/test_dynamic.py
+EQUAL_ATOL = 1e-5  # |Δ joint position| (rad) between the jax and warp backends, as tests/envs/test_dynamic.py
 # --quick trains tests/tiny_run.py's run (cpu-quick, 1,024 steps, these overrides), so that jax's persistent
 # compilation cache, filled by the tests that train it, serves the smoke test too
 TINY = ("eval.num_cycles=1", "eval.episodes=8", "ppo.num_envs=64", "ppo.num_epochs=1", "ppo.num_minibatches=1",

@@ -1,4 +1,4 @@
-"""A toy-env training in its own process, for tests/test_faults.py to kill.
+"""A toy-env training in its own process, for tests/commands/test_faults.py to kill.
 
     python tests/fault_driver.py OUT [--slow SECONDS] [--die-in-checkpoint-write N] [--die-after-checkpoint N]
                                      [--snapshot-after-checkpoint N DIR] [--dynamic] [--cli]

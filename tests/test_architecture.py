@@ -375,3 +375,47 @@ def test_old_flat_module_paths_import_with_a_message_naming_the_new_one():
     assert out.stdout.splitlines() == ["sagrasp_jax.runtime moved to sagrasp_jax.task.policy_file; import it from there",
                                        "True sagrasp_jax.task.config"]
     assert importlib.import_module("sagrasp_jax.envs").load.__module__ == "sagrasp_jax.envs.brax_adapter"
+
+
+# tests/ mirrors the package: tests/<folder>/ for each of sagrasp_jax's folders that has code, tests/commands/ for the
+# top-level command modules (train, evaluate, export, ...); at the top only the checks of the whole checkout and
+# the shared helpers (conftest, toy_env, tiny_run, paths, ...).
+TESTS = os.path.join(REPO, "tests")
+REPO_LEVEL_TESTS = {"test_architecture.py", "test_docs.py", "test_experiments.py", "test_gpu_check.py", "test_install.py"}
+
+
+def _test_layout_problems(tests: str, package: str) -> list[str]:
+    """What breaks the mirror: a test folder with no package folder of that name, a test module at the top that
+    is not a repository-level check, a test module nested deeper than one folder."""
+    folders = {n for n in os.listdir(package) if os.path.isfile(os.path.join(package, n, "__init__.py"))}
+    folders |= {"mjcf", "commands"}  # mjcf/ holds the generated scene (data, no code); commands: the top-level modules
+    problems = []
+    for name in sorted(os.listdir(tests)):
+        path = os.path.join(tests, name)
+        if os.path.isdir(path) and name not in ("data", "__pycache__"):
+            if name not in folders:
+                problems.append(f"tests/{name}/ mirrors no folder of sagrasp_jax/")
+            for sub in sorted(os.listdir(path)):
+                if os.path.isdir(os.path.join(path, sub)) and sub != "__pycache__":
+                    problems.append(f"tests/{name}/{sub}/ is nested deeper than the package's folders")
+        elif name.startswith("test_") and name.endswith(".py") and name not in REPO_LEVEL_TESTS:
+            problems.append(f"tests/{name} belongs in the tests/ folder of the package folder it tests")
+    return problems
+
+
+def test_tests_mirror_the_package_folders():
+    assert _test_layout_problems(TESTS, PACKAGE) == []
+    assert {n for n in os.listdir(TESTS) if n.startswith("test_")} == REPO_LEVEL_TESTS
+    assert len([f for d in ("task", "deploy", "training") for f in os.listdir(os.path.join(TESTS, d))
+                if f.startswith("test_")]) >= 30  # the folders hold the tests, not just the names
+
+
+def test_the_layout_check_sees_a_misplaced_test(tmp_path):
+    (tmp_path / "pkg" / "task").mkdir(parents=True)
+    (tmp_path / "pkg" / "task" / "__init__.py").write_text("")
+    (tmp_path / "tests" / "task").mkdir(parents=True)
+    (tmp_path / "tests" / "gadgets").mkdir()
+    (tmp_path / "tests" / "test_reward.py").write_text("")
+    assert _test_layout_problems(str(tmp_path / "tests"), str(tmp_path / "pkg")) == [
+        "tests/gadgets/ mirrors no folder of sagrasp_jax/", "tests/test_reward.py belongs in the tests/ folder of "
+        "the package folder it tests"]

@@ -1,4 +1,4 @@
-"""Worker of tests/test_distributed.py: the first iteration's gradients (by the training call,
+"""Worker of tests/training/test_distributed.py: the first iteration's gradients (by the training call,
 ``conftest.first_gradients``), either in one process with
 two CPU devices (``single``) or as one of two ``jax.distributed`` processes with one CPU device
 each (``proc``; gloo collectives), which then also train a tiny toy run together.

@@ -34,7 +34,7 @@ from sagrasp_jax.task import shapes  # noqa: E402
 
 # Position servo gains per arm joint (N·m/rad) and velocity feedback (N·m·s/rad). With gravity
 # compensation on, the servo only fights inertia; these track a 0.05 rad step within one 0.05 s
-# control period (see tests/test_mjcf.py).
+# control period (see tests/mjcf/test_mjcf.py).
 ARM_KP = (3000.0, 3000.0, 3000.0, 300.0, 300.0, 300.0)
 ARM_KV = (150.0, 150.0, 150.0, 10.0, 10.0, 10.0)
 ARM_ARMATURE = (0.2, 0.2, 0.2, 0.1, 0.1, 0.1)  # wrist armature 0.02 let a full 0.05 rad step limit-cycle

@@ -14,7 +14,7 @@ import sys
 from typing import Any, NoReturn, Sequence
 
 # extra -> the import names it provides that the package uses (pyproject.toml's optional-dependencies,
-# with BUNDLED; tests/test_extras.py checks they agree).  A missing package is hinted with the first extra
+# with BUNDLED; tests/base/test_extras.py checks they agree).  A missing package is hinted with the first extra
 # listing it.
 EXTRAS: dict[str, tuple[str, ...]] = {
     "train": ("jax", "mujoco", "brax", "flax", "optax", "tensorboardX", "tqdm"),

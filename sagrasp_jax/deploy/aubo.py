@@ -37,7 +37,7 @@ to speak (framing, version check, text login, JSON-RPC calls and result shapes: 
 ``getSafetyModeType``; ``setServoModeSelect``/``getServoModeSelect``; ``servoJoint`` at the control period;
 ``isToolIoInput``/``setToolIoInput``/``setToolDigitalOutput`` for the gripper; ``logout`` (client-side only:
 it sends nothing) and ``disconnect``; and a whole ``deploy --backend aubo`` episode, the dry run, the home
-check, a wrong password, a silent controller and a connection dropped mid-episode (tests/test_aubo_emulator.py).
+check, a wrong password, a silent controller and a connection dropped mid-episode (tests/deploy/test_aubo_emulator.py).
 Found there and handled here: a refused login shows only in the SDK's log ("login failed"); ``login`` then
 raises a request timeout and ``hasLogined()`` is True all the same (``_login``).
 

@@ -27,7 +27,7 @@ pixel grid as the image — what ``deploy.twin_camera`` renders and ``deploy.per
 The conversions from the SDKs' arrays (``mecheye_capture``, ``realsense_capture``) are pure NumPy, tested on
 the SDKs' real frame objects built without a device (a Mech-Eye ``TexturedPointCloud`` filled by hand, a
 RealSense software device's depth frame through ``rs.pointcloud``); ``RealSenseCamera`` has run on
-recordings of the twin's renders (``tests/test_realsense_librealsense.py``).  Neither camera class has run
+recordings of the twin's renders (``tests/deploy/test_realsense_librealsense.py``).  Neither camera class has run
 against a real camera here.  Every capture has a timeout; a camera that is absent or does not answer raises
 ``CameraError`` naming it (deploy exits 2: nothing moved).
 
@@ -51,7 +51,7 @@ own lines to stderr (and, on a machine's first run, its logger's to stdout) and 
 the error carries the SDK's message).  A ``Camera`` that tried a silent peer and lives on until the
 interpreter's exit hangs that exit, so a failed one is dropped at once.
 
-What of this path ran here (``tests/test_mecheye_sdk.py``): the SDK's ``connect`` against those loopback peers,
+What of this path ran here (``tests/deploy/test_mecheye_sdk.py``): the SDK's ``connect`` against those loopback peers,
 through ``open_camera`` and the ``capture`` and ``deploy`` commands (refused with exit 2 within the timeout), and
 the SDK's containers through ``mecheye_capture``, ``mecheye_intrinsics`` and ``mecheye_model``.  What never ran:
 a Mech-Eye camera — a successful ``connect``, ``set_point_cloud_unit``, ``get_camera_info``,

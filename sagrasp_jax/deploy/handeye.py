@@ -24,7 +24,7 @@ b̄; a camera point mapped to x in the base is then off by w × (x − b̄) + (t
 larger of an assumed floor (``noise_mm``, default 1 mm) and what the residuals measure,
 √(Σ‖rᵢ‖² / (3N − 6)).  The report gives the 95th percentiles of the rotation angle ‖w‖ and of the 3-D
 error of mapped points over ``workspace_points_mm`` (the target region's corners and centre at the cube
-top's height, docs/task.md §1.4: where the camera's points are used); tests/test_handeye.py checks both
+top's height, docs/task.md §1.4: where the camera's points are used); tests/deploy/test_handeye.py checks both
 against Monte-Carlo draws.  The prediction covers noise, not a bias common to every pair (a marker that
 is not where the controller's TCP is).
 

@@ -35,7 +35,7 @@ wrappers) and ``brax.training.acting.generate_unroll`` run the task correctly:
 **brax's own PPO** (``brax.training.agents.ppo.train.train``, brax 0.14.2) calls
 ``jax.device_put_replicated``, which jax 0.10 removed; ``jax_compat_for_brax_ppo()`` adds an
 equivalent (a stacked copy per device, sharded over them) when it is missing, and then
-``ppo.train(environment=load("grasp-kinematic"), ...)`` trains (``tests/test_brax_envs.py``).
+``ppo.train(environment=load("grasp-kinematic"), ...)`` trains (``tests/envs/test_brax_envs.py``).
 
 Timeouts (``env.task.max_steps``) end an episode with ``done = 1`` as the task defines
 (docs/task.md §2.7); an ``EpisodeWrapper`` shorter than that truncates (``info["truncation"]``).

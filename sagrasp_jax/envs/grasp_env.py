@@ -73,7 +73,7 @@ def servo_physics_step(model: Any, data: Any) -> Any:
     camlight, tendons, collision, the constraint rows, sensors and the factorisation / solve of M that
     ``fwd_acceleration`` makes for ``qacc_smooth`` (which implicitfast overwrites), then its ``implicit``.
     Every stage left is MJX's own function, in MJX's order, so the state is ``mjx.step``'s bit for bit
-    (``tests/test_dynamic.py``; ``qacc``, mjx.step's unused ``qacc_smooth``, is left as it was) at ≈ 7 %
+    (``tests/envs/test_dynamic.py``; ``qacc``, mjx.step's unused ``qacc_smooth``, is left as it was) at ≈ 7 %
     less work.  mujoco-mjx is pinned to the version this was read from (3.17.0: its ``_src`` modules are
     not a public API)."""
     from mujoco.mjx._src import derivative, passive, smooth

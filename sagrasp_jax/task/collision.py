@@ -26,7 +26,7 @@ closed-form segment-box distances (capsules).  Results:
 * ``obstacle_dist`` / Δpo: cover-sphere distance to each dynamic obstacle (exact
   shapes), i.e. the true robot-obstacle distance minus at most the cover bulge;
 * gantry posts: cover-sphere vs post boxes.  The camera, its bracket and the beam are
-  above the arm's reach (≤ 1.22 m vs ≥ 1.37 m, proved in ``tests/test_collision.py``)
+  above the arm's reach (≤ 1.22 m vs ≥ 1.37 m, proved in ``tests/task/test_collision.py``)
   and are not checked per step;
 * self-collision: cover spheres of wrist1, wrist2, wrist3 (flange and gripper) against
   those of base, shoulder and upper arm.
@@ -267,7 +267,7 @@ def lowest_z(part: Any) -> float:
     return float(part.pos[2] - np.abs(np.asarray(part.rot)[2]) @ np.asarray(part.size))
 
 
-ARM_REACH_Z = 1.25  # m, above every point the arm can reach (tests/test_env.py checks ≤ 1.22 m)
+ARM_REACH_Z = 1.25  # m, above every point the arm can reach (tests/envs/test_env.py checks ≤ 1.22 m)
 
 
 def spans_reach(part: Any) -> bool:

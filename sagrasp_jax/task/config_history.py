@@ -5,7 +5,7 @@ since removed (``REMOVED_KEYS``), renamed (``RENAMED_KEYS``) or respelled (``RES
 keys added since (``LEGACY_VALUES``, ``ADDED_KEYS``).  ``upgrade_flat`` / ``upgrade_config_dict`` read such a
 config in today's layout with the behaviour it was written with; ``identity_dict``, ``config_hash`` and
 ``env_dict_hash`` identify a config the way it was first written, so a rename or a new key at its old value
-changes no earlier run's identity, evaluation file or policy hash.  ``tests/test_config_history.py`` fails
+changes no earlier run's identity, evaluation file or policy hash.  ``tests/task/test_config_history.py`` fails
 when a key is added or removed without an entry here.
 """
 

@@ -10,7 +10,7 @@ registered after the XML was written: a plugin's, a test's) and refuses, naming 
 an XML whose geom for a kind disagrees with that kind's entry (its primitive or tilt changed since).  Why at load
 time and not only by regenerating the file: the file ships in the wheel, where a user cannot regenerate it, and a
 kind a user registers must not need package data edited; the shipped kinds stay in the file so that MuJoCo's own
-viewer and ``MjModel.from_xml_path`` show them, and ``tests/test_mjcf.py`` keeps the file what the tool writes.
+viewer and ``MjModel.from_xml_path`` show them, and ``tests/mjcf/test_mjcf.py`` keeps the file what the tool writes.
 """
 
 from __future__ import annotations

@@ -18,7 +18,7 @@ states), host-side, with the two per-step rules for any array module (``progress
 inside the jitted cycle, ``ppo.sgd_epochs``).  ``cosine`` and ``linear`` are optax's
 ``cosine_decay_schedule`` and ``linear_schedule`` over progress (one "step" = the whole budget):
 the same maths as the formulas they replaced (lr_f + (lr0 − lr_f)·(1 + cos πp)/2, lr0 + (lr_f − lr0)·p),
-equal within float32 rounding (a few ulp; ``tests/test_lr_schedule.py``), not bit for bit.  The trainer calls
+equal within float32 rounding (a few ulp; ``tests/training/test_lr_schedule.py``), not bit for bit.  The trainer calls
 
 * :func:`iteration_lrs` before a jitted call: the lr of each of its iterations (used by the
   ``per_iteration`` schedules; the others keep the optimizer's lr);

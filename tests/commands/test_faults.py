@@ -51,11 +51,11 @@ from sagrasp_jax.deploy.safety import PolicyMismatch
 _GL = os.environ.get("MUJOCO_GL")
 from sagrasp_jax import render  # noqa: E402  (render picks MUJOCO_GL on import: keep the session's)
 from sagrasp_jax import parity as parity_command  # noqa: E402
+from paths import REPO  # noqa: E402
 
 if _GL is None:
     os.environ.pop("MUJOCO_GL", None)
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DRIVER = os.path.join(REPO, "tests", "fault_driver.py")
 TARGET = np.array([0.10, -0.45, 0.025])  # a cube centre in the trained region (world, m)
 BAD_FLOATS = ("nan", "inf", "-inf", "1e30")
@@ -1419,7 +1419,7 @@ def test_54_3_outputs_that_name_a_file_of_another_kind_are_refused_even_with_for
                                                                                    monkeypatch):
     """evaluate --backend twin, deploy.rehearse, deploy --camera twin and the MJX evaluate: an --out that names
     the run's config, its policy or another kind of result is refused before any work, with --force too; the
-    run folder is unchanged.  (A twin result of another evaluation needs --force: tests/test_evaluate.py.)"""
+    run folder is unchanged.  (A twin result of another evaluation needs --force: tests/commands/test_evaluate.py.)"""
     pytest.importorskip("pybullet")
     from sagrasp_jax.deploy import rehearse
 

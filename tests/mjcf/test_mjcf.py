@@ -13,8 +13,8 @@ from sagrasp_jax.base import assets
 from sagrasp_jax.task import config
 from sagrasp_jax.task import robot
 from sagrasp_jax.task import scene
+from paths import REPO as ROOT  # noqa: E402
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 TOOL = os.path.join(ROOT, "tools", "urdf_to_mjcf.py")
 
 

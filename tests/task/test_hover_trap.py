@@ -28,8 +28,9 @@ from sagrasp_jax.task import reward
 from sagrasp_jax.task import robot
 from sagrasp_jax.task import sampling
 from sagrasp_jax.envs.grasp_env import GraspEnv
+from paths import DATA  # noqa: E402
 
-HOVER_POSES = os.path.join(os.path.dirname(__file__), "data", "hover_poses.json")
+HOVER_POSES = os.path.join(DATA, "hover_poses.json")
 
 
 @pytest.fixture(scope="module")

@@ -331,7 +331,7 @@ def test_dry_run_added_to_a_deploy_line_stops_before_the_first_motion(capsys, mo
 
 
 def test_dry_run_of_an_aubo_deploy_line_connects_and_commands_nothing(capsys, monkeypatch) -> None:
-    """The same on the AUBO (through the FakeController test double of tests/test_hardware_adapters.py): the
+    """The same on the AUBO (through the FakeController test double of tests/deploy/test_hardware_adapters.py): the
     plan, then the controller's read-only report; nothing commanded, the session closed."""
     import socket
 

@@ -18,8 +18,8 @@ import pytest
 
 from sagrasp_jax import __main__ as cli
 from sagrasp_jax.base import extras
+from paths import REPO  # noqa: E402
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PACKAGE = os.path.join(REPO, "sagrasp_jax")
 # distribution (pyproject) -> the import name the package uses, where it is not the name with '_' for '-'
 IMPORT_NAME = {"mujoco-mjx": "mujoco", "warp-lang": "warp", "tensorboard": None, "playground": "mujoco_playground",

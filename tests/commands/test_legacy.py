@@ -21,8 +21,9 @@ from sagrasp_jax.task import config
 from sagrasp_jax.task import config_parse
 from sagrasp_jax.task import observation
 from sagrasp_jax.task.policy_file import load_policy
+from paths import DATA as TEST_DATA  # noqa: E402
 
-DATA = os.path.join(os.path.dirname(__file__), "data", "legacy_v0_1")
+DATA = os.path.join(TEST_DATA, "legacy_v0_1")
 POLICY = os.path.join(DATA, "policy_cpu_quick_3M.npz")
 
 

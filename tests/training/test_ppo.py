@@ -26,6 +26,7 @@ from sagrasp_jax.training import ppo
 from sagrasp_jax.training import rollout
 from sagrasp_jax.training import sa_schedule
 from sagrasp_jax.training import sharding
+from paths import TESTS  # noqa: E402
 
 
 def _setup(env=None, cfg=None, mesh=None):
@@ -186,7 +187,7 @@ def test_two_host_devices_give_the_same_first_gradients(x64: bool, tol: float):
     float32 noise); in float32 the two differently fused programs still agree to 1e-4."""
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2",
                JAX_PLATFORMS="cpu", JAX_ENABLE_X64="1" if x64 else "0")
-    script = _TWO_DEVICE_SCRIPT.format(tests=os.path.dirname(__file__), tol=tol)
+    script = _TWO_DEVICE_SCRIPT.format(tests=TESTS, tol=tol)
     res = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stdout + res.stderr
     assert "max grad diff" in res.stdout

@@ -14,9 +14,9 @@ from conftest import toy_config, toy_factory
 
 from sagrasp_jax import train
 from sagrasp_jax.training import run_dir
+from paths import TESTS  # noqa: E402
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-WORKER = os.path.join(HERE, "two_process_worker.py")
+WORKER = os.path.join(TESTS, "two_process_worker.py")
 
 
 def _env(devices: int) -> dict[str, str]:

@@ -17,6 +17,7 @@ from sagrasp_jax.training import checkpoint
 from sagrasp_jax.training.checkpoint import CheckpointError
 from sagrasp_jax.task.config import get_config
 from sagrasp_jax.task.config_parse import apply_overrides
+from paths import DATA  # noqa: E402
 
 
 def _trees():
@@ -141,7 +142,7 @@ def test_a_checkpoint_of_the_trainer_before_its_split_resumes_with_its_numbers(t
     from sagrasp_jax import train
     from sagrasp_jax.training import run_dir
 
-    data = os.path.join(os.path.dirname(__file__), "data", "pre_split_run")
+    data = os.path.join(DATA, "pre_split_run")
     folder = str(tmp_path / "run")
     shutil.copytree(data, folder, ignore=shutil.ignore_patterns("expected_finished.json"))
     with open(os.path.join(data, "expected_finished.json"), encoding="utf-8") as f:

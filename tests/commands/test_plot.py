@@ -16,8 +16,8 @@ import pytest
 
 from sagrasp_jax import plot
 from sagrasp_jax.base import run_files
+from paths import REPO  # noqa: E402
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 matplotlib = pytest.importorskip("matplotlib", reason='the plots extra is not installed (pip install "sagrasp_jax[plots]")')
 
 

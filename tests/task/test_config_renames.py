@@ -18,8 +18,8 @@ from sagrasp_jax.task import config
 from sagrasp_jax.task import config_history
 from sagrasp_jax.task import config_parse
 from sagrasp_jax.training import run_dir
+from paths import DATA  # noqa: E402
 
-DATA = os.path.join(os.path.dirname(__file__), "data")
 LEGACY_RUN = os.path.join(DATA, "legacy_v0_1")
 
 

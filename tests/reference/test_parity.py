@@ -21,8 +21,8 @@ pytest.importorskip("gymnasium")
 
 from sagrasp_jax import parity as parity_command  # noqa: E402
 from sagrasp_jax.reference import parity  # noqa: E402
+from paths import REPO as ROOT  # noqa: E402
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def run_cli(*args: str, tmp_path) -> tuple[int, dict, str]:

@@ -20,8 +20,8 @@ from sagrasp_jax.task.policy_file import (
     load_policy,
     save_policy_npz,
 )
+from paths import REPO  # noqa: E402
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 OBS, ACT = 17, 6
 
 

@@ -14,8 +14,8 @@ import pytest
 from sagrasp_jax import evaluate, train
 from sagrasp_jax.task import config_parse
 from sagrasp_jax.task.config import ConfigError, get_config
+from paths import REPO  # noqa: E402
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 LEGACY_RUN = os.path.join(REPO, "tests", "data", "legacy_v0_1")
 
 

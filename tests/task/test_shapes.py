@@ -28,9 +28,10 @@ from sagrasp_jax.task import robot
 from sagrasp_jax.task import sampling
 from sagrasp_jax.task import shapes
 import exact_geometry as geometry
+from paths import DATA  # noqa: E402
 
 ROBOT = robot.load_robot()
-PINS = os.path.join(os.path.dirname(__file__), "data", "pinned_resets.npz")
+PINS = os.path.join(DATA, "pinned_resets.npz")
 PIN_CASES = {  # name -> --set overrides of the paper preset
     "paper": [],
     "obstacles": ["env.sampling.obstacle_prob=1.0"],

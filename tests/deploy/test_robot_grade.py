@@ -21,8 +21,8 @@ from sagrasp_jax.deploy import sysid
 from sagrasp_jax.task.config import ConfigError, ControlConfig, get_config
 from sagrasp_jax.task.config_parse import apply_overrides
 from sagrasp_jax.envs.grasp_env import GraspEnv
+from paths import REPO  # noqa: E402
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, REPO)  # experiments/ is a package of the repository root
 
 

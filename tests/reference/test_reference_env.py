@@ -22,6 +22,7 @@ from sagrasp_jax.task import sampling  # noqa: E402
 from sagrasp_jax.reference import ENV_ID, ENV_IDS, EPISODE_INFO, MAX_EPISODE_STEPS  # noqa: E402
 from sagrasp_jax.task.episode import episode_keys
 from sagrasp_jax.reference.pybullet_env import PyBulletGraspEnv  # noqa: E402
+from paths import REPO  # noqa: E402
 
 ROBOT = robot.load_robot()
 
@@ -304,7 +305,7 @@ def test_sb3_baseline_explains_a_missing_extra(tmp_path):
 
     if importlib.util.find_spec("stable_baselines3") is not None:
         pytest.skip("stable-baselines3 is installed here")
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    root = REPO
     out = tmp_path / "sb3.json"
     proc = subprocess.run([sys.executable, "-m", "experiments.bench_vs_paper_stack", "sb3-baseline", "--total-steps", "10",
                            "--out", str(out)], capture_output=True, text=True, timeout=120, cwd=root)

@@ -31,8 +31,8 @@ from sagrasp_jax.deploy.handeye import (
 from sagrasp_jax.deploy.safety import SafetyLayer
 from sagrasp_jax.task.robot import forward_kinematics, load_robot
 from sagrasp_jax.task.scene import SCENE, T_CAM_BASE_MM, orthonormalise
+from paths import REPO  # noqa: E402
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 R_TRUE = orthonormalise(T_CAM_BASE_MM[:3, :3])
 T_TRUE = T_CAM_BASE_MM[:3, 3]
 # ten TCP positions (mm, base frame): the corners of the workspace the cube and the obstacles occupy, and two inside

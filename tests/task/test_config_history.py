@@ -19,8 +19,9 @@ from sagrasp_jax.task.config_history import (
     ADDED_KEYS, LEGACY_VALUES, REMOVED_KEYS, RENAMED_KEYS, RESPELLED_VALUES, config_hash, env_dict_hash, identity_dict,
 )
 from sagrasp_jax.task.config_parse import config_from_dict
+from paths import DATA  # noqa: E402
 
-RECORDED = os.path.join(os.path.dirname(__file__), "data", "config_before_renames.json")
+RECORDED = os.path.join(DATA, "config_before_renames.json")
 RECORDED_KEYS = 129  # keys of the recorded layout, and the digest of their sorted names: the record does not move
 RECORDED_KEYS_SHA256 = "e19ce5c6d55bdb4b"
 HISTORY = "sagrasp_jax/task/config_history.py"

@@ -29,11 +29,11 @@ from sagrasp_jax.deploy.aubo import AuboConnectionError, AuboError, AuboRobot, A
 from sagrasp_jax.deploy.calibration import CameraCalibration  # noqa: E402
 from sagrasp_jax.deploy.safety import SafetyLayer  # noqa: E402
 from sagrasp_jax.task.config import HOME_Q  # noqa: E402
+from paths import REPO  # noqa: E402
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 HOME = np.array(HOME_Q)
 COMMANDS = ("setServoModeSelect", "servoJoint", "setToolIoInput", "setToolDigitalOutput")
-# tests/test_hardware_adapters.py's target: the cube's top at (0.10, -0.45, 0.05) m in the world, in the camera
+# tests/deploy/test_hardware_adapters.py's target: the cube's top at (0.10, -0.45, 0.05) m in the world, in the camera
 TARGET_CAM = [f"{v:.6f}" for v in CameraCalibration.default().base_to_cam(np.array([0.10, -0.45, 0.05]), units="mm")]
 FAST_GRIPPER = "close=0:1,open=0:0,settle=0.1"  # the default wiring, a shorter settle time
 
