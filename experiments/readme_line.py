@@ -6,6 +6,7 @@ where the training command's start-up and the evaluation command's seconds go.
     python -m experiments.readme_line eval-slots --run runs/quick --out experiments/results/eval_slots.json
     python -m experiments.readme_line compile --cycles 2 --out experiments/results/compile_breakdown.json
     python -m experiments.readme_line compile --cache cold --no-eval --serial-compiles --out experiments/results/compile_breakdown_serial.json
+    python -m experiments.readme_line options --option xla_backend_optimization_level=1 --out experiments/results/compile_options_o1.json
 
 * ``line``: ``git clone`` of this checkout's HEAD into a temporary folder, then its README's training line
   (``readme_line``; ``--python`` says which interpreter its ``python3`` is) run there by ``bash -c`` (venv, ``pip install --no-compile -e ".[train]"``, training, the 1,000-episode `robot`
@@ -30,6 +31,11 @@ where the training command's start-up and the evaluation command's seconds go.
   entry's bytes, the optimised HLO's instructions by the source file that made them); per pass the processes'
   wall and CPU seconds.  ``--serial-compiles``: one XLA compile at a time, for each program's compile CPU alone.
   It only measures: the package runs as is.
+* ``options``: the README trainer's four programs (its initial state, first batched reset, training call and
+  evaluation) compiled again under XLA compile options (``--option KEY=VALUE``, repeatable; none: XLA's defaults),
+  in a fresh process on an empty cache: each one's compile CPU seconds, a second call's CPU seconds, and a digest of
+  its outputs.  A digest equal to the defaults' says the option leaves that program's numbers as they were (issue 55:
+  ``xla_backend_optimization_level=0`` keeps the initial state's, not the reset's, the training call's).
 
 Every mode prints a table and writes the JSON with the machine's load average beside the numbers.
 """
@@ -620,6 +626,74 @@ def print_compile(data: dict[str, Any], smallest_s: float = 0.5) -> None:
                     print(f"  {r['program']} ({r['called_at']}), HLO instructions by file: {top}")
 
 
+# ---------------------------------------------------------------------------------------------------- options
+TRAINER_PROGRAMS = ("init", "reset", "cycle", "eval")  # the README trainer's four programs, in the order it compiles them
+
+
+def parse_options(items: list[str]) -> dict[str, Any]:
+    """``KEY=VALUE`` strings as XLA compile options: true / false as booleans, integers as ints, the rest as text."""
+    options: dict[str, Any] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise SystemExit(f"--option {item!r}: expected KEY=VALUE, e.g. xla_backend_optimization_level=1")
+        lowered = value.lower()
+        options[key] = {"true": True, "false": False}.get(lowered, int(value) if value.lstrip("-").isdigit() else value)
+    return options
+
+
+def measure_options(options: dict[str, Any], programs: list[str]) -> dict[str, Any]:
+    """``programs`` of the README trainer compiled under ``options`` in a fresh process on an empty compilation cache."""
+    with tempfile.TemporaryDirectory() as tmp:
+        env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=os.path.join(tmp, "cache"))
+        code = f"import experiments.readme_line as m, json; print(json.dumps(m._options_once({tmp!r}, {options!r}, {programs!r})))"
+        done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True)
+        if done.returncode:
+            raise SystemExit(done.stderr[-3000:])
+        return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def _options_once(tmp: str, options: dict[str, Any], programs: list[str]) -> dict[str, Any]:
+    """One process: the README preset's trainer built (its own programs as the package compiles them), then each of
+    ``programs`` lowered again and compiled under ``options`` with the persistent cache off: the compile's process CPU,
+    a second call's CPU, and a digest of its outputs (equal digests: the same numbers as XLA's defaults give)."""
+    from sagrasp_jax import train  # first: it sets XLA_FLAGS before jax starts
+
+    import jax
+    import numpy as np
+
+    from sagrasp_jax.task.config import get_config
+    from sagrasp_jax.training import sharding
+
+    cfg = get_config("cpu-quick")
+    train.use_cpu_devices(cfg)
+    tr = train.Trainer(cfg, os.path.join(tmp, "run"), progress=False)
+    jax.config.update("jax_enable_compilation_cache", False)
+    k_params, k_env, _ = jax.random.split(jax.random.PRNGKey(cfg.train.seed), 3)
+    ts = tr.seed_group.train_state_of(0)
+    calls = {"init": (tr._init_state, (k_params,)),
+             "reset": (tr._reset, (sharding.shard_batch(jax.random.split(k_env, cfg.ppo.num_envs), tr.mesh),)),
+             "cycle": (tr._cycle, tr._cycle_args([tr.schedule.iterations_per_cycle])),
+             "eval": (tr._evaluate, (ts.params, ts.normaliser, tr.eval_keys))}
+    rows = {}
+    for name in programs:
+        fn, args = calls[name]
+        lowered = fn.lower(*args)
+        c = time.process_time()
+        # with no option, XLA's default spelled out: jax would otherwise hand back the trainer's own compile
+        compiled = lowered.compile(compiler_options=options or {"xla_cpu_enable_fast_math": False})
+        compile_cpu = time.process_time() - c
+        jax.block_until_ready(compiled(*args))
+        c = time.process_time()
+        out = jax.block_until_ready(compiled(*args))
+        run_cpu = time.process_time() - c
+        leaves = jax.tree_util.tree_leaves(jax.device_get(out))
+        rows[name] = {"compile_cpu_s": compile_cpu, "run_cpu_s": run_cpu,
+                      "digest": hashlib.sha256(b"".join(np.asarray(x).tobytes() for x in leaves)).hexdigest()[:16]}
+    return {"options": {k: str(v) for k, v in options.items()}, "programs": rows, "load": os.getloadavg(),
+            "xla_flags": os.environ.get("XLA_FLAGS", "")}
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="mode", required=True)
@@ -642,7 +716,10 @@ def main(argv: list[str] | None = None) -> int:
     d.add_argument("--no-eval", action="store_true", help="without the evaluation command")
     d.add_argument("--serial-compiles", action="store_true",
                    help="one XLA compile at a time (the trainer's two then run one after the other): each one's CPU alone")
-    for q in (a, b, c, d):
+    e = sub.add_parser("options", help="the README trainer's programs compiled under XLA options: CPU seconds, digests")
+    e.add_argument("--option", action="append", default=[], help="KEY=VALUE, an XLA compile option (repeatable)")
+    e.add_argument("--programs", default=",".join(TRAINER_PROGRAMS), help="comma-separated, of " + ", ".join(TRAINER_PROGRAMS))
+    for q in (a, b, c, d, e):
         q.add_argument("--out", required=True)
     args = p.parse_args(argv)
     if args.mode == "line":
@@ -660,6 +737,16 @@ def main(argv: list[str] | None = None) -> int:
             c_ = r["compile_parts"]
             print(f"{r['imports_s']:8.2f} {r['trainer_build_s']:7.2f} {r['compile_s']:8.2f} {c_['iteration']:7.2f} "
                   f"{c_['eval']:6.2f} {r['cycles_s']:9.2f}  {r['params_digest']}")
+    elif args.mode == "options":
+        programs = args.programs.split(",")
+        unknown = [p for p in programs if p not in TRAINER_PROGRAMS]
+        if unknown:
+            raise SystemExit(f"--programs: unknown {unknown}; choose from {', '.join(TRAINER_PROGRAMS)}")
+        data = measure_options(parse_options(args.option), programs)
+        print(f"options {data['options'] or 'none (defaults)'}, load {data['load'][0]:.1f}")
+        print(f"{'program':8s} {'compile CPU s':>14s} {'run CPU s':>10s}  digest")
+        for name, r in data["programs"].items():
+            print(f"{name:8s} {r['compile_cpu_s']:14.2f} {r['run_cpu_s']:10.3f}  {r['digest']}")
     elif args.mode == "compile":
         data = measure_compile(args.cycles, args.cache, not args.no_eval, args.cache_dir, args.serial_compiles)
         print_compile(data)

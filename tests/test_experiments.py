@@ -632,6 +632,18 @@ def test_obstacle_ablation_summary_counts_runs_that_never_learned() -> None:
     assert "| v | 2 of 3 | 97.0" in table
 
 
+def test_readme_line_reads_xla_compile_options() -> None:
+    """``readme_line options --option KEY=VALUE`` hands XLA typed values (a bool option refuses the text 'false'),
+    and a malformed item is named."""
+    from experiments import readme_line
+
+    assert readme_line.parse_options(["xla_backend_optimization_level=1", "xla_cpu_enable_fast_math=false",
+                                      "xla_cpu_max_isa=AVX2"]) == {
+        "xla_backend_optimization_level": 1, "xla_cpu_enable_fast_math": False, "xla_cpu_max_isa": "AVX2"}
+    with pytest.raises(SystemExit, match="'xla_backend_optimization_level': expected KEY=VALUE"):
+        readme_line.parse_options(["xla_backend_optimization_level"])
+
+
 def test_readme_line_times_the_readmes_own_first_command() -> None:
     """experiments.readme_line runs the README's first bash line as written: the install, the training and the
     evaluation the README promises, in that order."""

@@ -119,12 +119,19 @@ def init_training_state(key: jax.Array, networks: PPONetworks, optimizer: optax.
     return TrainingState(params=params, opt_state=optimizer.init(params), normaliser=normaliser)
 
 
+# XLA options of a program that runs once per run: LLVM at -O0 compiles the initial state's program in 0.8 s of CPU
+# instead of 4.5 on the 2-core VM (issue 55) and its run time does not matter.  Only where the outputs stay the
+# same to the bit: the initial state does (tests/test_ppo.py compares it with the eager one); the first batched
+# reset does not (obstacle sizes and observations moved by an ulp at -O1), so it keeps XLA's default.
+RUN_ONCE_COMPILE = {"xla_backend_optimization_level": 0}
+
+
 def jitted_init_training_state(networks: PPONetworks, optimizer: optax.GradientTransformation,
                                obs_size: int) -> Callable[[jax.Array], TrainingState]:
     """``init_training_state`` as one jitted program of the key: eagerly it compiles ~40 small ops one by one
     (≈ 1 s cold).  Once placed on a device its state is the eager one bit for bit (the normaliser's
-    ``std_eps``, a Python float eagerly, comes out a weakly typed array)."""
-    return jax.jit(lambda key: init_training_state(key, networks, optimizer, obs_size))
+    ``std_eps``, a Python float eagerly, comes out a weakly typed array); compiled with ``RUN_ONCE_COMPILE``."""
+    return jax.jit(lambda key: init_training_state(key, networks, optimizer, obs_size), compiler_options=RUN_ONCE_COMPILE)
 
 
 def get_learning_rate(opt_state: optax.OptState) -> float:

@@ -91,6 +91,24 @@ def test_kill_and_resume_matches_an_uninterrupted_run(tmp_path):
     assert len(decisions) == 6
 
 
+def test_the_trainer_traces_the_training_envs_reset_once(tmp_path):
+    """Every trace of the training env's reset costs start-up time on every start, compile cache or not (≈ 1.2 s
+    for the grasp env on 2 cores): the trainer traces it once, in its jitted batched reset, and reads the metrics
+    window's keys off the state that reset made."""
+    traces = []
+
+    def counting(cfg):
+        train_env, eval_env = toy_factory()(cfg)
+        reset = train_env.reset
+        train_env.reset = lambda rng: (traces.append(rng), reset(rng))[1]
+        return train_env, eval_env
+
+    tr = train.Trainer(toy_config(), str(tmp_path), env_factory=counting, progress=False)
+    assert len(traces) == 1
+    assert tr.window_keys == tuple(tr.env_state.info["episode"]) and "success" in tr.window_keys
+    assert tuple(tr.runner.window["values"]) == tr.window_keys
+
+
 def test_sa_reject_restores_the_snapshot_bit_for_bit(tmp_path):
     cfg = toy_config(extra=["sa.max_rollbacks=3", "sa.patience=5"])
     tr = train.Trainer(cfg, str(tmp_path), env_factory=toy_factory(), progress=False)
