@@ -18,7 +18,7 @@ where the training command's start-up and the evaluation command's seconds go.
   cache (``--repeats`` fresh processes), then ``--cycles`` cycles: build and compile seconds (wall and process
   CPU), the compile's parts, the jax / jaxlib / mujoco versions and XLA flags, and a digest of the parameters
   after them (equal digests: the same program and numbers).  Run it with another interpreter's python (its
-  venv holding another jax) to compare jax versions on one machine: ``docs/results.md`` §19.
+  venv holding another jax) to compare jax versions on one machine: ``docs/results-archive.md`` §19.
 * ``eval-slots``: the evaluation command's program on ``--run``'s policy (``--condition``, 1,000 episodes) at
   several episode-slot counts: compile and run seconds, and how far each one's per-episode results are from
   all episodes at once.

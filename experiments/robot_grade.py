@@ -8,7 +8,7 @@ the same with up to 2 steps of latency), optionally in the dynamic env with one 
 (``--blocking``), and through the physical grasp check with and without detection error (``--physical``).
 Prints a Markdown table and writes JSON.
 
-Two subcommands check the model the robot-grade preset trains in (their results: docs/results.md §7):
+Two subcommands check the model the robot-grade preset trains in (their results: docs/results-archive.md §7):
 ``servo-fit`` fits the lagged mode's per-step servo model to the dynamic env's MJX servos (the
 ``env.control.lag_gain`` / ``lag_momentum`` defaults) and measures its open-loop drift; ``sysid-check`` runs
 ``sagrasp_jax.deploy.sysid`` on logs the dynamic env synthesises for arms with known gains, latency and offsets.

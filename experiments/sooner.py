@@ -96,7 +96,7 @@ _OVER_ROUND_2: dict[str, tuple[str, ...]] = {
     # polished the final policy; does a smaller last step size polish more?
     "decay-0.95": ("sa.decay=0.95",),
     # half the SGD passes once the climb is over (30 % of the budget; 98 % came at 13-28 % on the README seeds):
-    # SGD is about half of an iteration or more (docs/results.md §13, §15), so the last 70 % of the run costs less
+    # SGD is about half of an iteration or more (docs/results-archive.md §13, §15), so the last 70 % of the run costs less
     "late-epochs-4": ("ppo.late_epochs=4",),  # ppo.late_from: its default, 0.3
     "late-epochs-2": ("ppo.late_epochs=2",),  # a quarter of the passes after the climb
 }

@@ -513,12 +513,12 @@ def _sized(base: Config, *, num_envs: int, num_minibatches: int, network: Networ
 
 def _cpu_quick() -> Config:
     # Eight SGD passes, a 3e-3 entropy bonus and a 64×4 policy reach 98 / 99 % in a third of the env steps of
-    # four passes, 1e-3 and 32×4 (docs/results.md §10, "The levers together"); the critic stays 64×3. SA starts
+    # four passes, 1e-3 and 32×4 (docs/results-archive.md §10, "The levers together"); the critic stays 64×3. SA starts
     # at lr 6e-4 and decays ×0.96 at a plateau (not ×0.98 from 3e-4): 99.4-99.9 % in `robot` over two groups of
-    # five seeds, better than constant lr on every seed (docs/results.md §10, "SA from lr 6e-4 with a
+    # five seeds, better than constant lr on every seed (docs/results-archive.md §10, "SA from lr 6e-4 with a
     # twice-as-steep plateau decay" and the README command's rows after it). After 30 % of the budget (the climb
     # to 98 % is over by then on every seed) four of the eight passes: the same policy over five seeds at 0.68x
-    # the iteration's time (docs/results.md §15).
+    # the iteration's time (docs/results-archive.md §15).
     return _sized(_robot_grade(_obstacle_aware(_upright_approach(Config()))), num_envs=256, num_minibatches=4,
                   network=NetworkConfig(policy_hidden=(64, 64, 64, 64), value_hidden=(64, 64, 64)),
                   eval_episodes=128, total_steps=10_000_000, num_epochs=8, entropy_coef=3e-3,

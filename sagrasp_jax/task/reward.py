@@ -33,7 +33,7 @@ def grasp_centre(xp: Any, task: Any, target: Any) -> Any:
     the success band's heights; also the end of the straight approach that ``sampling`` tests obstacles
     on.  The deployment loop and the physical check centre there on the *detected* cube before closing,
     so a detection error up to half the band's height and its horizontal tolerance still grasps
-    (the detection-ceiling study, docs/results.md §7)."""
+    (the detection-ceiling study, docs/results-archive.md §7)."""
     middle = 0.5 * (task.success_dz_min + task.success_dz_max)
     target = xp.asarray(target)
     if not xp.issubdtype(target.dtype, xp.floating):  # whole-number coordinates: not truncated to the offset's dtype

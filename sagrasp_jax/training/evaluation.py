@@ -42,7 +42,7 @@ MAX_STEPS = 100_000
 # On CPU the episodes run this many at a time, each slot taking the next episode when its own ends
 # (fixed_seed_eval.evaluate_policy; accelerators run every episode at once): 1,000 `robot` episodes of the
 # README policy in 0.78 s instead of 4.58 s all at once on 2 cores (32 slots: 0.83 s, 128: 1.01 s); the same
-# episodes, their floats within 3.8e-6 (docs/results.md §17).
+# episodes, their floats within 3.8e-6 (docs/results-archive.md §17).
 CPU_SLOTS = 64
 
 
