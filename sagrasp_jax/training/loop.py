@@ -10,13 +10,47 @@ from __future__ import annotations
 
 import os
 import time
-from typing import Any
+from typing import Any, Protocol, TextIO
 
+from sagrasp_jax.task.config import Config
 from sagrasp_jax.training import run_log
+from sagrasp_jax.training.cycles import Schedule
+from sagrasp_jax.training.seed_group import HostState, SeedGroup
 
 
-def train(tr: Any, stop_after_cycles: int | None = None) -> dict[str, Any]:
-    """Train every seed of ``tr`` (a ``trainer.Trainer``, which calls this; not imported here: the trainer
+class LoopTrainer(Protocol):
+    """What ``train`` uses of a trainer: everything it reads or calls, typed, so the loop's contract is in one
+    place (``trainer.Trainer`` implements it; the trainer imports the loop, so the loop cannot import it)."""
+
+    cfg: Config
+    schedule: Schedule  # the cycles: iteration counts, cycle ends
+    seed_group: SeedGroup
+    primary: bool  # process 0 (the one that writes files)
+    progress: bool  # show a progress bar
+    stream: TextIO  # where the start line and the end summary go
+    compile_s: dict[str, float]  # the compile's parts, after ``compile``
+    mesh: Any  # jax.sharding.Mesh: ``mesh.size`` devices
+
+    @property
+    def group(self) -> bool: ...  # several seeds in one program
+    @property
+    def seeds(self) -> list[int]: ...
+    @property
+    def dirs(self) -> list[str]: ...  # each seed's run folder
+    @property
+    def hosts(self) -> list[HostState]: ...  # each seed's host-side state (iteration, env steps, lr state)
+
+    def compile(self) -> dict[str, float]: ...
+    def run_calls(self, counts: list[int]) -> list[list[dict[str, Any]]]: ...
+    def cycle_due(self, i: int = 0) -> bool: ...
+    def end_cycles(self, ending: list[bool]) -> list[dict[str, Any] | None]: ...
+    def save_checkpoint(self, which: list[int] | None = None) -> list[str]: ...
+    def export_finished(self) -> None: ...
+    def summary(self, row: dict[str, Any], steps: int, i: int = 0) -> str: ...
+
+
+def train(tr: LoopTrainer, stop_after_cycles: int | None = None) -> dict[str, Any]:
+    """Train every seed of ``tr`` (a ``trainer.Trainer``, which calls this; typed by ``LoopTrainer``: the trainer
     imports the loop) to ``train.total_steps`` (or stop, checkpointed, after ``stop_after_cycles`` cycles).
 
     One jitted call per cycle (``run_calls``) runs each seed's iterations up to its cycle's end; its
