@@ -136,15 +136,15 @@ def bench_profile(cfg: Any) -> dict[str, Any]:
     import numpy as np
 
     from sagrasp_jax import train
-    from sagrasp_jax.training import actor_critic
+    from sagrasp_jax.training.agents.ppo import actor_critic
     from sagrasp_jax.task import collision
     from sagrasp_jax.task import control
-    from sagrasp_jax.training import losses
+    from sagrasp_jax.training.agents.ppo import losses
     from sagrasp_jax.training import metrics_window
     from sagrasp_jax.task import observation
-    from sagrasp_jax.training import ppo
+    from sagrasp_jax.training.agents.ppo import ppo
     from sagrasp_jax.task import robot
-    from sagrasp_jax.training import rollout
+    from sagrasp_jax.training.agents.ppo import rollout
     from sagrasp_jax.training import sharding
     from sagrasp_jax.task.config import training_env_config
     from sagrasp_jax.envs.grasp_env import GraspEnv

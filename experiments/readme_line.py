@@ -187,7 +187,8 @@ def measure_eval_slots(run: str, condition: str, episodes: int, slot_counts: lis
 
     from sagrasp_jax.training import evaluation as ev
     from sagrasp_jax.task.config import EVAL_CONDITIONS
-    from sagrasp_jax.training import actor_critic, restore, run_dir
+    from sagrasp_jax.training import restore, run_dir
+    from sagrasp_jax.training.agents.ppo import actor_critic
     from sagrasp_jax.training import fixed_seed_eval as policy_eval
 
     cfg = run_dir.load_config(run)

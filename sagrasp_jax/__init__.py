@@ -79,7 +79,8 @@ _extras.install_import_hints()
 
 
 # Modules that moved into the layer folders (docs/architecture.md) still import at their old paths,
-# with a DeprecationWarning naming the new one: ``import sagrasp_jax.ppo`` is ``sagrasp_jax.training.ppo``.
+# with a DeprecationWarning naming the new one: ``import sagrasp_jax.ppo`` (or
+# ``sagrasp_jax.training.ppo``) is ``sagrasp_jax.training.agents.ppo.ppo``.
 MOVED_MODULES = {
     "fileio": "base.fileio", "assets": "base.assets", "extras": "base.extras", "run_files": "base.run_files",
     "config": "task.config", "robot": "task.robot", "scene": "task.scene", "shapes": "task.shapes",
@@ -87,11 +88,15 @@ MOVED_MODULES = {
     "reward": "task.reward", "observation": "task.observation", "episode": "task.episode",
     "sampling": "task.sampling", "scripted": "task.scripted", "runtime": "task.policy_file",
     "env": "envs.grasp_env", "wrappers": "envs.auto_reset",
-    "actor_critic": "training.actor_critic", "losses": "training.losses", "rollout": "training.rollout",
+    "actor_critic": "training.agents.ppo.actor_critic", "losses": "training.agents.ppo.losses",
+    "rollout": "training.agents.ppo.rollout", "ppo": "training.agents.ppo.ppo",
     "sharding": "training.sharding", "lr_schedule": "training.lr_schedule", "sa_schedule": "training.sa_schedule",
-    "metrics_window": "training.metrics_window", "ppo": "training.ppo", "checkpoint": "training.checkpoint",
+    "metrics_window": "training.metrics_window", "checkpoint": "training.checkpoint",
     "distributed": "training.distributed", "run_dir": "training.run_dir", "policy_eval": "training.fixed_seed_eval",
     "physical": "reference.grasp_check",
+    # PPO's maths moved from the flat training/ into training/agents/ppo/, as brax keeps it (issue 56)
+    "training.actor_critic": "training.agents.ppo.actor_critic", "training.losses": "training.agents.ppo.losses",
+    "training.rollout": "training.agents.ppo.rollout", "training.ppo": "training.agents.ppo.ppo",
 }
 
 

@@ -213,7 +213,8 @@ def export_run(run: str, out_dir: str, *, onnx: bool = True, opset: int = DEFAUL
 
 def _export(run: str, out_dir: str, cfg: Any, params: Any, normaliser: Any, counters: dict[str, Any], onnx: bool,
             opset: int) -> dict[str, Any]:
-    from sagrasp_jax.training import ppo, restore
+    from sagrasp_jax.training import restore
+    from sagrasp_jax.training.agents.ppo import ppo
     from sagrasp_jax.training.checkpoint import atomic_write_bytes
 
     npz_path = restore.export_policy(os.path.join(out_dir, NPZ_FILE), cfg, params, normaliser, int(normaliser.mean.shape[-1]))

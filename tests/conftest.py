@@ -88,10 +88,10 @@ def first_gradients(env: Any, cfg: Config, mesh: Any) -> list[Any]:
     import numpy as np
     import optax
 
-    from sagrasp_jax.training import actor_critic
+    from sagrasp_jax.training.agents.ppo import actor_critic
     from sagrasp_jax.training import metrics_window
-    from sagrasp_jax.training import ppo
-    from sagrasp_jax.training import rollout
+    from sagrasp_jax.training.agents.ppo import ppo
+    from sagrasp_jax.training.agents.ppo import rollout
     from sagrasp_jax.training import sharding
 
     assert (cfg.ppo.num_minibatches, cfg.ppo.num_epochs, cfg.ppo.entropy_coef) == (1, 1, 0.0)

@@ -184,7 +184,7 @@ def test_jax_free_modules_stay_jax_free(graph):
     _, _, jax_free = doc_layers()
     free = {m for m in graph if is_jax_free(m, jax_free)}
     assert {"task.config", "deploy.loop", "reference.pybullet_env", "training.sa_schedule", "plot"} <= free
-    assert not {"reference.parity", "training.ppo", "envs.grasp_env", "train"} & free
+    assert not {"reference.parity", "training.agents.ppo.ppo", "envs.grasp_env", "train"} & free
     bad = []
     for m in sorted(free):
         deps, external = graph[m]
@@ -375,6 +375,25 @@ def test_old_flat_module_paths_import_with_a_message_naming_the_new_one():
     assert out.stdout.splitlines() == ["sagrasp_jax.runtime moved to sagrasp_jax.task.policy_file; import it from there",
                                        "True sagrasp_jax.task.config"]
     assert importlib.import_module("sagrasp_jax.envs").load.__module__ == "sagrasp_jax.envs.brax_adapter"
+
+
+def test_ppo_maths_at_their_old_training_paths_import_with_a_message_naming_the_new_one():
+    """PPO's modules moved from the flat ``training/`` into ``training/agents/ppo/`` (issue 56): the old
+    ``sagrasp_jax.training.ppo`` is the new module, with a DeprecationWarning naming it."""
+    import subprocess
+    import sys
+
+    code = ("import warnings\nwarnings.simplefilter('error')\n"
+            "try:\n    import sagrasp_jax.training.ppo\nexcept DeprecationWarning as w:\n    print(w)\n"
+            "warnings.simplefilter('ignore')\nimport sagrasp_jax.training.losses as old\n"
+            "import sagrasp_jax.training.agents.ppo.losses as new\n"
+            "from sagrasp_jax.training.actor_critic import make_networks\n"
+            "print(old is new, make_networks.__module__)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.splitlines() == [
+        "sagrasp_jax.training.ppo moved to sagrasp_jax.training.agents.ppo.ppo; import it from there",
+        "True sagrasp_jax.training.agents.ppo.actor_critic"]
 
 
 # tests/ mirrors the package: tests/<folder>/ for each of sagrasp_jax's folders that has code, tests/commands/ for the

@@ -1,2 +1,3 @@
-"""The trainer: PPO (networks, losses, rollout, the jitted cycle), the lr and SA schedules, the fixed-seed
-evaluation, checkpoints, run folders, seed groups over devices and processes.  Imports `base`, `task`, `envs`."""
+"""The trainer: PPO (``agents/ppo/``: networks, losses, rollout, the jitted cycle), the lr and SA schedules,
+the fixed-seed evaluation, checkpoints, run folders, seed groups over devices and processes.
+Imports `base`, `task`, `envs`."""

@@ -18,7 +18,8 @@ from typing import Any
 import numpy as np
 
 from sagrasp_jax.task.config import Config
-from sagrasp_jax.training import actor_critic, lr_schedule, ppo, sharding
+from sagrasp_jax.training import lr_schedule, sharding
+from sagrasp_jax.training.agents.ppo import actor_critic, ppo
 from sagrasp_jax.training.fixed_seed_eval import EvalResult
 from sagrasp_jax.training.seed_group import SeedGroup
 

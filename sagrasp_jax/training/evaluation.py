@@ -28,9 +28,9 @@ from typing import Any, Callable, NamedTuple
 import jax
 import numpy as np
 
-from sagrasp_jax.training import actor_critic
+from sagrasp_jax.training.agents.ppo import actor_critic
 from sagrasp_jax.training import fixed_seed_eval as policy_eval
-from sagrasp_jax.training import rollout
+from sagrasp_jax.training.agents.ppo import rollout
 from sagrasp_jax.training import run_dir
 from sagrasp_jax.training import restore
 from sagrasp_jax.task.config import SEED_RANGE, Config, ConfigError, blocking_sampling, check_range

@@ -15,8 +15,8 @@ import jax
 import jax.numpy as jnp
 from jax.sharding import Mesh, PartitionSpec
 
-from sagrasp_jax.training.actor_critic import Normaliser, Params, PPONetworks, deterministic_action
-from sagrasp_jax.training.rollout import Env, set_progress
+from sagrasp_jax.training.agents.ppo.actor_critic import Normaliser, Params, PPONetworks, deterministic_action
+from sagrasp_jax.training.agents.ppo.rollout import Env, set_progress
 from sagrasp_jax.training.sharding import BATCH_AXIS, pmean, psum, sharded
 
 

@@ -16,7 +16,8 @@ from sagrasp_jax.task import observation
 from sagrasp_jax.task import policy_file as runtime
 from sagrasp_jax.task.config import Config, config_to_dict
 from sagrasp_jax.task.control import ACTION_SIZE
-from sagrasp_jax.training import actor_critic, checkpoint, run_dir, sharding
+from sagrasp_jax.training import checkpoint, run_dir, sharding
+from sagrasp_jax.training.agents.ppo import actor_critic
 
 
 class PolicyState(NamedTuple):

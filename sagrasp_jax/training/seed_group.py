@@ -18,7 +18,8 @@ import numpy as np
 
 from sagrasp_jax.task.config import Config
 from sagrasp_jax.task.config_parse import apply_overrides
-from sagrasp_jax.training import actor_critic, lr_schedule, sharding
+from sagrasp_jax.training import lr_schedule, sharding
+from sagrasp_jax.training.agents.ppo import actor_critic
 
 
 class RunnerState(NamedTuple):

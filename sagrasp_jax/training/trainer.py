@@ -20,8 +20,9 @@ import jax
 from sagrasp_jax.task import observation
 from sagrasp_jax.task.config import Config, ConfigError, training_env_config
 from sagrasp_jax.training import (
-    actor_critic, cycles, group_checkpoint, loop, lr_schedule, metrics_window, ppo, restore, rollout, run_dir, run_log, sharding,
+    cycles, group_checkpoint, loop, lr_schedule, metrics_window, restore, run_dir, run_log, sharding,
 )
+from sagrasp_jax.training.agents.ppo import actor_critic, ppo, rollout
 from sagrasp_jax.training import fixed_seed_eval as policy_eval
 from sagrasp_jax.training.seed_group import HostState, RunnerState, SeedGroup
 

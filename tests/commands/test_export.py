@@ -82,7 +82,7 @@ def test_npz_onnx_and_jax_actions_agree(exported: str, run_dir: str) -> None:
     normaliser, from the run's checkpoint) agree within 1e-5."""
     import jax.numpy as jnp
 
-    from sagrasp_jax.training import actor_critic
+    from sagrasp_jax.training.agents.ppo import actor_critic
 
     policy = load_policy(os.path.join(exported, "policy.npz"))
     obs = export.check_observations(policy, 1000, seed=7)

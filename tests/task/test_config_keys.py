@@ -51,7 +51,7 @@ def test_minibatches_must_divide_the_batch():
 
 
 def test_cpu_quick_takes_four_passes_late_and_a_lower_pass_count_keeps_its_own():
-    from sagrasp_jax.training import ppo
+    from sagrasp_jax.training.agents.ppo import ppo
 
     cfg = config.get_config("cpu-quick")
     assert (cfg.ppo.late_epochs, cfg.ppo.late_from, cfg.ppo.num_epochs) == (4, 0.3, 8)

@@ -90,7 +90,7 @@ def test_max_obstacles_declares_the_one_value_the_scene_has():
 
 
 def test_choices_are_declared_once_and_used_by_the_modules_that_act_on_them():
-    from sagrasp_jax.training import actor_critic
+    from sagrasp_jax.training.agents.ppo import actor_critic
     from sagrasp_jax.training import lr_schedule
     from sagrasp_jax.task import observation
     from sagrasp_jax.task import reward

@@ -163,7 +163,7 @@ def test_normaliser_leaves_hand_scaled_entries_alone():
     import jax.numpy as jnp
     from brax.training.acme import running_statistics
 
-    from sagrasp_jax.training import ppo
+    from sagrasp_jax.training.agents.ppo import ppo
 
     mask = observation.hand_scaled_mask(observation.layout("relative"))
     obs = jnp.asarray(np.random.default_rng(0).normal(3.0, 2.0, (512, 29)), jnp.float32)
@@ -206,8 +206,8 @@ def test_privileged_critic_trains_and_exports_a_policy_without_it(tmp_path):
     import jax.numpy as jnp
 
     from sagrasp_jax import train
-    from sagrasp_jax.training import actor_critic
-    from sagrasp_jax.training import ppo
+    from sagrasp_jax.training.agents.ppo import actor_critic
+    from sagrasp_jax.training.agents.ppo import ppo
     from sagrasp_jax.task import policy_file as runtime
     from sagrasp_jax.envs.grasp_env import GraspEnv
 

@@ -18,12 +18,12 @@ import pytest
 from conftest import toy_config
 from toy_env import AutoReset, PointReach
 
-from sagrasp_jax.training import actor_critic
-from sagrasp_jax.training import losses
+from sagrasp_jax.training.agents.ppo import actor_critic
+from sagrasp_jax.training.agents.ppo import losses
 from sagrasp_jax.training import metrics_window
 from sagrasp_jax.training import fixed_seed_eval as policy_eval
-from sagrasp_jax.training import ppo
-from sagrasp_jax.training import rollout
+from sagrasp_jax.training.agents.ppo import ppo
+from sagrasp_jax.training.agents.ppo import rollout
 from sagrasp_jax.training import sa_schedule
 from sagrasp_jax.training import sharding
 from paths import TESTS  # noqa: E402

@@ -20,7 +20,7 @@ from conftest import toy_config, toy_factory
 
 from sagrasp_jax import train
 from sagrasp_jax.training import evaluation
-from sagrasp_jax.training import actor_critic
+from sagrasp_jax.training.agents.ppo import actor_critic
 from sagrasp_jax.training import lr_schedule
 from sagrasp_jax.training import run_dir
 from sagrasp_jax.task import policy_file as runtime

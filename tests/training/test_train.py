@@ -15,7 +15,7 @@ import pytest
 from conftest import toy_config, toy_factory
 
 from sagrasp_jax import train
-from sagrasp_jax.training import actor_critic
+from sagrasp_jax.training.agents.ppo import actor_critic
 from sagrasp_jax.training import lr_schedule
 from sagrasp_jax.training import fixed_seed_eval as policy_eval
 from sagrasp_jax.training import run_dir

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 from brax.envs.base import State
 from jax.sharding import Mesh
 
-from sagrasp_jax.training.actor_critic import Normaliser, Params, PPONetworks, critic_extra_of, sample_action
+from sagrasp_jax.training.agents.ppo.actor_critic import Normaliser, Params, PPONetworks, critic_extra_of, sample_action
 from sagrasp_jax.training.sharding import batch_sharding
 from sagrasp_jax.envs.auto_reset import RESET_METRICS
 

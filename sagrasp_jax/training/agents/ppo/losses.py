@@ -15,8 +15,10 @@ import jax
 import jax.numpy as jnp
 
 from sagrasp_jax.task.config import PPOConfig
-from sagrasp_jax.training.actor_critic import Normaliser, Params, PPONetworks, critic_input, tanh_gaussian_entropy
-from sagrasp_jax.training.rollout import Transition
+from sagrasp_jax.training.agents.ppo.actor_critic import (
+    Normaliser, Params, PPONetworks, critic_input, tanh_gaussian_entropy,
+)
+from sagrasp_jax.training.agents.ppo.rollout import Transition
 from sagrasp_jax.training.sharding import pmean
 
 

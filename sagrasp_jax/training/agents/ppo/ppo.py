@@ -28,13 +28,13 @@ from jax.sharding import Mesh, PartitionSpec
 
 from sagrasp_jax.training import lr_schedule
 from sagrasp_jax.task.config import PPOConfig
-from sagrasp_jax.training.losses import Batch, loss_and_grad, make_batch
+from sagrasp_jax.training.agents.ppo.losses import Batch, loss_and_grad, make_batch
 from sagrasp_jax.training.metrics_window import kind_success_keys, update_window
-from sagrasp_jax.training.actor_critic import (
+from sagrasp_jax.training.agents.ppo.actor_critic import (
     Normaliser, Params, PPONetworks, TrainingState, critic_extra_of, learning_rate_of, mean_policy_entropy,
     with_learning_rate,
 )
-from sagrasp_jax.training.rollout import RESET_STATS, Env, rollout, set_progress
+from sagrasp_jax.training.agents.ppo.rollout import RESET_STATS, Env, rollout, set_progress
 from sagrasp_jax.training.sharding import BATCH_AXIS, pmean, seed_batch_spec, sharded
 
 
