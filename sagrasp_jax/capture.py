@@ -31,6 +31,7 @@ from sagrasp_jax.base import cli, extras, fileio
 from sagrasp_jax.deploy import capture_file
 from sagrasp_jax.deploy.cameras import CameraError, capture_once
 from sagrasp_jax.task.camera import CAMERA_MODELS, NOISE_MODELS
+from sagrasp_jax.task.robot import ARM_DOF
 
 SOURCES = ("mecheye", "realsense", "twin")
 
@@ -41,8 +42,8 @@ def _parser() -> cli.Parser:
     p.add_argument("--camera-address", default=None, metavar="ADDRESS",
                    help="mecheye: its IP address (required); realsense: its serial number or a recording (.db3 or .bag) "
                         "(default the first connected)")
-    p.add_argument("--arm-joints", nargs=6, type=float, default=None, metavar="Q",
-                   help="mecheye/realsense: the arm's 6 joint angles (rad) while the capture is taken, saved with it so "
+    p.add_argument("--arm-joints", nargs=ARM_DOF, type=float, default=None, metavar="Q",
+                   help=f"mecheye/realsense: the arm's {ARM_DOF} joint angles (rad) while the capture is taken, saved with it so "
                         "that perception leaves the arm out (deploy --camera reads them from the controller itself); "
                         "without them the arm must be out of the camera's view")
     p.add_argument("--out", required=True, help="the capture file to write (.npz)")
@@ -86,7 +87,7 @@ def _check(args: object) -> None:
         if args.camera == "mecheye" and not args.camera_address:
             raise ValueError("--camera mecheye needs --camera-address IP")
         if args.arm_joints is not None and not all(math.isfinite(q) and abs(q) <= 2 * math.pi for q in args.arm_joints):
-            raise ValueError(f"--arm-joints {args.arm_joints} must be 6 finite joint angles in rad (within ±2π)")
+            raise ValueError(f"--arm-joints {args.arm_joints} must be {ARM_DOF} finite joint angles in rad (within ±2π)")
     else:
         if args.camera_address is not None or args.arm_joints is not None:
             raise ValueError("--camera-address and --arm-joints are for a real camera, not the twin (its arm is parked "

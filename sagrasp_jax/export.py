@@ -9,7 +9,7 @@ Writes, each atomically (temp file + rename), into ``--out``:
 * ``policy.onnx`` — the same deterministic policy as an ONNX graph (opset ≥ 17), built with
   ``onnx.helper`` from the npz weights: ``clip((obs − mean)/std, ±clip)``, the dense layers
   with their activation, the ``action_size`` loc outputs, ``tanh``.  Input ``obs`` float32
-  (batch, obs_size) (17 for layout ``paper``, 29 for ``relative``), output ``action`` float32 (batch, 6).  No torch involved;
+  (batch, obs_size) (17 for layout ``paper``, 29 for ``relative``), output ``action`` float32 (batch, action_size).  No torch involved;
 * ``export.json`` — what was exported from where (run, checkpoint counters, config hash,
   file checksums) and the measured largest action difference between the two files.
 

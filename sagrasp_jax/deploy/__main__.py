@@ -94,6 +94,7 @@ from sagrasp_jax.deploy.loop import (
     DeployError, Obstacle, format_report, plan_episode, run_episode, scene_spec, with_obstacle_kinds,
 )
 from sagrasp_jax.task.config import HOME_Q
+from sagrasp_jax.task.robot import ARM_DOF
 from sagrasp_jax.deploy import aubo
 from sagrasp_jax.deploy.safety import SafetyViolation, check_policy_constants, check_policy_scene, deployment_env
 from sagrasp_jax.deploy.transfer import TransferErrors
@@ -266,7 +267,7 @@ def _parser() -> argparse.ArgumentParser:
                    help="twin: offset of the joint readings, one or one per joint (default 0)")
     p.add_argument("--twin-joint-noise", type=float, default=0.0, metavar="RAD",
                    help="twin: std of the joint-reading noise (default 0)")
-    p.add_argument("--twin-start-q", nargs=6, type=float, default=None, metavar="Q",
+    p.add_argument("--twin-start-q", nargs=ARM_DOF, type=float, default=None, metavar="Q",
                    help="twin: the arm's start joints, rad (default the policy's home pose)")
     p.add_argument("--twin-target-error", nargs=3, type=float, default=None, metavar=("DX", "DY", "DZ"),
                    help="twin: the detection's error, in --units (world axes): the loop is handed the detection "
@@ -309,9 +310,9 @@ def _emit(args: argparse.Namespace, payload: dict[str, Any], text: str, error: b
 def _twin_errors(args: argparse.Namespace) -> tuple[TransferErrors, np.ndarray]:
     """The twin's transfer errors and the detection error the loop is handed (m, world axes)."""
     for name in ("twin_servo_gain", "twin_joint_offset"):
-        if len(getattr(args, name)) not in (1, 6):
+        if len(getattr(args, name)) not in (1, ARM_DOF):
             flag = "--" + name.replace("_", "-")
-            raise InputRefused(f"{flag} takes one value or one per joint (6), got {len(getattr(args, name))}")
+            raise InputRefused(f"{flag} takes one value or one per joint ({ARM_DOF}), got {len(getattr(args, name))}")
     one = lambda v: v[0] if len(v) == 1 else tuple(v)  # noqa: E731
     try:
         errors = TransferErrors(latency=args.twin_latency, servo_lag=args.twin_servo_lag,
@@ -675,7 +676,7 @@ def _deploy(args: argparse.Namespace) -> int:
         start_q = args.twin_start_q if args.twin_start_q is not None else (truth["q0"] if truth else env_cfg.task.home_q)
         q_home = np.asarray(start_q, dtype=float)
         if not (np.isfinite(q_home).all() and np.all(np.abs(q_home) <= math.pi)):
-            raise InputRefused(f"--twin-start-q {args.twin_start_q} must be 6 finite joint angles within ±π rad")
+            raise InputRefused(f"--twin-start-q {args.twin_start_q} must be {ARM_DOF} finite joint angles within ±π rad")
         env_cfg = with_obstacle_kinds(env_cfg, obstacles)
         if truth:  # a twin capture replayed on the twin: the twin holds the true scene, the loop the detection
             true_obstacles = [Obstacle(o["kind"], tuple(o["centre"]), tuple(o["size"]), o["yaw"]) for o in truth["obstacles"]]

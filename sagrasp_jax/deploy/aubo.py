@@ -63,6 +63,7 @@ import numpy as np
 from sagrasp_jax.base import extras
 from sagrasp_jax.deploy.loop import DeployError
 from sagrasp_jax.deploy.safety import DeploySettings, SafetyLayer
+from sagrasp_jax.task.robot import ARM_DOF
 
 DEFAULT_PORT = 30004  # the ARCS controller's RPC port (AUBO's SDK examples)
 DEFAULT_USER, DEFAULT_PASSWORD = "aubo", "123456"  # the controller's factory login (AUBO's SDK examples)
@@ -156,7 +157,7 @@ class AuboSettings:
     servo_mode: int = 1
     servo_gain: float = 150.0
     lookahead_s: float | None = None  # default: one control period, clipped to LOOKAHEAD_RANGE
-    joint_offset: tuple[float, ...] = (0.0,) * 6  # rad: controller reading = URDF joint + offset
+    joint_offset: tuple[float, ...] = (0.0,) * ARM_DOF  # rad: controller reading = URDF joint + offset
     gripper: GripperIO = field(default_factory=GripperIO)
 
     def __post_init__(self) -> None:
@@ -174,23 +175,23 @@ class AuboSettings:
         if self.lookahead_s is not None and not LOOKAHEAD_RANGE[0] <= self.lookahead_s <= LOOKAHEAD_RANGE[1]:
             raise ValueError(f"AUBO look-ahead {self.lookahead_s!r} s must be in {list(LOOKAHEAD_RANGE)} (SDK docs)")
         offset = np.asarray(self.joint_offset, dtype=float)
-        if offset.shape != (6,) or not np.isfinite(offset).all() or np.abs(offset).max() > math.pi:
-            raise ValueError(f"AUBO joint offset {self.joint_offset!r} must be 6 finite angles within ±π rad")
+        if offset.shape != (ARM_DOF,) or not np.isfinite(offset).all() or np.abs(offset).max() > math.pi:
+            raise ValueError(f"AUBO joint offset {self.joint_offset!r} must be {ARM_DOF} finite angles within ±π rad")
 
 
 # ---- pure conversions (NumPy only; tested without the SDK or a controller) ----
 
 
-def joints_from_controller(values: Any, offset: Sequence[float] = (0.0,) * 6) -> np.ndarray:
-    """``RobotState.getJointPositions()`` (a list of 6 floats, rad) -> URDF joints (6,), refused unless 6 finite."""
+def joints_from_controller(values: Any, offset: Sequence[float] = (0.0,) * ARM_DOF) -> np.ndarray:
+    """``RobotState.getJointPositions()`` (a list of floats, rad, one per joint) -> URDF joints (dof,), refused unless dof finite."""
     q = np.asarray(list(values) if values is not None else [], dtype=float)
-    if q.shape != (6,) or not np.isfinite(q).all():
-        raise AuboError(f"controller reported joints {q.tolist()!r}; expected 6 finite angles (rad)")
+    if q.shape != (ARM_DOF,) or not np.isfinite(q).all():
+        raise AuboError(f"controller reported joints {q.tolist()!r}; expected {ARM_DOF} finite angles (rad)")
     return q - np.asarray(offset, dtype=float)
 
 
-def joints_to_controller(q: Any, offset: Sequence[float] = (0.0,) * 6) -> list[float]:
-    """URDF joints (6,) -> the list ``servoJoint`` takes (controller convention)."""
+def joints_to_controller(q: Any, offset: Sequence[float] = (0.0,) * ARM_DOF) -> list[float]:
+    """URDF joints (dof,) -> the list ``servoJoint`` takes (controller convention)."""
     return [float(v) for v in np.asarray(q, dtype=float) + np.asarray(offset, dtype=float)]
 
 

@@ -16,7 +16,7 @@ member          type                  what
 ``meta``        str                   JSON: ``camera`` (a ``task.camera`` model name or ""), ``source`` (what
                                       took it), ``time_utc``, ``truth`` (a twin capture's true scene:
                                       ``q0``, ``target_pos``, ``target_yaw``, ``obstacles``, ``kind``; else null),
-                                      ``robot_q`` (the arm's 6 joints in rad when it was taken, so that perception
+                                      ``robot_q`` (the arm's joints in rad when it was taken, so that perception
                                       leaves the arm out; null: the arm was out of view)
 ==============  ====================  ==========================================================================
 
@@ -39,6 +39,7 @@ from sagrasp_jax.deploy.cameras import Capture, checked_capture, CameraError
 from sagrasp_jax.task import shapes
 from sagrasp_jax.task.camera import CAMERA_MODELS, Intrinsics
 from sagrasp_jax.task.policy_file import read_npz
+from sagrasp_jax.task.robot import ARM_DOF
 
 FORMAT = "sagrasp_jax capture 1"
 MAX_CAPTURE_BYTES = 512 << 20  # a 4K organized cloud and image (≈ 125 MB unpacked) with room to spare
@@ -93,7 +94,7 @@ def _check_truth(truth: Any, path: str) -> dict[str, Any] | None:
         checked.append({"kind": ob["kind"], "centre": numbers(ob["centre"], 3, f"obstacles[{i}].centre"),
                         "size": numbers(ob["size"], 3, f"obstacles[{i}].size"),
                         "yaw": numbers([ob["yaw"]], 1, f"obstacles[{i}].yaw")[0]})
-    return {"q0": numbers(truth["q0"], 6, "q0"), "target_pos": numbers(truth["target_pos"], 3, "target_pos"),
+    return {"q0": numbers(truth["q0"], ARM_DOF, "q0"), "target_pos": numbers(truth["target_pos"], 3, "target_pos"),
             "target_yaw": numbers([truth["target_yaw"]], 1, "target_yaw")[0], "obstacles": checked,
             "kind": str(truth["kind"])}
 
@@ -172,8 +173,8 @@ def load_capture(path: str) -> Capture:
                                      f"{cloud.shape[1]} × {cloud.shape[0]} cloud")
     robot_q = meta["robot_q"]
     if robot_q is not None:
-        what = "the arm's 6 joint angles in rad"
-        q = _finite(robot_q, 6, path, "robot_q", what)
+        what = f"the arm's {ARM_DOF} joint angles in rad"
+        q = _finite(robot_q, ARM_DOF, path, "robot_q", what)
         if max(abs(v) for v in q) > 2 * math.pi:
             raise CaptureFormatError(f"{path}: meta.robot_q must be {what}, got {robot_q!r}")
         robot_q = tuple(q)

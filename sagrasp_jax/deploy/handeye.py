@@ -58,7 +58,7 @@ import numpy as np
 from sagrasp_jax.deploy.safety import SafetyLayer, SafetyViolation
 from sagrasp_jax.task import collision, geometry
 from sagrasp_jax.task.config import EnvConfig, SamplingConfig
-from sagrasp_jax.task.robot import RobotModel, forward_kinematics, load_robot, primitive_poses
+from sagrasp_jax.task.robot import ARM_DOF, RobotModel, forward_kinematics, load_robot, primitive_poses
 from sagrasp_jax.task.sampling import ResetSpec
 from sagrasp_jax.task.scene import SCENE
 
@@ -428,7 +428,7 @@ class PlannedPose(NamedTuple):
     approach: np.ndarray  # (3,) unit gripper approach axis (flange +z), base frame
     finger_axis: np.ndarray  # (3,) unit direction the fingers open along (flange +x), horizontal
     rpy: np.ndarray  # (3,) the flange's roll, pitch, yaw (rad; R = Rz(yaw)·Ry(pitch)·Rx(roll), the URDF's convention)
-    q: np.ndarray  # (6,) joints (rad) that reach it from env.task.home_q's branch
+    q: np.ndarray  # (dof,) joints (rad) that reach it from env.task.home_q's branch
     tilt_deg: float
     direction: str  # where the approach axis leans: out of / into the base axis, (counter)clockwise, toward the camera
 
@@ -534,13 +534,14 @@ def _approach_axes(tcp_mm: np.ndarray, tilt_deg: float, direction: str) -> np.nd
 def _solve_ik(model: RobotModel, tcp_m: np.ndarray, axes: np.ndarray, home: np.ndarray,
               stages: int = 8, iterations: int = 12, final: int = 48,
               damping: float = 1e-2) -> tuple[np.ndarray, np.ndarray]:
-    """Joints (P, 6) putting the gripper centre at ``tcp_m`` with its approach axis along ``axes``, by damped
+    """Joints (P, dof) putting the gripper centre at ``tcp_m`` with its approach axis along ``axes``, by damped
     least squares on a central-difference Jacobian, all P at once, walked from ``home`` in ``stages`` steps (so
     each stays on home's branch); and the remaining error (P,) (m and unit-axis difference, combined)."""
     kin = forward_kinematics(np, model, home)
     start_p, start_a = kin.gripper_centre, kin.approach_axis
     q = np.tile(np.asarray(home, dtype=float), (len(tcp_m), 1))
-    probe = np.concatenate([np.zeros((1, 6)), 1e-6 * np.eye(6), -1e-6 * np.eye(6)])
+    dof = model.dof
+    probe = np.concatenate([np.zeros((1, dof)), 1e-6 * np.eye(dof), -1e-6 * np.eye(dof)])
 
     def error(qv: np.ndarray, goal: np.ndarray, axis: np.ndarray) -> np.ndarray:
         k = forward_kinematics(np, model, qv)
@@ -552,10 +553,10 @@ def _solve_ik(model: RobotModel, tcp_m: np.ndarray, axes: np.ndarray, home: np.n
         axis = start_a + f * (axes - start_a)
         axis = axis / np.linalg.norm(axis, axis=1, keepdims=True)
         for _ in range(iterations + (final if stage == stages else 0)):
-            e = error(q[:, None, :] + probe, goal[:, None], axis[:, None])  # (P, 13, 6)
-            jac = (e[:, 1:7] - e[:, 7:]).transpose(0, 2, 1) / 2e-6  # (P, 6 errors, 6 joints)
+            e = error(q[:, None, :] + probe, goal[:, None], axis[:, None])  # (P, 1 + 2 dof, 6 errors)
+            jac = (e[:, 1:1 + dof] - e[:, 1 + dof:]).transpose(0, 2, 1) / 2e-6  # (P, 6 errors, dof joints)
             step = np.einsum("pji,pj->pi", jac, np.linalg.solve(
-                jac @ jac.transpose(0, 2, 1) + damping**2 * np.eye(6), -e[:, 0, :, None])[..., 0])
+                jac @ jac.transpose(0, 2, 1) + damping**2 * np.eye(jac.shape[1]), -e[:, 0, :, None])[..., 0])
             q = q + step * np.minimum(1.0, 0.3 / np.maximum(np.abs(step).max(-1, keepdims=True), 1e-12))
     q = (q + np.pi) % (2 * np.pi) - np.pi
     return q, np.linalg.norm(error(q, tcp_m, axes), axis=-1)
@@ -574,7 +575,7 @@ def _level_fingers(model: RobotModel, q: np.ndarray) -> np.ndarray:
 def _empty_cell_spec(cfg: EnvConfig) -> ResetSpec:
     n = cfg.sampling.max_obstacles
     parked = np.tile([0.0, 0.0, -5.0], (n, 1))
-    return ResetSpec(np.zeros(6), np.array([0.0, 0.0, -5.0]), np.asarray(0.0), np.zeros(n, bool), np.zeros(n, np.int32),
+    return ResetSpec(np.zeros(ARM_DOF), np.array([0.0, 0.0, -5.0]), np.asarray(0.0), np.zeros(n, bool), np.zeros(n, np.int32),
                      parked, np.zeros(n), np.full((n, 3), 0.01), np.asarray(0), np.asarray(False))
 
 

@@ -55,7 +55,7 @@ from sagrasp_jax.deploy.calibration import standing_cube_centre, validate_obstac
 from sagrasp_jax.deploy.safety import (
     SafetyLayer, SafetyViolation, check_policy_constants, check_policy_scene, deployment_env,
 )
-from sagrasp_jax.task.robot import IKError, RobotModel, forward_kinematics, lift_pose, load_robot, translated_pose
+from sagrasp_jax.task.robot import ARM_DOF, IKError, RobotModel, forward_kinematics, lift_pose, load_robot, translated_pose
 from sagrasp_jax.task.policy_file import NumpyPolicy
 from sagrasp_jax.task.sampling import ResetSpec
 
@@ -76,7 +76,7 @@ class DeployError(RuntimeError):
 class RobotInterface(Protocol):
     """What the loop needs from a robot: the real AUBO-i5 SDK, the PyBullet twin or MuJoCo.
 
-    ``command_joint_targets`` sends one absolute joint target (rad, 6 arm joints) and returns
+    ``command_joint_targets`` sends one absolute joint target (rad, one per arm joint) and returns
     after one control period (``env.control.control_dt``); the controller tracks it.  The
     gripper calls block until the fingers have settled.  A backend may also offer
     ``object_position() -> (3,)`` (simulators: the cube's centre) so the report can say
@@ -235,8 +235,8 @@ def send_checked(robot: RobotInterface, safety: SafetyLayer, q_cmd: Any, q_prev:
 
 def _read(robot: RobotInterface) -> np.ndarray:
     q = np.asarray(robot.read_joints(), dtype=float)
-    if q.shape != (6,) or not np.isfinite(q).all():
-        raise DeployError(f"robot reported joints {q!r}; expected 6 finite values")
+    if q.shape != (ARM_DOF,) or not np.isfinite(q).all():
+        raise DeployError(f"robot reported joints {q!r}; expected {ARM_DOF} finite values")
     return q
 
 

@@ -381,8 +381,8 @@ def _near_primitives(points: np.ndarray, kinds: np.ndarray, pos: np.ndarray, rot
 
 def _robot_primitives(model: RobotModel, q: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     q = np.asarray(q, dtype=float)
-    if q.shape != (6,) or not np.isfinite(q).all():
-        raise PerceptionError(f"robot joints must be 6 finite values, got {q!r}")
+    if q.shape != (model.dof,) or not np.isfinite(q).all():
+        raise PerceptionError(f"robot joints must be {model.dof} finite values, got {q!r}")
     pos, rot = primitive_poses(np, model, forward_kinematics(np, model, q))
     return model.prim_kind, pos, rot, model.prim_size
 

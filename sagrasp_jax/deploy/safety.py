@@ -214,8 +214,8 @@ class SafetyLayer:
 
     def _as_q(self, q: Any, what: str) -> np.ndarray:
         q = np.asarray(q, dtype=float)
-        if q.shape != (6,):
-            raise SafetyViolation(f"{what} must be 6 joint values, got shape {q.shape}")
+        if q.shape != (self.robot.dof,):
+            raise SafetyViolation(f"{what} must be {self.robot.dof} joint values, got shape {q.shape}")
         if not np.isfinite(q).all():
             bad = ", ".join(self.joint_names[i] for i in np.nonzero(~np.isfinite(q))[0])
             raise SafetyViolation(f"{what} has NaN/inf for {bad}")
@@ -225,7 +225,7 @@ class SafetyLayer:
         """Static rules (limits, workspace, table, collision hook) for one joint vector."""
         q = self._as_q(q, what)
         lo, hi = self.robot.q_lower, self.robot.q_upper
-        for i in range(6):
+        for i in range(self.robot.dof):
             if not lo[i] - _TOL <= q[i] <= hi[i] + _TOL:
                 raise SafetyViolation(
                     f"{what}: {self.joint_names[i]} = {q[i]:.4f} rad is outside its limit [{lo[i]:.4f}, {hi[i]:.4f}] rad"
@@ -262,7 +262,7 @@ class SafetyLayer:
         q_prev = self._as_q(q_prev, "previous target")
         q = self._as_q(q_cmd, "commanded target")
         step = np.abs(q - q_prev)
-        for i in range(6):
+        for i in range(self.robot.dof):
             if step[i] > self.step_limit[i] + _TOL:
                 raise SafetyViolation(
                     f"commanded target: {self.joint_names[i]} moves {step[i]:.4f} rad in one step, over the limit "

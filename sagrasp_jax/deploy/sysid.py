@@ -48,8 +48,9 @@ from sagrasp_jax.task import control
 from sagrasp_jax.base import cli
 from sagrasp_jax.base import fileio
 from sagrasp_jax.task.config import ControlConfig
+from sagrasp_jax.task.robot import ARM_DOF
 
-COLUMNS = ("time", *(f"cmd_q{j}" for j in range(1, 7)), *(f"q{j}" for j in range(1, 7)))
+COLUMNS = ("time", *(f"cmd_q{j}" for j in range(1, ARM_DOF + 1)), *(f"q{j}" for j in range(1, ARM_DOF + 1)))
 MIN_ROWS = 100  # control periods: enough motion to separate gain, carry-over and latency
 MAX_LOG_BYTES = 64 << 20  # ≈ 250,000 rows, 3.5 h at 20 Hz: refused before it is read beyond this
 MAX_LATENCY_STEPS = 3.0  # the latency knob's range (env.randomize.latency ≤ 3): what training can centre on
@@ -70,19 +71,19 @@ class LogError(ValueError):
 
 class RobotLog(NamedTuple):
     time: np.ndarray  # (T,)
-    command: np.ndarray  # (T, 6)
-    measured: np.ndarray  # (T, 6)
+    command: np.ndarray  # (T, dof)
+    measured: np.ndarray  # (T, dof)
 
 
 class SysIdResult(NamedTuple):
-    lag_gain: np.ndarray  # (6,)
-    lag_momentum: np.ndarray  # (6,)
+    lag_gain: np.ndarray  # (dof,)
+    lag_momentum: np.ndarray  # (dof,)
     latency_steps: float
-    joint_offset: np.ndarray  # (6,) rad
-    residual_rms: np.ndarray  # (6,) rad per control step
+    joint_offset: np.ndarray  # (dof,) rad
+    residual_rms: np.ndarray  # (dof,) rad per control step
     period_s: float
-    explained: np.ndarray  # (6,) share of each joint's step-to-step motion the fit explains (R²)
-    motion: np.ndarray  # (6,) rad: the smaller of each joint's reading and command spans
+    explained: np.ndarray  # (dof,) share of each joint's step-to-step motion the fit explains (R²)
+    motion: np.ndarray  # (dof,) rad: the smaller of each joint's reading and command spans
 
 
 def read_log(path: str) -> RobotLog:
@@ -146,15 +147,15 @@ def _delayed(command: np.ndarray, latency: float, gain: np.ndarray) -> np.ndarra
 
 
 def _fit_at(log: RobotLog, latency: float, gain: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per-joint least squares at a given latency: (coefficients g, m, k (6, 3), residual rms (6,), sse);
+    """Per-joint least squares at a given latency: (coefficients g, m, k (dof, 3), residual rms (dof,), sse);
     ``gain`` sets how a fraction of a period's latency weighs the older command."""
     y, c = log.measured, _delayed(log.command, latency, gain)
     dy_next = y[2:] - y[1:-1]  # x' − x for periods 1..T-2
     error = c[1:-1] - y[1:-1]
     carry = y[1:-1] - y[:-2]
-    coef = np.empty((6, 3))
-    rms = np.empty(6)
-    for j in range(6):
+    coef = np.empty((ARM_DOF, 3))
+    rms = np.empty(ARM_DOF)
+    for j in range(ARM_DOF):
         a = np.stack([error[:, j], carry[:, j], np.ones(error.shape[0])], axis=1)
         coef[j], *_ = np.linalg.lstsq(a, dy_next[:, j], rcond=None)
         rms[j] = math.sqrt(float(np.mean((a @ coef[j] - dy_next[:, j]) ** 2)))
@@ -198,9 +199,9 @@ def not_identified(result: SysIdResult) -> list[str]:
     """What ``result`` could not identify, one sentence each (empty: every part of the fit holds): joints that
     never moved, joints whose motion the model does not explain, a latency beyond training's range, gains or
     carry-overs outside the model's."""
-    names = [f"q{j + 1}" for j in range(6)]
-    still = [j for j in range(6) if result.motion[j] < MIN_MOTION]
-    unexplained = [j for j in range(6) if j not in still and not result.explained[j] >= MIN_EXPLAINED]
+    names = [f"q{j + 1}" for j in range(ARM_DOF)]
+    still = [j for j in range(ARM_DOF) if result.motion[j] < MIN_MOTION]
+    unexplained = [j for j in range(ARM_DOF) if j not in still and not result.explained[j] >= MIN_EXPLAINED]
     problems = []
     if still:
         problems.append(f"{', '.join(names[j] for j in still)} never move{'s' * (len(still) == 1)} (readings or "
@@ -213,7 +214,7 @@ def not_identified(result: SysIdResult) -> list[str]:
                         "swapped, or were the readings taken after the command?)")
     for what, values, (lo, hi) in (("lag_gain", result.lag_gain, GAIN_RANGE),
                                    ("lag_momentum", result.lag_momentum, MOMENTUM_RANGE)):
-        outside = [f"{names[j]} {values[j]:.3f}" for j in range(6)
+        outside = [f"{names[j]} {values[j]:.3f}" for j in range(ARM_DOF)
                    if j not in still + unexplained and not lo - FIT_SLACK <= values[j] <= hi + FIT_SLACK]
         if outside:
             problems.append(f"fitted {what} outside the model's range [{lo:g}, {hi:g}] ({', '.join(outside)}): not "
@@ -305,7 +306,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     print(f"latency {report['latency_steps']:.2f} control steps ({1000 * report['latency_s']:.1f} ms)")
     print("joint   lag_gain  momentum  servo_gain  offset_mrad  residual_mrad")
-    for j in range(6):
+    for j in range(ARM_DOF):
         sg = report["servo_gain"][j]
         print(f"q{j + 1}      {result.lag_gain[j]:8.3f}  {result.lag_momentum[j]:8.3f}  {'-' if sg is None else f'{sg:10.2f}'}"
               f"  {1000 * result.joint_offset[j]:11.2f}  {1000 * result.residual_rms[j]:13.2f}")

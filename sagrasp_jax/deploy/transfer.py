@@ -13,8 +13,8 @@ from typing import Any
 import numpy as np
 
 from sagrasp_jax.task.config import RandomizeConfig
+from sagrasp_jax.task.robot import ARM_DOF
 
-ARM_DOF = 6
 MAX_TWIN_LATENCY = 10.0  # control steps
 SERVO_GAIN_RANGE = (0.1, 2.0)  # factor on the fitted servo model's gain
 MAX_JOINT_OFFSET = 0.2  # rad: env.randomize.joint_offset's range

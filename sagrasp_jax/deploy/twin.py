@@ -171,16 +171,17 @@ class PyBulletTwin:
                  targetPositions=[opening] * 2, forces=[FINGER_FORCE] * 2)
 
     def _set_arm(self, q: np.ndarray, velocity: np.ndarray | None = None) -> None:
-        v = np.zeros(6) if velocity is None else velocity
+        v = np.zeros(robot_mod.ARM_DOF) if velocity is None else velocity
         for j, value, dv in zip(self.arm_joints, q, v):
             self._pb(pb.resetJointState, self.robot_body, j, float(value), float(dv))
         self._hold_arm(q, v)
 
     def _hold_arm(self, q: np.ndarray, velocity: np.ndarray | None = None) -> None:
-        v = [0.0] * 6 if velocity is None else [float(x) for x in velocity]
+        v = [0.0] * robot_mod.ARM_DOF if velocity is None else [float(x) for x in velocity]
         self._pb(pb.setJointMotorControlArray, self.robot_body, self.arm_joints, pb.POSITION_CONTROL,
                  targetPositions=[float(v) for v in q], targetVelocities=v, forces=self.arm_forces,
-                 positionGains=[ARM_POSITION_GAIN] * 6, velocityGains=[ARM_VELOCITY_GAIN] * 6)
+                 positionGains=[ARM_POSITION_GAIN] * robot_mod.ARM_DOF,
+                 velocityGains=[ARM_VELOCITY_GAIN] * robot_mod.ARM_DOF)
 
     def _simulate(self, seconds: float) -> None:
         for _ in range(max(1, round(seconds * PHYSICS_HZ))):
@@ -225,13 +226,13 @@ class PyBulletTwin:
 
     def read_joints(self) -> np.ndarray:
         """The joints as the controller reports them: off by this episode's offset, with reading noise."""
-        noise = self.errors.joint_noise * self._rng.standard_normal(6) if self.errors.joint_noise else 0.0
+        noise = self.errors.joint_noise * self._rng.standard_normal(robot_mod.ARM_DOF) if self.errors.joint_noise else 0.0
         return self.true_joints() + self._offsets + noise
 
     def command_joint_targets(self, q: np.ndarray) -> None:
         q = np.asarray(q, dtype=float)
-        if q.shape != (6,) or not np.isfinite(q).all():
-            raise ValueError(f"joint target must be 6 finite values, got {q!r}")
+        if q.shape != (robot_mod.ARM_DOF,) or not np.isfinite(q).all():
+            raise ValueError(f"joint target must be {robot_mod.ARM_DOF} finite values, got {q!r}")
         if self.carrying:
             self._hold_arm(q)
             self._simulate(self.control_dt)

@@ -128,7 +128,7 @@ class GraspEnv:
         only matter to contacts and rendering (inertias are explicit); the fingers, held open during
         episodes, are welded open (their servo held them rigid) and every joint-less body is fused into
         its parent.  No constraints either: collisions are analytic and the servo targets are clipped
-        to the joint limits, so no joint-limit solver runs.  What is left is the 6-DoF arm, its position
+        to the joint limits, so no joint-limit solver runs.  What is left is the ARM_DOF-joint arm, its position
         servos (with armature, damping and actuator gravity compensation) and implicitfast."""
         import mujoco
         from mujoco import mjx
@@ -152,8 +152,8 @@ class GraspEnv:
         model = spec.compile()
         model.opt.timestep = self.cfg.control.physics_dt
         model.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_CONTACT | mujoco.mjtDisableBit.mjDSBL_CONSTRAINT
-        if model.nq != 6 or model.nu != 6:
-            raise RuntimeError(f"{MJCF_ROBOT}: expected the 6-joint arm after welding the fingers, got nq={model.nq}")
+        if model.nq != robot.ARM_DOF or model.nu != robot.ARM_DOF:
+            raise RuntimeError(f"{MJCF_ROBOT}: expected the {robot.ARM_DOF}-joint arm after welding the fingers, got nq={model.nq}")
         self._mj_model = model  # Warp's make_data takes the MuJoCo model
         # servo_physics_step's premises (else mjx.step): the JAX backend, implicitfast, nothing but the servos
         self._lean_physics = (self.cfg.control.impl == "jax" and model.opt.integrator == mujoco.mjtIntegrator.mjINT_IMPLICITFAST
@@ -180,7 +180,7 @@ class GraspEnv:
         """Apply the new command ``q_target``: returns the new pipeline state, the measured joints and the
         servo-model info of the lagged mode ({} otherwise).
 
-        ``queue`` (K, 6), newest first, holds the commands up to this one when there is command latency:
+        ``queue`` (K, dof), newest first, holds the commands up to this one when there is command latency:
         the servos then track the command ``n`` steps old and, for the fraction ``f`` of the control period
         (latency = n + f), the one before it (``control.delayed_commands``).  Randomisation scales the servo gains."""
         info = state.info
@@ -220,12 +220,12 @@ class GraspEnv:
         pipeline, _ = jax.lax.scan(substep, pipeline, jnp.arange(self.cfg.control.substeps))
         if self._lean_physics:
             pipeline = ServoState(qpos=pipeline.qpos, qvel=pipeline.qvel)
-        return pipeline, pipeline.qpos[:6].astype(dtype), {}
+        return pipeline, pipeline.qpos[:robot.ARM_DOF].astype(dtype), {}
 
     def measured_joints(self, state: State) -> jax.Array:
         """The arm's actual joint positions in ``state`` (no sensor noise), in every mode."""
         if self.cfg.control.mode == "dynamic":
-            return state.pipeline_state.qpos[..., :6].astype(state.info["q_target"].dtype)
+            return state.pipeline_state.qpos[..., :robot.ARM_DOF].astype(state.info["q_target"].dtype)
         if self.lagged:
             return state.info["servo"]["q"]
         return state.info["q_target"]
@@ -238,10 +238,10 @@ class GraspEnv:
         k = jax.random.split(key, 6)
         u = lambda kk, shape, half: half * jax.random.uniform(kk, shape, dtype, -1.0, 1.0)  # noqa: E731
         return {
-            "kp_scale": 1.0 + u(k[0], (6,), r.servo_gain),
-            "kv_scale": 1.0 + u(k[1], (6,), r.servo_gain),
+            "kp_scale": 1.0 + u(k[0], (robot.ARM_DOF,), r.servo_gain),
+            "kv_scale": 1.0 + u(k[1], (robot.ARM_DOF,), r.servo_gain),
             "latency": r.latency * jax.random.uniform(k[2], (), dtype),  # control steps (delayed_commands)
-            "joint_offset": u(k[3], (6,), r.joint_offset),
+            "joint_offset": u(k[3], (robot.ARM_DOF,), r.joint_offset),
             "joint_noise": r.joint_noise * jax.random.uniform(k[4], (), dtype),
             "target_error": u(k[5], (3,), r.target_error),
         }

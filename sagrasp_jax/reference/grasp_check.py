@@ -43,7 +43,7 @@ LIFT_S = 1.0  # s ramp of the arm servo targets to the lift pose
 HOLD_S = 0.5  # s holding the lifted pose before measuring
 LIFT_HEIGHT = 0.05  # m, docs/task.md §2
 HOLD_TOLERANCE = 0.01  # m the cube may lag behind the gripper's rise (soft contacts slip a few mm)
-ARM_DOF = 6
+ARM_DOF = robot_mod.ARM_DOF
 FrameCallback = Callable[["GraspScene"], None]
 
 

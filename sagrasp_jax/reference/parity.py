@@ -11,7 +11,7 @@ would otherwise flip a flag now and then and make the runs diverge.
 
 Action sources (``--actions``), each over ``--episodes`` episodes:
 
-* ``random``: uniform actions in [-1, 1]^6, the same pre-drawn sequence for both envs;
+* ``random``: uniform actions in [-1, 1]^dof, the same pre-drawn sequence for both envs;
 * ``scripted``: a damped-least-squares reach-and-descend controller plus pre-drawn uniform
   noise, computed from each env's own observation (it succeeds often, so the success,
   slow-down and fine-tune branches are exercised, which random actions almost never reach);
@@ -44,6 +44,7 @@ from typing import Any, Callable
 import numpy as np
 
 from sagrasp_jax.base import fileio
+from sagrasp_jax.task import observation
 from sagrasp_jax.task import robot
 from sagrasp_jax.task import sampling
 from sagrasp_jax.task import scripted
@@ -126,11 +127,20 @@ def _stack_specs(specs: list[sampling.ResetSpec]) -> sampling.ResetSpec:
 # --------------------------------------------------------------------------------------------
 # action sources
 # --------------------------------------------------------------------------------------------
+def _entries(first: str, n: int) -> slice:
+    """The slice of ``n`` observation entries from ``first`` on (every layout starts like the paper's)."""
+    start = observation.PAPER_LAYOUT.index(first)
+    return slice(start, start + n)
+
+
+JOINTS, GRIPPER, TARGET = _entries("q1", robot.ARM_DOF), _entries("gripper_x", 3), _entries("target_x", 3)
+
+
 def scripted_actions(cfg: EnvConfig, obs: np.ndarray) -> np.ndarray:
     """The package's scripted controller (``sagrasp_jax.task.scripted``) from observations (n, size): every
-    layout starts with q1..q6, the gripper centre and the target centre."""
+    layout starts with the joints, the gripper centre and the target centre."""
     obs = np.atleast_2d(np.asarray(obs, dtype=np.float64))
-    return scripted.scripted_action(np, cfg, obs[:, :6], obs[:, 9:12])
+    return scripted.scripted_action(np, cfg, obs[:, JOINTS], obs[:, TARGET])
 
 
 @dataclass
@@ -146,10 +156,10 @@ class ActionSource:
 def make_source(name: str, cfg: EnvConfig, episodes: int, max_steps: int, rng: np.random.Generator,
                 policy: Any = None) -> ActionSource:
     if name == "random":
-        table = rng.uniform(-1.0, 1.0, (episodes, max_steps, 6))
+        table = rng.uniform(-1.0, 1.0, (episodes, max_steps, robot.ARM_DOF))
         return ActionSource(name, lambda obs, t, ids: table[ids, t], open_loop=True)
     if name == "scripted":
-        noise = SCRIPTED_NOISE * rng.uniform(-1.0, 1.0, (episodes, max_steps, 6))
+        noise = SCRIPTED_NOISE * rng.uniform(-1.0, 1.0, (episodes, max_steps, robot.ARM_DOF))
         return ActionSource(name, lambda obs, t, ids: np.clip(scripted_actions(cfg, obs) + noise[ids, t], -1.0, 1.0))
     if name == "policy":
         if policy is None:
@@ -179,8 +189,8 @@ class JaxSide:
 
         def extract(state: Any) -> dict[str, Any]:
             ep = state.info["episode"]
-            q = state.pipeline_state.qpos[:, :6] if dynamic else state.info["q_target"]
-            qd = state.pipeline_state.qvel[:, :6] if dynamic else jnp.zeros_like(q)
+            q = state.pipeline_state.qpos[:, :robot.ARM_DOF] if dynamic else state.info["q_target"]
+            qd = state.pipeline_state.qvel[:, :robot.ARM_DOF] if dynamic else jnp.zeros_like(q)
             return {
                 "obs": state.obs, "reward": state.reward, "done": state.done,
                 **{key: state.metrics[key] for key in term_keys()},
@@ -211,7 +221,7 @@ class JaxSide:
         return state, self.jax.device_get(out)
 
     def step(self, state: Any, actions: np.ndarray) -> tuple[Any, dict[str, np.ndarray]]:
-        full = np.zeros((self.batch, 6))
+        full = np.zeros((self.batch, robot.ARM_DOF))
         full[: len(actions)] = actions
         state, out = self._advance(state, self.jnp.asarray(full))
         return state, self.jax.device_get(out)
@@ -257,7 +267,7 @@ def _compare_step(errs: Errors, j_obs: np.ndarray, j: dict[str, float], p_obs: n
                   j_flags: dict[str, bool], p_flags: dict[str, bool]) -> bool:
     """Record one step's errors; returns whether all flags agree (rewards are compared only then:
     a flag disagreement is counted once, as a flag disagreement)."""
-    errs.add("gripper_centre", np.linalg.norm(j_obs[6:9] - p_obs[6:9]))
+    errs.add("gripper_centre", np.linalg.norm(j_obs[GRIPPER] - p_obs[GRIPPER]))
     diff = np.abs(j_obs - p_obs)
     errs.add("obs", diff.max())
     errs.obs_entry_max = np.maximum(errs.obs_entry_max, diff)
@@ -350,7 +360,7 @@ class _SourceRun:
             ok = _compare_step(self.traj, j_obs, j_row, obs, _pybullet_row(rew, info), j_flags, p_flags)
             if not ok and len(self.disagreements) < MAX_LISTED_DISAGREEMENTS:
                 self.disagreements.append({"episode": episode_id, "step": t + 1, "jax": j_flags, "pybullet": p_flags,
-                                           "gripper_gap": float(np.linalg.norm(j_obs[6:9] - obs[6:9]))})
+                                           "gripper_gap": float(np.linalg.norm(j_obs[GRIPPER] - obs[GRIPPER]))})
             elif ok and j_flags["done"]:
                 for key in episode_keys():
                     diff = abs(float(jout["episode"][key][k]) - float(info[EPISODE_INFO][key]))

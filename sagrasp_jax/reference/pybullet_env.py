@@ -95,7 +95,7 @@ FINGER_FORCE_FALLBACK = 20.0  # N, used only if the URDF gives a finger no effor
 def _as_numpy_spec(spec: sampling.ResetSpec) -> sampling.ResetSpec:
     """A ResetSpec with plain float64 / bool / int NumPy leaves (it may come from JAX)."""
     return sampling.ResetSpec(
-        q0=np.asarray(spec.q0, dtype=np.float64).reshape(6),
+        q0=np.asarray(spec.q0, dtype=np.float64).reshape(robot.ARM_DOF),
         target_pos=np.asarray(spec.target_pos, dtype=np.float64).reshape(3),
         target_yaw=np.asarray(spec.target_yaw, dtype=np.float64).reshape(()),
         obstacle_active=np.asarray(spec.obstacle_active).astype(bool),
@@ -345,7 +345,7 @@ class PyBulletGraspEnv(gym.Env if gym is not None else object):  # type: ignore[
 
     # -- robot state -----------------------------------------------------------------------
     def _set_joints(self, q: np.ndarray, qd: np.ndarray | None = None) -> None:
-        qd = np.zeros(6) if qd is None else qd
+        qd = np.zeros(robot.ARM_DOF) if qd is None else qd
         for j, value, vel in zip(self.arm_joints, q, qd):
             self._pb(pb.resetJointState, self.robot_body, j, float(value), float(vel))
         for j in self.finger_joints:
@@ -360,16 +360,16 @@ class PyBulletGraspEnv(gym.Env if gym is not None else object):  # type: ignore[
         states = self._pb(pb.getLinkStates, self.robot_body, self._fk_links, computeForwardKinematics=True)
         pos = np.array([s[4] for s in states], dtype=float)
         rot = quaternions_to_rotations(np.array([s[5] for s in states], dtype=float))
-        link_pos = np.concatenate([self._base_pos[None], pos[:6]])
-        link_rot = np.concatenate([self._base_rot[None], rot[:6]])
+        link_pos = np.concatenate([self._base_pos[None], pos[:robot.ARM_DOF]])
+        link_rot = np.concatenate([self._base_rot[None], rot[:robot.ARM_DOF]])
         return Kinematics(
             link_pos=link_pos,
             link_rot=link_rot,
             joint_axes=link_rot[1:, :, 2],  # every arm joint turns about its child link's local z
             joint_pos=link_pos[1:],
-            flange_pos=pos[6],
-            gripper_centre=pos[7],
-            approach_axis=rot[6][:, 2],  # flange local +z
+            flange_pos=pos[robot.ARM_DOF],
+            gripper_centre=pos[robot.ARM_DOF + 1],
+            approach_axis=rot[robot.ARM_DOF][:, 2],  # flange local +z
         )
 
     def _servo_substep(self, ctrl: np.ndarray) -> None:
@@ -412,7 +412,7 @@ class PyBulletGraspEnv(gym.Env if gym is not None else object):  # type: ignore[
             return
         self._pb(
             pb.setJointMotorControlArray, self.robot_body, self.arm_joints, pb.POSITION_CONTROL,
-            targetPositions=q_target.tolist(), targetVelocities=[0.0] * 6, forces=self.arm_forces,
+            targetPositions=q_target.tolist(), targetVelocities=[0.0] * robot.ARM_DOF, forces=self.arm_forces,
             positionGains=self.position_gains.tolist(), velocityGains=self.velocity_gains.tolist(),
         )
         self._pb(
@@ -424,7 +424,7 @@ class PyBulletGraspEnv(gym.Env if gym is not None else object):  # type: ignore[
 
     def _observe(self, q: np.ndarray, kin: Kinematics, col: collision.CollisionResult, tilt: Any) -> np.ndarray:
         task = self.cfg.task
-        noise = self.np_random.normal(size=6) if observation.noise_std(task, self.progress) > 0 else np.zeros(6)
+        noise = self.np_random.normal(size=robot.ARM_DOF) if observation.noise_std(task, self.progress) > 0 else np.zeros(robot.ARM_DOF)
         assert self._spec is not None
         noisy_q = observation.noisy_joints(task, q, self.progress, noise)
         return observation.assemble(np, self.cfg, noisy_q, kin.gripper_centre, self._spec, col, tilt,

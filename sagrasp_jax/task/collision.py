@@ -42,15 +42,22 @@ import numpy as np
 from sagrasp_jax.task import geometry
 from sagrasp_jax.task import shapes
 from sagrasp_jax.task.config import EnvConfig
-from sagrasp_jax.task.robot import BOX, CAPSULE, CYLINDER, SPHERE, Kinematics, RobotModel, primitive_poses
+from sagrasp_jax.task.robot import ARM_JOINTS, BOX, CAPSULE, CYLINDER, SPHERE, Kinematics, RobotModel, primitive_poses
 from sagrasp_jax.task.scene import SCENE
 
 HIT_KINDS = ("obstacle", "gantry", "camera", "table", "target", "self")
 CAPSULE_DIP = 0.005  # m, max surface dip between consecutive capsule cover spheres
 BOX_CELL = 0.025  # m, max half-size of a box cover cell
 REACH_LINK = 2  # primitives of links from the upper arm on can reach the table, posts and target
-SELF_MOVING_LINKS = (4, 5, 6)  # wrist1, wrist2, wrist3 (flange and gripper ride on wrist3)
-SELF_STATIC_LINKS = (0, 1, 2)  # base, shoulder, upper arm
+
+
+def _child_links(joints: tuple[str, ...]) -> tuple[int, ...]:
+    """The link indices (RobotModel.link_names: 0 the base, i + 1 the link ARM_JOINTS[i] turns) of ``joints``."""
+    return tuple(ARM_JOINTS.index(j) + 1 for j in joints)
+
+
+SELF_MOVING_LINKS = _child_links(("wrist1_joint", "wrist2_joint", "wrist3_joint"))  # flange and gripper ride on wrist3
+SELF_STATIC_LINKS = (0, *_child_links(("shoulder_joint", "upperArm_joint")))  # base, shoulder, upper arm
 UNREACHABLE_ROLES_MIN_Z = 1.3  # m: static parts wholly above this are out of the arm's reach (tested)
 
 

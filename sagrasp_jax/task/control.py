@@ -15,19 +15,19 @@ import math
 from typing import Any, NamedTuple
 
 from sagrasp_jax.task.config import ControlConfig
-from sagrasp_jax.task.robot import RobotModel, forward_kinematics, tilt
+from sagrasp_jax.task.robot import ARM_DOF, RobotModel, forward_kinematics, tilt
 
 # Zero-based indices of the two wrist joints that the fine-tuning corrects (docs/task.md §2
 # step 3: "joints 4 and 5"); fixed by the task definition, not a tunable.
 FINE_JOINTS = (3, 4)
-ACTION_SIZE = 6  # one joint-target increment per arm joint (docs/task.md §2 step 1)
+ACTION_SIZE = ARM_DOF  # one joint-target increment per arm joint (docs/task.md §2 step 1)
 
 
 class ControlResult(NamedTuple):
     """What one control step did; the flags and correction feed the episode metrics."""
 
-    q_target: Any  # (..., 6) new accumulated joint target, inside the joint limits
-    dq: Any  # (..., 6) joint increment applied to the target (before the limit clip)
+    q_target: Any  # (..., dof) new accumulated joint target, inside the joint limits
+    dq: Any  # (..., dof) joint increment applied to the target (before the limit clip)
     slowed: Any  # (...,) bool: proximity deceleration was applied
     finetuned: Any  # (...,) bool: vertical-alignment correction was applied
     correction: Any  # (..., 2) Δq_c added to joints 4 and 5 (zeros when inactive)
@@ -131,7 +131,7 @@ def latency_queue_size(max_latency: float) -> int:
 
 
 def delayed_commands(xp: Any, queue: Any, latency: Any) -> tuple[Any, Any, Any]:
-    """For a latency of ``n + f`` control steps (0 ≤ f < 1) and ``queue`` (K, 6) of commands, newest first:
+    """For a latency of ``n + f`` control steps (0 ≤ f < 1) and ``queue`` (K, dof) of commands, newest first:
     the command ``n`` steps old (tracked for the last 1 − f of the control period), the one before it (held
     for the first f of it) and f.  ``latency`` must stay below K − 1 (``latency_queue_size``)."""
     whole = xp.floor(latency)

@@ -35,10 +35,10 @@ import numpy as np
 from sagrasp_jax.task import collision
 from sagrasp_jax.task import shapes
 from sagrasp_jax.task.config import OBS_LAYOUTS, Config, EnvConfig, TaskConfig
-from sagrasp_jax.task.robot import Kinematics, RobotModel, forward_kinematics, tilt
+from sagrasp_jax.task.robot import ARM_DOF, Kinematics, RobotModel, forward_kinematics, tilt
 
 _ROBOT_ENTRIES: tuple[str, ...] = (
-    "q1", "q2", "q3", "q4", "q5", "q6",
+    *(f"q{j}" for j in range(1, ARM_DOF + 1)),
     "gripper_x", "gripper_y", "gripper_z",
     "target_x", "target_y", "target_z",
 )  # fmt: skip
@@ -50,7 +50,7 @@ _SLOT_ENTRIES = ("present", "gripper_dx", "gripper_dy", "gripper_dz", "robot_dx"
 
 _SHAPE_ENTRIES = ("centre_dx", "centre_dy", "centre_dz", "extent_x", "extent_y", "extent_z")  # obs_obstacle_shape
 EXTENT_SCALE = 0.1  # m: obs_obstacle_shape's bounding-box half-extents (0.02-0.17 m in the sampled ranges) / this
-PENDING_ENTRIES = tuple(f"pending{j}" for j in range(1, 7))  # relative_lag: (q_target − q_reading) / q_max per joint
+PENDING_ENTRIES = tuple(f"pending{j}" for j in range(1, ARM_DOF + 1))  # relative_lag: (q_target − q_reading) / q_max per joint
 
 
 def _relative_layout(slots: int, shape: bool) -> tuple[str, ...]:
@@ -98,7 +98,7 @@ def noise_std(task: TaskConfig, progress: Any) -> Any:
 
 
 def noisy_joints(task: TaskConfig, q: Any, progress: Any, standard_normal: Any) -> Any:
-    """Joint readings with sensor noise: ``standard_normal`` is a (6,) draw of N(0, 1) from the env's RNG."""
+    """Joint readings with sensor noise: ``standard_normal`` is a (dof,) draw of N(0, 1) from the env's RNG."""
     return q + noise_std(task, progress) * standard_normal
 
 

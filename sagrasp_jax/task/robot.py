@@ -30,6 +30,7 @@ ARM_JOINTS = (
     "wrist3_joint",
 )
 FINGER_JOINTS = ("left_finger_joint", "right_finger_joint")
+ARM_DOF = len(ARM_JOINTS)  # the arm's joint count, the one place it is stated (a robot registry swaps ARM_JOINTS)
 
 # Primitive kinds (sizes in MuJoCo's convention), shared with geometry.py and shapes.py.
 SPHERE, CAPSULE, BOX, CYLINDER = 0, 1, 2, 3
@@ -73,8 +74,8 @@ class Primitive:
 
 @dataclass(frozen=True)
 class RobotModel:
-    link_names: tuple[str, ...]  # base + the six arm links
-    joint_origins: np.ndarray  # (6, 4, 4) parent-link -> joint frame, before rotation about local z
+    link_names: tuple[str, ...]  # base + one link per arm joint
+    joint_origins: np.ndarray  # (dof, 4, 4) parent-link -> joint frame, before rotation about local z
     q_lower: np.ndarray
     q_upper: np.ndarray
     velocity_limit: np.ndarray  # rad/s
@@ -85,6 +86,11 @@ class RobotModel:
     finger_open: float  # finger joint value when fully open
     primitives: tuple[Primitive, ...]
     urdf_path: str
+
+    @property
+    def dof(self) -> int:
+        """The arm's joint count as parsed from the URDF (ARM_DOF for the shipped arm)."""
+        return len(self.joint_origins)
 
     @property
     def prim_kind(self) -> np.ndarray:
@@ -279,8 +285,8 @@ class Kinematics(NamedTuple):
 
     link_pos: Any  # (..., 7, 3) base + six arm links
     link_rot: Any  # (..., 7, 3, 3)
-    joint_axes: Any  # (..., 6, 3) world axis of each arm joint
-    joint_pos: Any  # (..., 6, 3)
+    joint_axes: Any  # (..., dof, 3) world axis of each arm joint
+    joint_pos: Any  # (..., dof, 3)
     flange_pos: Any  # (..., 3)
     gripper_centre: Any  # (..., 3)
     approach_axis: Any  # (..., 3) gripper approach (flange local +z)
@@ -300,7 +306,7 @@ def forward_kinematics(xp: Any, robot: RobotModel, q: Any) -> Kinematics:
     rot = xp.broadcast_to(xp.eye(3, dtype=q.dtype), batch + (3, 3))
     pos = xp.zeros(batch + (3,), dtype=q.dtype)
     rots, poss = [rot], [pos]
-    for i in range(6):
+    for i in range(robot.dof):
         origin = robot.joint_origins[i]
         pos = pos + rot @ xp.asarray(origin[:3, 3], dtype=q.dtype)
         rot = rot @ xp.asarray(origin[:3, :3], dtype=q.dtype) @ _rot_z(xp, q[..., i])
@@ -373,9 +379,9 @@ def _damped_least_squares(error: Any, q: np.ndarray, iterations: int, tol: float
         e = error(q)
         if np.linalg.norm(e) < tol:
             break
-        jac = np.zeros((n, 6))
-        for j in range(6):
-            dq = np.zeros(6)
+        jac = np.zeros((n, len(q)))
+        for j in range(len(q)):
+            dq = np.zeros(len(q))
             dq[j] = 1e-7
             jac[:, j] = (error(q + dq) - error(q - dq)) / 2e-7
         q = q + jac.T @ np.linalg.solve(jac @ jac.T + damping**2 * np.eye(n), -e)

@@ -23,7 +23,7 @@ _EPS = 1e-6  # central-difference step, rad
 
 
 def scripted_action(xp: Any, cfg: EnvConfig, q: Any, target: Any) -> Any:
-    """Action(s) in [-1, 1]^6 for joints ``q`` (..., 6) and target centres (..., 3)."""
+    """Action(s) in [-1, 1]^dof for joints ``q`` (..., dof) and target centres (..., 3)."""
     model = robot.load_robot()
     q = xp.asarray(q)
     target = xp.asarray(target, dtype=q.dtype)
@@ -36,10 +36,11 @@ def scripted_action(xp: Any, cfg: EnvConfig, q: Any, target: Any) -> Any:
         kin = robot.forward_kinematics(xp, model, qs)
         return xp.concatenate([kin.gripper_centre - g, TILT_WEIGHT * kin.approach_axis[..., :2]], axis=-1)
 
-    eye = xp.eye(6, dtype=q.dtype)
-    probes = q[..., None, :] + _EPS * xp.concatenate([eye, -eye])  # (..., 12, 6)
+    dof = q.shape[-1]
+    eye = xp.eye(dof, dtype=q.dtype)
+    probes = q[..., None, :] + _EPS * xp.concatenate([eye, -eye])  # (..., 2 dof, dof)
     res = residual(probes, goal[..., None, :])
-    jac = xp.swapaxes(res[..., :6, :] - res[..., 6:, :], -1, -2) / (2 * _EPS)  # (..., 5, 6)
+    jac = xp.swapaxes(res[..., :dof, :] - res[..., dof:, :], -1, -2) / (2 * _EPS)  # (..., 5, dof)
     r = residual(q, goal)
     lhs = jac @ xp.swapaxes(jac, -1, -2) + DAMPING * xp.eye(5, dtype=q.dtype)
     dq = (xp.swapaxes(jac, -1, -2) @ xp.linalg.solve(lhs, -r[..., None]))[..., 0]

@@ -33,6 +33,7 @@ from sagrasp_jax.training import fixed_seed_eval as policy_eval
 from sagrasp_jax.training.agents.ppo import rollout
 from sagrasp_jax.training import run_dir
 from sagrasp_jax.training import restore
+from sagrasp_jax.task import robot
 from sagrasp_jax.task.config import SEED_RANGE, Config, ConfigError, blocking_sampling, check_range
 
 EvalEnvFactory = Callable[[Config], rollout.Env]
@@ -200,7 +201,7 @@ class FinalPoses(NamedTuple):
     """``evaluate_run``'s episodes replayed with each episode's final arm joints (``replay_final_poses``)."""
 
     episodes: dict[str, np.ndarray]  # per-episode records, as ``evaluate_run`` summarises them
-    q_final: np.ndarray  # (episodes, 6) the arm's measured joints when each episode ended
+    q_final: np.ndarray  # (episodes, dof) the arm's measured joints when each episode ended
     specs: Any  # the episodes' true scenes, a ResetSpec of (episodes, ...) arrays
     target_error: np.ndarray  # (episodes, 3) the detection error each episode's policy saw (0 without one)
     env_cfg: Any  # the evaluated env's EnvConfig
@@ -235,7 +236,7 @@ class _FinalPoseRecorder:
     """Env wrapper that copies the measured arm joints (``GraspEnv.measured_joints``) into ``info["episode"]``
     as scalar entries ``final_q1..6`` (scalars, so ``fixed_seed_eval.evaluate_policy`` keeps them per episode)."""
 
-    ARM_DOF = 6
+    ARM_DOF = robot.ARM_DOF
 
     def __init__(self, env: Any) -> None:
         self.env = env
