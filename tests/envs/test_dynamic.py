@@ -190,7 +190,8 @@ def test_compact_servo_state_steps_the_env_as_a_full_mjx_data():
     """The env carries only qpos / qvel between control steps (``ServoState``) and rebuilds MJX's Data for its
     substeps: with latency and servo-gain randomisation on, 6 steps of N envs give the joints, observations and
     rewards of the same env carrying the whole Data through mjx.step to float32 rounding (≤ 1e-6: XLA fuses the
-    two programs differently, 1-ulp moves), and the same done flags."""
+    two programs differently, ulp moves; the reward, which scales a distance change by ``ratio``, ≤ 1e-5), and the
+    same done flags."""
     from sagrasp_jax.envs.grasp_env import ServoState
 
     cfg = _cfg("dynamic", "env.randomize.servo_gain=0.3", "env.randomize.latency=1.5").env
@@ -205,8 +206,11 @@ def test_compact_servo_state_steps_the_env_as_a_full_mjx_data():
     (start, states), (_, ref) = jax.device_get(jax.jit(lambda: run(lean))()), jax.device_get(jax.jit(lambda: run(full))())
     assert isinstance(start.pipeline_state, ServoState) and not isinstance(ref.pipeline_state, ServoState)
     for got, want in ((states.pipeline_state.qpos, ref.pipeline_state.qpos), (states.pipeline_state.qvel, ref.pipeline_state.qvel),
-                      (states.obs, ref.obs), (states.reward, ref.reward)):
+                      (states.obs, ref.obs)):
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-6)
+    # the reward pays ratio (10) × the change of a distance, so it carries the distances' rounding ×10 and more
+    # (measured on an AVX-512 Xeon: 1.19e-6 on rewards of 0.061, where the AMD EPYC VMs gave ≤ 1e-6)
+    np.testing.assert_allclose(states.reward, ref.reward, rtol=0, atol=1e-5)
     np.testing.assert_array_equal(states.done, ref.done)
     assert float(np.max(np.abs(states.pipeline_state.qpos[-1] - start.pipeline_state.qpos))) > 0.01
 
