@@ -96,13 +96,13 @@ def first_gradients(env: Any, cfg: Config, mesh: Any) -> list[Any]:
 
     assert (cfg.ppo.num_minibatches, cfg.ppo.num_epochs, cfg.ppo.entropy_coef) == (1, 1, 0.0)
     nets = actor_critic.make_networks(cfg.ppo.network, env.observation_size, env.action_size, cfg.ppo.obs_clip)
-    sgd = optax.chain(optax.clip_by_global_norm(1e30), optax.inject_hyperparams(optax.sgd)(learning_rate=1.0))
+    sgd = optax.clip_by_global_norm(1e30)  # plain SGD at the call's lr of 1 (the cycle applies −lr)
     ts = sharding.replicate(actor_critic.init_training_state(jax.random.PRNGKey(0), nets, sgd, env.observation_size),
                             mesh)
     es = rollout.make_reset(env, mesh)(sharding.shard_batch(jax.random.split(jax.random.PRNGKey(1), cfg.ppo.num_envs),
                                                             mesh))
     window = metrics_window.init_window(("return", "success", "steps"), 8)
-    args = (window, jax.random.PRNGKey(2), np.int32(0), np.int32(1), np.zeros(1, np.float32), np.zeros(1, np.float32))
+    args = (window, jax.random.PRNGKey(2), np.int32(0), np.int32(1), np.zeros(1, np.float32), np.ones(1, np.float32))
     cycle = ppo.make_cycle(env, nets, sgd, cfg.ppo, mesh, 1)
     new, _, _, metrics = cycle(ts, es, *sharding.replicate(args, mesh))
     before, after = sharding.to_host((ts.params, new.params))

@@ -86,11 +86,22 @@ def _with_moved_paths(keys: list[str], flat: dict[str, np.ndarray]) -> dict[str,
     return {k: v for k, v in flat.items() if k not in old} | {new: flat[o] for new, o in moved.items()}
 
 
+# The lr in checkpoints written while the optimizer held it (``optax.inject_hyperparams(optax.adam)``); today the
+# host owns the lr (``lr_schedule.ScheduleState``) and the optimizer state is otherwise laid out as it was then.
+_INJECTED_LR = re.compile(r"\.opt_state\[1\]\.hyperparams\['learning_rate'\]")
+
+
+def _without_injected_lr(flat: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """``flat`` without the lr a checkpoint wrote into the optimizer state before the host owned it."""
+    return {k: v for k, v in flat.items() if not _INJECTED_LR.fullmatch(k)}
+
+
 def restore_tree(template: Any, flat: dict[str, np.ndarray], name: str, path: str) -> Any:
-    """Fill ``template``'s structure with the saved leaves; paths, shapes and dtypes must match."""
+    """Fill ``template``'s structure with the saved leaves; paths, shapes and dtypes must match (leaves an older
+    version wrote elsewhere are moved: ``_with_moved_paths``, ``_without_injected_lr``)."""
     leaves, treedef = jax.tree_util.tree_flatten_with_path(template)
     keys = [jax.tree_util.keystr(p) for p, _ in leaves]
-    flat = _with_moved_paths(keys, flat)
+    flat = _with_moved_paths(keys, _without_injected_lr(flat))
     missing = sorted(set(keys) - set(flat))
     extra = sorted(set(flat) - set(keys))
     if missing or extra:

@@ -19,7 +19,7 @@ import numpy as np
 
 from sagrasp_jax.task.config import Config
 from sagrasp_jax.training import lr_schedule, sharding
-from sagrasp_jax.training.agents.ppo import actor_critic, ppo
+from sagrasp_jax.training.agents.ppo import ppo
 from sagrasp_jax.training.fixed_seed_eval import EvalResult
 from sagrasp_jax.training.seed_group import SeedGroup
 
@@ -92,7 +92,7 @@ def advance(group: SeedGroup, i: int, metrics: dict[str, Any], dt: float, schedu
     first = host.iteration
     means, finite = metrics.pop("window"), metrics.pop("finite")
     ran = int(metrics.pop("executed").sum())
-    device_lr = metrics.pop("learning_rate")
+    ended_lr = metrics.pop("learning_rate")  # the lr each iteration ended at (kl-adaptive: as adapted)
     rows: list[dict[str, Any]] = []
     for j in range(ran):
         p = host.env_steps / total
@@ -104,7 +104,7 @@ def advance(group: SeedGroup, i: int, metrics: dict[str, Any], dt: float, schedu
         row.update({k: float(v[j]) for k, v in metrics.items() if k != "episodes_finished"})
         row.update(window_row(means, j))
         if rule.mode == "kl":  # the lr after this iteration: what the next one starts from
-            row["lr"] = float(device_lr[j])
+            row["lr"] = float(ended_lr[j])
         elif rule.mode == "per_iteration":
             row["lr"] = float(lr_schedule.progress_lr(np, rule, np.float32(progress(schedule, cfg, first + j + 1))))
         if finite[j]:
@@ -114,12 +114,11 @@ def advance(group: SeedGroup, i: int, metrics: dict[str, Any], dt: float, schedu
     if not ran:
         return rows, True
     if finite[ran - 1]:
-        host.lr_state = lr_schedule.observe(rule, host.lr_state, device_lr=float(device_lr[ran - 1]),
+        host.lr_state = lr_schedule.observe(rule, host.lr_state, ended_lr=float(ended_lr[ran - 1]),
                                             progress=progress(schedule, cfg, host.iteration))
         return rows, True
     host.nonfinite += 1
-    snapshot_lr = np.asarray(actor_critic.learning_rate_of(group.runner.snapshot.opt_state)).reshape(-1)
-    host.lr_state, decision = lr_schedule.nonfinite(rule, cfg.sa, host.lr_state, snapshot_lr=float(snapshot_lr[i]),
+    host.lr_state, decision = lr_schedule.nonfinite(rule, cfg.sa, host.lr_state,
                                                     progress=progress(schedule, cfg, host.iteration))
     host.start_cycle()
     rows[-1].update(event="nonfinite", sa_decision=decision.kind, sa_decayed=decision.decayed)
@@ -144,7 +143,7 @@ def anneal(group: SeedGroup, rule: lr_schedule.Rule, cfg: Config, n_actions: int
            ending: list[tuple[float, float] | None]) -> list[lr_schedule.CycleOutcome | None]:
     """The lr schedule's end of cycle for each seed given its (metric, entropy) (None: not ending):
     accept → snapshot, reject → restore the snapshot (unless ``sa.rollback`` is off: then keep going
-    from the current parameters); set the lr."""
+    from the current parameters).  The lr each seed goes on with is its schedule's, the next call's argument."""
     decisions: list[lr_schedule.CycleOutcome | None] = []
     for host, end in zip(group.hosts, ending):
         if end is None:

@@ -12,6 +12,11 @@
 p = env steps done / ``train.total_steps`` (the progress the reward weights read).  Every
 schedule starts at ``ppo.learning_rate``.
 
+One owner: the host's :class:`ScheduleState` is the learning rate.  Each jitted call is told the lr of
+its iterations (``iteration_lrs``, an argument of the call); the optimizer state holds none.  Only
+``kl-adaptive`` moves the lr inside a call (after every minibatch): it starts from the host's lr and the
+call returns the lr it ended at, which the host stores (``observe``).
+
 Pure functions over a typed :class:`ScheduleState` (a NamedTuple, like brax's training
 states), host-side, with the two per-step rules for any array module (``progress_lr(xp, …)``,
 ``kl_adaptive_lr(xp, …)``: numpy on the host and in the tests, jax.numpy for ``kl_adaptive_lr``
@@ -20,19 +25,19 @@ inside the jitted cycle, ``ppo.sgd_epochs``).  ``cosine`` and ``linear`` are opt
 the same maths as the formulas they replaced (lr_f + (lr0 − lr_f)·(1 + cos πp)/2, lr0 + (lr_f − lr0)·p),
 equal within float32 rounding (a few ulp; ``tests/training/test_lr_schedule.py``), not bit for bit.  The trainer calls
 
-* :func:`iteration_lrs` before a jitted call: the lr of each of its iterations (used by the
-  ``per_iteration`` schedules; the others keep the optimizer's lr);
+* :func:`iteration_lrs` before a jitted call: the lr of each of its iterations, passed to the call
+  (``kl-adaptive``: the lr its first iteration starts from);
 * :func:`observe` after a call whose iterations were all finite: the lr the next iteration
-  starts from (``kl-adaptive``: the optimizer's, read back from the device);
+  starts from (``kl-adaptive``: the one the call returned as its last iteration's);
 * :func:`end_cycle` at the end of each cycle with the evaluation metric and the entropy:
   ``sa`` decides (accept / accept-worse / reject, maybe decay), the others always keep;
 * :func:`nonfinite` when an iteration went non-finite: restore the snapshot (``sa`` also
-  decays; ``kl-adaptive`` takes the snapshot's lr).
+  decays; ``kl-adaptive`` takes the snapshot's lr, ``ScheduleState.snapshot_lr``).
 
-The whole state, SA's included, goes into the checkpoint (``to_dict`` / ``from_dict``); the
-``kl-adaptive`` lr also lives in the optimizer state, which the checkpoint holds too, and the
+The whole state, SA's included, goes into the checkpoint (``to_dict`` / ``from_dict``), and the
 ``cosine`` / ``linear`` lr is a function of the checkpointed step counter, so a resumed run
-continues exactly, whatever the schedule.
+continues exactly, whatever the schedule.  (Checkpoints written before the host owned the lr also
+hold it in the optimizer state; ``checkpoint.restore_tree`` drops that copy.)
 """
 
 from __future__ import annotations
@@ -48,9 +53,9 @@ from sagrasp_jax.task.config import LR_SCHEDULES, Config, SAConfig
 from sagrasp_jax.training.sa_schedule import DecisionKind, SAState
 
 SCHEDULES = LR_SCHEDULES
-# How each schedule reaches the optimizer inside a jitted call (``ppo.make_cycle``'s ``lr_mode``):
-# "fixed" = the lr the host put into the optimizer state; "per_iteration" = set before every
-# iteration from ``iteration_lrs``; "kl" = adapted on the device after every minibatch.
+# What a jitted call does with the lrs the host gives it (``ppo.make_cycle``'s ``lr_rule.mode``): "fixed" = the
+# host's one lr for every iteration; "per_iteration" = each iteration's from ``iteration_lrs``; "kl" = starts
+# at the host's lr, adapted on the device after every minibatch and returned to the host.
 LR_MODES = {"constant": "fixed", "sa": "fixed", "kl-adaptive": "kl", "cosine": "per_iteration",
             "linear": "per_iteration"}
 
@@ -83,24 +88,34 @@ def rule_of(cfg: Config) -> Rule:
 class ScheduleState(NamedTuple):
     """What the schedule carries between cycles (the checkpoint holds it)."""
 
-    lr: float  # the learning rate the next PPO iteration starts from
+    lr: float  # the learning rate the next PPO iteration starts from: the one owner of the lr
     cycle: int = 0  # cycles ended (end_cycle or nonfinite)
     rollbacks: int = 0  # times the trainer restored the snapshot (sa rejects with rollback on, non-finite steps)
     sa: SAState | None = None  # the SA state machine (schedule "sa" only)
+    snapshot_lr: float | None = None  # the lr when the snapshot was taken, a kl-adaptive restore's (None: ``lr``)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain-JSON dict."""
         return {"lr": self.lr, "cycle": self.cycle, "rollbacks": self.rollbacks,
-                "sa": None if self.sa is None else self.sa.to_dict()}
+                "sa": None if self.sa is None else self.sa.to_dict(), "snapshot_lr": self.snapshot_lr}
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> ScheduleState:
-        """Inverse of :meth:`to_dict`; refuses unknown or missing keys."""
-        if not isinstance(data, dict) or set(data) != set(cls._fields):
+        """Inverse of :meth:`to_dict`; refuses unknown or missing keys.  A dict written before ``snapshot_lr``
+        (the lr lived in the optimizer state too) has none: its checkpoints were written when the snapshot had
+        just been taken or restored (a cycle's end, a non-finite step), so the snapshot's lr was ``lr``."""
+        required = set(cls._fields) - {"snapshot_lr"}
+        if not isinstance(data, dict) or not required <= set(data) or not set(data) <= set(cls._fields):
             keys = sorted(data) if isinstance(data, dict) else type(data).__name__
             raise ValueError(f"ScheduleState.from_dict: expected keys {sorted(cls._fields)}, got {keys}")
         sa = None if data["sa"] is None else SAState.from_dict(data["sa"])
-        return cls(lr=float(data["lr"]), cycle=int(data["cycle"]), rollbacks=int(data["rollbacks"]), sa=sa)
+        return cls(lr=float(data["lr"]), cycle=int(data["cycle"]), rollbacks=int(data["rollbacks"]), sa=sa,
+                   snapshot_lr=float(data.get("snapshot_lr", data["lr"])))
+
+    @property
+    def restore_lr(self) -> float:
+        """The lr the snapshot was taken at."""
+        return self.lr if self.snapshot_lr is None else self.snapshot_lr
 
 
 class CycleOutcome(NamedTuple):
@@ -153,29 +168,31 @@ def kl_adaptive_lr(xp: Any, rule: Rule, lr: Any, kl: Any) -> Any:
 
 def init(rule: Rule) -> ScheduleState:
     """Fresh state at ``rule.lr0`` (``sa``: with a fresh SA state machine)."""
-    return ScheduleState(lr=rule.lr0, sa=sa_schedule.init(rule.lr0) if rule.name == "sa" else None)
+    sa = sa_schedule.init(rule.lr0) if rule.name == "sa" else None
+    return ScheduleState(lr=rule.lr0, sa=sa, snapshot_lr=rule.lr0)
 
 
 def iteration_lrs(rule: Rule, state: ScheduleState, progress: np.ndarray) -> np.ndarray:
-    """float32 lr of each iteration of the next jitted call, given their progress values: the rule's
-    for ``per_iteration`` schedules, the state's lr otherwise (which the device then ignores)."""
+    """float32 lr of each iteration of the next jitted call (its argument), given their progress values: the
+    rule's for ``per_iteration`` schedules, the state's lr otherwise (``kl``: where the call starts adapting)."""
     if rule.mode == "per_iteration":
         return np.asarray(progress_lr(np, rule, np.asarray(progress, np.float32)), np.float32)
     return np.full(np.shape(progress), state.lr, np.float32)
 
 
-def _next_lr(rule: Rule, state: ScheduleState, device_lr: float, progress: float) -> float:
+def _next_lr(rule: Rule, state: ScheduleState, kl_lr: float, progress: float) -> float:
     if rule.mode == "per_iteration":
         return float(progress_lr(np, rule, np.float32(progress)))
     if rule.mode == "kl":
-        return float(device_lr)
+        return float(kl_lr)
     return state.lr
 
 
-def observe(rule: Rule, state: ScheduleState, *, device_lr: float, progress: float) -> ScheduleState:
-    """After a jitted call that ended finite: ``device_lr`` is the optimizer's lr at its end,
-    ``progress`` that of the next iteration."""
-    return state._replace(lr=_next_lr(rule, state, device_lr, progress))
+def observe(rule: Rule, state: ScheduleState, *, ended_lr: float, progress: float) -> ScheduleState:
+    """After a jitted call that ended finite: ``ended_lr`` is the lr the call returned for its last
+    iteration (what ``kl-adaptive`` adapted it to; the host's own lr otherwise), ``progress`` that of the
+    next iteration."""
+    return state._replace(lr=_next_lr(rule, state, ended_lr, progress))
 
 
 def end_cycle(rule: Rule, sa_cfg: SAConfig, state: ScheduleState, metric: float, entropy: float,
@@ -183,24 +200,28 @@ def end_cycle(rule: Rule, sa_cfg: SAConfig, state: ScheduleState, metric: float,
     """The end-of-cycle decision.  ``sa``: docs/task.md §3 (``sa_schedule.update``: one uniform draw of
     ``rng``); with ``sa.rollback`` off a reject does not restore.  Every other schedule keeps the
     cycle's updates (and draws nothing)."""
-    if rule.name != "sa":
-        return state._replace(cycle=state.cycle + 1), CycleOutcome("accept", False, state.lr, False)
+    if rule.name != "sa":  # kept: the snapshot moves to the current state, and its lr with it
+        kept = state._replace(cycle=state.cycle + 1, snapshot_lr=state.lr)
+        return kept, CycleOutcome("accept", False, state.lr, False)
     sa, d = sa_schedule.update(sa_cfg, state.sa, metric, entropy, rng, n_actions=n_actions)
     restore = d.kind == "reject" and sa_cfg.rollback
-    new = state._replace(lr=sa.lr, cycle=state.cycle + 1, rollbacks=state.rollbacks + int(restore), sa=sa)
-    return new, CycleOutcome(d.kind, d.decayed, d.new_lr, restore, d.temperature, d.delta_e, d.accept_prob)
+    outcome = CycleOutcome(d.kind, d.decayed, d.new_lr, restore, d.temperature, d.delta_e, d.accept_prob)
+    new = state._replace(lr=sa.lr, cycle=state.cycle + 1, rollbacks=state.rollbacks + int(restore), sa=sa,
+                         snapshot_lr=sa.lr if outcome.kept else state.snapshot_lr)
+    return new, outcome
 
 
-def nonfinite(rule: Rule, sa_cfg: SAConfig, state: ScheduleState, *, snapshot_lr: float,
+def nonfinite(rule: Rule, sa_cfg: SAConfig, state: ScheduleState, *,
               progress: float) -> tuple[ScheduleState, CycleOutcome]:
     """A non-finite loss or parameter: the trainer restores the snapshot and starts a fresh cycle.
     ``sa`` also decays the lr (``sa_schedule.force_reject_and_decay``); ``kl-adaptive`` goes on from
-    the snapshot's lr, ``cosine`` / ``linear`` from the rule's lr at ``progress``, ``constant`` as is."""
+    the snapshot's lr (``state.restore_lr``), ``cosine`` / ``linear`` from the rule's lr at ``progress``,
+    ``constant`` as is."""
     if rule.name == "sa":
         sa, d = sa_schedule.force_reject_and_decay(sa_cfg, state.sa)
         new = state._replace(lr=sa.lr, cycle=state.cycle + 1, rollbacks=state.rollbacks + 1, sa=sa)
         return new, CycleOutcome(d.kind, d.decayed, d.new_lr, True, d.temperature, d.delta_e, d.accept_prob)
-    lr = _next_lr(rule, state, snapshot_lr, progress)
+    lr = _next_lr(rule, state, state.restore_lr, progress)
     new = state._replace(lr=lr, cycle=state.cycle + 1, rollbacks=state.rollbacks + 1)
     return new, CycleOutcome("reject", False, lr, True, accept_prob=0.0)
 
@@ -210,5 +231,5 @@ def from_legacy(sa_state: dict[str, Any], name: str) -> ScheduleState:
     also for plain PPO, whose lr never moved)."""
     sa = SAState.from_dict(sa_state)
     if name == "sa":
-        return ScheduleState(lr=sa.lr, cycle=sa.cycle, rollbacks=sa.n_reject, sa=sa)
-    return ScheduleState(lr=sa.lr, cycle=sa.cycle, rollbacks=sa.n_reject)
+        return ScheduleState(lr=sa.lr, cycle=sa.cycle, rollbacks=sa.n_reject, sa=sa, snapshot_lr=sa.lr)
+    return ScheduleState(lr=sa.lr, cycle=sa.cycle, rollbacks=sa.n_reject, snapshot_lr=sa.lr)

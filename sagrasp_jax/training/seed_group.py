@@ -2,8 +2,9 @@
 
 A single run is a group of one.  In a seed group (``train --seeds``) every device leaf leads with the seed
 axis and the training call is vmapped over it; env states are split over the mesh on their env axis.  This
-module owns that placement and the per-seed selections (restore one seed's snapshot, set each seed's lr)
-so that a group's seed computes bit for bit what the same seed computes alone.
+module owns that placement and the per-seed selections (restore one seed's snapshot) so that a group's seed
+computes bit for bit what the same seed computes alone.  The lr is no device state: each seed's host schedule
+owns it (``HostState.lr_state``) and gives it to every call.
 """
 
 from __future__ import annotations
@@ -43,7 +44,7 @@ COUNTERS = ("iteration", "env_steps", "cycle_start", "entropy_sum", "entropy_n",
 
 @dataclass
 class HostState:
-    """One seed's host-side state: the counters, the lr schedule's state and SA's random stream.
+    """One seed's host-side state: the counters, the lr schedule's state (the lr's one owner) and SA's random stream.
 
     Everything here is in the checkpoint header (``to_checkpoint``), so a resumed run continues exactly."""
 
@@ -150,21 +151,11 @@ class SeedGroup:
             return old
         return _select_seeds(np.asarray(mask), new, old)
 
-    def apply_lr(self) -> None:
-        """Make the optimizer state's lr each seed's schedule's (after a decay or a restore)."""
-        opt = self.runner.train_state.opt_state
-        want = np.array([h.lr_state.lr for h in self.hosts], np.float32)
-        if not np.array_equal(np.asarray(actor_critic.learning_rate_of(opt)).reshape(-1), want):
-            lr = want if self.group else float(self.hosts[0].lr_state.lr)
-            ts = self.runner.train_state._replace(opt_state=actor_critic.set_learning_rate(opt, lr))
-            self.runner = self.runner._replace(train_state=ts)
-
     def restore_and_accept(self, restore: list[bool], accept: list[bool]) -> None:
         """Seeds in ``restore`` go back to their snapshot; those in ``accept`` make theirs the new snapshot."""
         train_state = self.choose(restore, self.runner.snapshot, self.runner.train_state)
         self.runner = self.runner._replace(train_state=train_state,
                                            snapshot=self.choose(accept, train_state, self.runner.snapshot))
-        self.apply_lr()
 
     def train_state_of(self, i: int) -> actor_critic.TrainingState:
         """Seed ``i``'s train state on the devices (a group's slice; a single run's own)."""

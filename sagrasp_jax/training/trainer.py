@@ -78,7 +78,7 @@ class Trainer:
         self.networks = actor_critic.make_networks(cfg.ppo.network, self.obs_size, self.action_size, cfg.ppo.obs_clip,
                                                    self.critic_extra)
         self.rule = lr_schedule.rule_of(cfg)
-        self.optimizer = actor_critic.make_optimizer(cfg.ppo, cfg.ppo.learning_rate)
+        self.optimizer = actor_critic.make_optimizer(cfg.ppo)
         self.hand_scaled = getattr(self.eval_env, "hand_scaled_mask", None)  # normaliser leaves these entries alone
         self.seed_group = SeedGroup(cfg, out_dir, seeds, self.mesh, self.rule)
         self._cycle = ppo.make_cycle(self.train_env, self.networks, self.optimizer, cfg.ppo, self.mesh,

@@ -218,11 +218,12 @@ def test_privileged_critic_trains_and_exports_a_policy_without_it(tmp_path):
     state = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(0), 8))
     assert state.info["privileged"].shape == (8, 25) and state.obs.shape == (8, 29)
     nets = actor_critic.make_networks(cfg.ppo.network, 29, 6, cfg.ppo.obs_clip, critic_extra=25)
-    ts = actor_critic.init_training_state(jax.random.PRNGKey(1), nets, actor_critic.make_optimizer(cfg.ppo, 3e-4), 29)
+    ts = actor_critic.init_training_state(jax.random.PRNGKey(1), nets, actor_critic.make_optimizer(cfg.ppo), 29)
     assert ts.params.value["params"]["hidden_0"]["kernel"].shape[0] == 54
     assert ts.params.policy["params"]["hidden_0"]["kernel"].shape[0] == 29
-    step = jax.jit(lambda t, s, k: ppo.iteration(t, s, k, jnp.float32(0.5), env=_Batched(env), networks=nets,
-                                                 optimizer=actor_critic.make_optimizer(cfg.ppo, 3e-4), cfg=cfg.ppo,
+    step = jax.jit(lambda t, s, k: ppo.iteration(t, s, k, jnp.float32(0.5), jnp.float32(3e-4), env=_Batched(env),
+                                                 networks=nets,
+                                                 optimizer=actor_critic.make_optimizer(cfg.ppo), cfg=cfg.ppo,
                                                  critic_extra=25))
     new_ts, _, metrics = step(ts, state, jax.random.PRNGKey(2))
     assert bool(metrics["finite"]) and float(metrics["value_loss"]) > 0

@@ -211,3 +211,44 @@ def test_a_checkpoint_from_before_the_reward_term_registry_restores_its_term_sum
             term_sums={k: f(0) for k in reward.term_keys()})))
         with pytest.raises(CheckpointError, match=r"missing \[\"\.info\['tracker'\]\.term_sums\['r_new'\]\"\]"):
             checkpoint.restore_tree(grown, flat, "env_state", "old.ckpt")
+
+
+def test_a_checkpoint_whose_optimizer_held_the_lr_restores_without_it():
+    """Before the host owned the lr the optimizer was ``optax.inject_hyperparams(optax.adam)``: its state held
+    the lr.  Such a train state restores into today's (``actor_critic.make_optimizer``, no lr) with Adam's
+    count and moments as they were and the old lr dropped; a moment missing is still refused."""
+    from typing import Any, NamedTuple
+
+    import optax
+
+    from sagrasp_jax.training.agents.ppo import actor_critic
+
+    class TrainState(NamedTuple):  # the train state's paths: ``.opt_state…``, ``.params…``
+        opt_state: Any
+        params: Any
+
+    cfg = get_config("cpu-quick").ppo
+    params = {"w": jnp.arange(6, dtype=jnp.float32).reshape(3, 2), "b": jnp.ones(2, jnp.float32)}
+    grads = jax.tree_util.tree_map(lambda x: 0.5 * x - 1.0, params)
+    old_opt = optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), optax.inject_hyperparams(optax.adam)(3e-4))
+    old_state = old_opt.update(grads, old_opt.init(params), params)[1]
+    old = TrainState(old_state, params)
+    flat = checkpoint.flatten_tree(old)
+    assert ".opt_state[1].hyperparams['learning_rate']" in flat and ".opt_state[1].inner_state[0].count" in flat
+    new_opt = actor_critic.make_optimizer(cfg)
+    template = TrainState(new_opt.init(params), params)
+    restored = checkpoint.restore_tree(template, flat, "train_state", "old.ckpt")
+    adam, old_adam = restored.opt_state[1].inner_state[0], old_state[1].inner_state[0]
+    assert int(adam.count) == 1
+    for got, want in zip(jax.tree_util.tree_leaves((adam.mu, adam.nu)),
+                         jax.tree_util.tree_leaves((old_adam.mu, old_adam.nu))):
+        np.testing.assert_array_equal(got, want)
+    # the next step from the restored state is the old optimizer's next step at the host's lr, bit for bit
+    want_updates = old_opt.update(grads, old_state, params)[0]
+    got_updates = actor_critic.apply_learning_rate(new_opt.update(grads, restored.opt_state, params)[0],
+                                                   jnp.float32(3e-4))
+    for got, want in zip(jax.tree_util.tree_leaves(got_updates), jax.tree_util.tree_leaves(want_updates)):
+        np.testing.assert_array_equal(got, want)
+    del flat[".opt_state[1].inner_state[0].mu['w']"]
+    with pytest.raises(CheckpointError, match=r"missing \[\"\.opt_state\[1\]\.inner_state\[0\]\.mu\['w'\]\"\]"):
+        checkpoint.restore_tree(template, flat, "train_state", "old.ckpt")

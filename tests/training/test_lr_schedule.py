@@ -136,33 +136,38 @@ def test_iteration_lrs() -> None:
 def test_constant_keeps_every_cycle_and_its_lr() -> None:
     rule = _rule("constant")
     state = L.init(rule)
-    assert state == L.ScheduleState(lr=LR0) and state.sa is None
+    assert state == L.ScheduleState(lr=LR0, snapshot_lr=LR0) and state.sa is None
     for m in (1.0, 0.0, -5.0, math.nan, -10.0):
         state, d = L.end_cycle(rule, SA, state, m, 1.0, 0.999999)
         assert d.kind == "accept" and not d.decayed and not d.restore and d.new_lr == LR0
-        state = L.observe(rule, state, device_lr=np.float32(LR0), progress=0.3)
+        state = L.observe(rule, state, ended_lr=np.float32(LR0), progress=0.3)
     assert state.lr == LR0 and state.cycle == 5 and state.rollbacks == 0
-    state, d = L.nonfinite(rule, SA, state, snapshot_lr=1.0, progress=0.4)
+    state, d = L.nonfinite(rule, SA, state, progress=0.4)
     assert d.kind == "reject" and d.restore and not d.decayed and state.lr == LR0
     assert state.cycle == 6 and state.rollbacks == 1
 
 
-def test_kl_adaptive_state_follows_the_optimizer() -> None:
+def test_kl_adaptive_state_keeps_the_calls_lr_and_the_snapshots() -> None:
+    """The host owns the lr: it keeps what the call adapted it to, and the lr of the snapshot a restore returns to."""
     rule = KL
-    state = L.observe(rule, L.init(rule), device_lr=float(np.float32(7e-4)), progress=0.2)
-    assert state.lr == float(np.float32(7e-4))
+    state = L.observe(rule, L.init(rule), ended_lr=float(np.float32(7e-4)), progress=0.2)
+    assert state.lr == float(np.float32(7e-4)) and state.snapshot_lr == LR0  # the snapshot: still the start
     state, d = L.end_cycle(rule, SA, state, 1.0, 1.0, 0.5)
-    assert d.kind == "accept" and not d.restore and state.lr == float(np.float32(7e-4))
-    state, d = L.nonfinite(rule, SA, state, snapshot_lr=5e-4, progress=0.3)  # back to the snapshot's lr
-    assert d.restore and state.lr == 5e-4 and state.rollbacks == 1
+    assert d.kind == "accept" and not d.restore and state.lr == state.snapshot_lr == float(np.float32(7e-4))
+    state = L.observe(rule, state, ended_lr=9e-4, progress=0.25)
+    state, d = L.nonfinite(rule, SA, state, progress=0.3)  # back to the snapshot's lr
+    assert d.restore and state.lr == float(np.float32(7e-4)) and state.rollbacks == 1
+    # a state written before the host kept the snapshot's lr (checkpoints at a snapshot: the lr was its)
+    old = {k: v for k, v in state._replace(lr=6e-4).to_dict().items() if k != "snapshot_lr"}
+    assert L.ScheduleState.from_dict(old).restore_lr == 6e-4
 
 
 @pytest.mark.parametrize("name", ["cosine", "linear"])
 def test_progress_schedules_state_tracks_the_next_iteration(name: str) -> None:
     rule = _rule(name)
-    state = L.observe(rule, L.init(rule), device_lr=123.0, progress=0.5)
+    state = L.observe(rule, L.init(rule), ended_lr=123.0, progress=0.5)
     assert state.lr == pytest.approx(float(L.progress_lr(np, rule, 0.5)), rel=1e-6)
-    state, d = L.nonfinite(rule, SA, state, snapshot_lr=123.0, progress=1.0)
+    state, d = L.nonfinite(rule, SA, state, progress=1.0)
     assert d.restore and state.lr == pytest.approx(1e-6, rel=1e-4)
 
 
@@ -193,7 +198,7 @@ def test_sa_without_rollback_rejects_but_does_not_restore() -> None:
     with_rb, _ = L.end_cycle(rule, SA, L.end_cycle(rule, SA, L.init(rule), 1.0, 1.0, 0.5)[0], 0.0, 1.0, 0.999999)
     assert with_rb.sa == state.sa
     # a non-finite step restores whatever the switch says
-    state, d = L.nonfinite(rule, cfg, state, snapshot_lr=1.0, progress=0.5)
+    state, d = L.nonfinite(rule, cfg, state, progress=0.5)
     assert d.restore and d.decayed and state.rollbacks == 1
 
 
@@ -203,7 +208,7 @@ def test_state_round_trips_through_json(name: str) -> None:
     state = L.init(rule)
     for m in (1.0, 0.2, 0.95, 1.3):
         state, _ = L.end_cycle(rule, SA, state, m, 0.9, np.random.default_rng(3))
-    state, _ = L.nonfinite(rule, SA, state, snapshot_lr=2e-4, progress=0.25)
+    state, _ = L.nonfinite(rule, SA, state, progress=0.25)
     back = L.ScheduleState.from_dict(json.loads(json.dumps(state.to_dict(), allow_nan=False)))
     assert back == state and back.to_dict() == state.to_dict()
     with pytest.raises(ValueError):
@@ -217,8 +222,9 @@ def test_legacy_sa_state_becomes_a_schedule_state() -> None:
 
     sa = sa_schedule.SAState(lr=2e-4, decays=3, n_accept=7, n_reject=2, cycle=9)
     state = L.from_legacy(sa.to_dict(), "sa")
-    assert state == L.ScheduleState(lr=2e-4, cycle=9, rollbacks=2, sa=sa)
-    assert L.from_legacy(sa.to_dict(), "constant") == L.ScheduleState(lr=2e-4, cycle=9, rollbacks=2)
+    assert state == L.ScheduleState(lr=2e-4, cycle=9, rollbacks=2, sa=sa, snapshot_lr=2e-4)
+    want = L.ScheduleState(lr=2e-4, cycle=9, rollbacks=2, snapshot_lr=2e-4)
+    assert L.from_legacy(sa.to_dict(), "constant") == want
 
 
 # ---------------------------------------------------------------------- config

@@ -34,18 +34,18 @@ def _setup(env=None, cfg=None, mesh=None):
     env = env or AutoReset(PointReach())
     mesh = mesh or sharding.make_mesh()
     nets = actor_critic.make_networks(cfg.network, env.observation_size, env.action_size, cfg.obs_clip)
-    opt = actor_critic.make_optimizer(cfg, 3e-4)
+    opt = actor_critic.make_optimizer(cfg)
     ts = sharding.replicate(actor_critic.init_training_state(jax.random.PRNGKey(0), nets, opt, env.observation_size), mesh)
     es = rollout.make_reset(env, mesh)(sharding.shard_batch(jax.random.split(jax.random.PRNGKey(1), cfg.num_envs), mesh))
     return cfg, env, mesh, nets, opt, ts, es
 
 
-def _iteration(env, nets, opt, cfg, mesh, ts, es, key, progress):
-    """One PPO iteration through the training call (``ppo.make_cycle``, one iteration long); its
+def _iteration(env, nets, opt, cfg, mesh, ts, es, key, progress, lr=3e-4):
+    """One PPO iteration at ``lr`` through the training call (``ppo.make_cycle``, one iteration long); its
     per-iteration metrics as scalars."""
     cycle = ppo.make_cycle(env, nets, opt, cfg, mesh, 1)
     window = metrics_window.init_window(("return", "success", "steps"), 64)
-    args = (window, key, np.int32(0), np.int32(1), np.array([progress], np.float32), np.zeros(1, np.float32))
+    args = (window, key, np.int32(0), np.int32(1), np.array([progress], np.float32), np.array([lr], np.float32))
     ts2, es2, _, metrics = cycle(ts, es, *sharding.replicate(args, mesh))
     return ts2, es2, jax.tree_util.tree_map(lambda x: x[0], sharding.to_host(metrics))
 
@@ -61,18 +61,20 @@ def test_gae_matches_hand_computed_case():
     np.testing.assert_allclose(ret[:, 0], [1.072, 0.0, 2.18], rtol=1e-6, atol=1e-7)
 
 
-def test_learning_rate_is_set_from_the_host():
+def test_learning_rate_is_the_calls_argument_and_not_optimizer_state():
     cfg, env, mesh, nets, opt, ts, es = _setup()
-    opt_state = actor_critic.set_learning_rate(ts.opt_state, 1.25e-4)
-    assert actor_critic.get_learning_rate(opt_state) == pytest.approx(1.25e-4)
-    assert opt_state[1].hyperparams["learning_rate"].sharding == ts.opt_state[1].hyperparams["learning_rate"].sharding
-    # A zero lr leaves the params unchanged through a whole iteration.
-    frozen, _, metrics = _iteration(env, nets, opt, cfg, mesh,
-                                    ts._replace(opt_state=actor_critic.set_learning_rate(ts.opt_state, 0.0)), es,
-                                    jax.random.PRNGKey(2), 0.0)
-    assert bool(metrics["finite"])
+    # the host owns the lr: the optimizer state holds none
+    paths = [jax.tree_util.keystr(p) for p, _ in jax.tree_util.tree_flatten_with_path(ts.opt_state)[0]]
+    assert not any("learning_rate" in p for p in paths) and any(".mu" in p for p in paths), paths
+    # A zero lr leaves the params unchanged through a whole iteration; the call's lr moves them.
+    frozen, _, metrics = _iteration(env, nets, opt, cfg, mesh, ts, es, jax.random.PRNGKey(2), 0.0, lr=0.0)
+    assert bool(metrics["finite"]) and float(metrics["learning_rate"]) == 0.0
     for a, b in zip(jax.tree_util.tree_leaves(frozen.params), jax.tree_util.tree_leaves(ts.params)):
         np.testing.assert_array_equal(a, b)
+    moved, _, metrics = _iteration(env, nets, opt, cfg, mesh, ts, es, jax.random.PRNGKey(2), 0.0, lr=1.25e-4)
+    assert float(metrics["learning_rate"]) == np.float32(1.25e-4)
+    assert any(not np.array_equal(a, b) for a, b in zip(jax.tree_util.tree_leaves(moved.params),
+                                                         jax.tree_util.tree_leaves(ts.params)))
 
 
 def test_iteration_writes_progress_and_counts_finished_episodes():
@@ -207,7 +209,7 @@ def test_jitted_initial_state_is_the_eager_one_bit_for_bit():
     obs_size = len(observation.layout_of(cfg.env))
     nets = actor_critic.make_networks(cfg.ppo.network, obs_size, ACTION_SIZE, cfg.ppo.obs_clip,
                                       observation.critic_extra_size(cfg))
-    opt = actor_critic.make_optimizer(cfg.ppo, cfg.ppo.learning_rate)
+    opt = actor_critic.make_optimizer(cfg.ppo)
     key = jax.random.split(jax.random.PRNGKey(cfg.train.seed), 3)[0]
     eager = actor_critic.init_training_state(key, nets, opt, obs_size)
     jitted = actor_critic.jitted_init_training_state(nets, opt, obs_size)(key)

@@ -2,8 +2,8 @@
 
 brax supplies the networks, the tanh-Gaussian distribution and the running observation
 statistics; this module builds them for the task (normalised, clipped observations; an
-optional privileged critic), keeps the learning rate as optimizer state so the host and the
-jitted cycle can set it, and samples actions with device-count-independent noise.
+optional privileged critic), builds an optimizer whose state holds no learning rate (the lr is an argument of every
+step, owned by the host's lr schedule: ``lr_schedule``), and samples actions with device-count-independent noise.
 """
 
 from __future__ import annotations
@@ -15,7 +15,6 @@ from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 import optax
 from brax.envs.base import State
 from brax.training import networks as brax_networks
@@ -98,12 +97,25 @@ def critic_extra_of(state: State, width: int) -> jax.Array:
     return jnp.zeros(state.obs.shape[:-1] + (0,), state.obs.dtype)
 
 
-def make_optimizer(cfg: PPOConfig, learning_rate: float) -> optax.GradientTransformation:
-    """Adam behind grad-norm clipping; the lr is a state entry so the host can change it."""
-    return optax.chain(
-        optax.clip_by_global_norm(cfg.max_grad_norm),
-        optax.inject_hyperparams(optax.adam)(learning_rate=learning_rate),
-    )
+def make_optimizer(cfg: PPOConfig) -> optax.GradientTransformation:
+    """Adam's direction behind grad-norm clipping, without its lr: ``apply_learning_rate`` scales the updates by
+    the lr the jitted call was given, so the optimizer state holds no lr for anyone to read or write.  Adam's
+    constants stay float32 state entries (``inject_hyperparams``), as in the optimizer before
+    (``inject_hyperparams(optax.adam)``): read at run time, not folded into the program as constants, so a run
+    computes what it computed then, bit for bit."""
+    return optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm),
+                       optax.inject_hyperparams(_adam_direction)(b1=0.9, b2=0.999, eps=1e-8, eps_root=0.0))
+
+
+def _adam_direction(b1: float, b2: float, eps: float, eps_root: float) -> optax.GradientTransformation:
+    """``optax.adam`` without its last step (× −lr): a chain, so its state sits where ``optax.adam``'s did."""
+    return optax.chain(optax.scale_by_adam(b1=b1, b2=b2, eps=eps, eps_root=eps_root))
+
+
+def apply_learning_rate(updates: Any, lr: jax.Array) -> Any:
+    """``updates`` × −lr: optax.adam's last step (``scale_by_learning_rate``'s ``scale(-1 * lr)``), bit for bit."""
+    step = -1 * lr
+    return jax.tree_util.tree_map(lambda g: step * g, updates)
 
 
 def init_policy(key: jax.Array, networks: PPONetworks, obs_size: int) -> tuple[Params, Normaliser]:
@@ -132,34 +144,6 @@ def jitted_init_training_state(networks: PPONetworks, optimizer: optax.GradientT
     (≈ 1 s cold).  Once placed on a device its state is the eager one bit for bit (the normaliser's
     ``std_eps``, a Python float eagerly, comes out a weakly typed array); compiled with ``RUN_ONCE_COMPILE``."""
     return jax.jit(lambda key: init_training_state(key, networks, optimizer, obs_size), compiler_options=RUN_ONCE_COMPILE)
-
-
-def get_learning_rate(opt_state: optax.OptState) -> float:
-    return float(opt_state[1].hyperparams["learning_rate"])
-
-
-def with_learning_rate(opt_state: optax.OptState, lr: jax.Array) -> optax.OptState:
-    """``set_learning_rate`` inside a traced function (``lr`` a traced scalar)."""
-    inject = opt_state[1]
-    old = inject.hyperparams["learning_rate"]
-    hyper = dict(inject.hyperparams, learning_rate=jnp.asarray(lr, dtype=old.dtype))
-    return (opt_state[0], inject._replace(hyperparams=hyper), *opt_state[2:])
-
-
-def learning_rate_of(opt_state: optax.OptState) -> jax.Array:
-    """The Adam lr in ``opt_state`` as an array (traceable)."""
-    return opt_state[1].hyperparams["learning_rate"]
-
-
-def set_learning_rate(opt_state: optax.OptState, lr: float) -> optax.OptState:
-    """Return ``opt_state`` with a new Adam lr (the optimizer built by ``make_optimizer``)."""
-    inject = opt_state[1]
-    old = inject.hyperparams["learning_rate"]
-    hyper = dict(inject.hyperparams, learning_rate=jnp.asarray(lr, dtype=old.dtype))
-    if isinstance(old, jax.Array):  # keep it where the rest of the state lives (replicated)
-        hyper["learning_rate"] = jax.device_put(np.asarray(lr, dtype=old.dtype), old.sharding)
-    return (opt_state[0], inject._replace(hyperparams=hyper), *opt_state[2:])
-
 
 
 def sample_action(networks: PPONetworks, params: Params, normaliser: Normaliser, obs: jax.Array,

@@ -5,9 +5,10 @@ concern as brax's ``training/agents/ppo`` is: ``networks`` (networks, optimizer,
 ``losses`` (GAE, the PPO loss), ``rollout`` (acting), ``sharding`` (devices), ``policy_eval``
 (evaluation), ``metrics_window`` (the training-episode window) and this module, the update.
 ``make_cycle`` jits a ``lax.while_loop`` of several iterations (a cycle's worth) so the host
-syncs once per cycle; the host sets the training progress and the learning rate (per
-iteration, or between calls), or the ``kl-adaptive`` schedule adapts it after every minibatch
-(``sagrasp_jax.training.lr_schedule``).  With ``group`` it trains several seeds at once: the whole cycle
+syncs once per cycle.  The host's lr schedule owns the learning rate (``sagrasp_jax.training.lr_schedule``):
+every call is given the lr of each of its iterations as an argument (the optimizer state holds none), and under
+``kl-adaptive``, which adapts it after every minibatch, returns the lr each iteration ended at for the host to
+keep.  With ``group`` it trains several seeds at once: the whole cycle
 is vmapped over a leading seed axis (docs/design.md, "Seed groups").
 """
 
@@ -31,8 +32,7 @@ from sagrasp_jax.task.config import PPOConfig
 from sagrasp_jax.training.agents.ppo.losses import Batch, loss_and_grad, make_batch
 from sagrasp_jax.training.metrics_window import kind_success_keys, update_window
 from sagrasp_jax.training.agents.ppo.actor_critic import (
-    Normaliser, Params, PPONetworks, TrainingState, critic_extra_of, learning_rate_of, mean_policy_entropy,
-    with_learning_rate,
+    Normaliser, Params, PPONetworks, TrainingState, apply_learning_rate, critic_extra_of, mean_policy_entropy,
 )
 from sagrasp_jax.training.agents.ppo.rollout import RESET_STATS, Env, rollout, set_progress
 from sagrasp_jax.training.sharding import BATCH_AXIS, pmean, seed_batch_spec, sharded
@@ -47,8 +47,10 @@ def sgd_epochs(params: Params, opt_state: optax.OptState, normaliser: Normaliser
                networks: PPONetworks, optimizer: optax.GradientTransformation,
                cfg: PPOConfig, axis_name: str | None = None,
                kl_rule: lr_schedule.Rule | None = None,
-               epochs: jax.Array | None = None) -> tuple[Params, optax.OptState, dict[str, jax.Array]]:
-    """``num_epochs`` passes over the batch in ``num_minibatches`` shuffled minibatches.
+               epochs: jax.Array | None = None, *,
+               lr: jax.Array) -> tuple[Params, optax.OptState, jax.Array, dict[str, jax.Array]]:
+    """``num_epochs`` passes over the batch in ``num_minibatches`` shuffled minibatches, each step scaled by
+    ``lr`` (``apply_learning_rate``); returns the lr the passes ended at (``lr`` itself but under ``kl_rule``).
 
     ``epochs`` (a traced count ≤ ``num_epochs``; ``epochs_at``) runs only the first that many of
     the same passes, in a loop whose length is set at run time, so one compiled program serves
@@ -57,7 +59,7 @@ def sgd_epochs(params: Params, opt_state: optax.OptState, normaliser: Normaliser
     With ``axis_name`` each device shuffles its own share (a minibatch is the union of the
     devices' minibatches) and the gradients are averaged over devices.  With ``kl_rule`` (the
     ``kl-adaptive`` schedule) each minibatch first adapts the lr to its KL, as brax does, then
-    takes its step.  The KL is ``step_kl``, the k3 estimate mean(e^s − 1 − s), s = log π_θ(a) −
+    takes its step with it.  The KL is ``step_kl``, the k3 estimate mean(e^s − 1 − s), s = log π_θ(a) −
     log π_start(a), of KL(π_start ‖ π_θ) on the minibatch (averaged over devices), π_start being
     the policy before this iteration's SGD under the already updated normaliser: what the
     epochs moved, as in brax (which updates its normaliser after the epochs for that reason);
@@ -69,21 +71,22 @@ def sgd_epochs(params: Params, opt_state: optax.OptState, normaliser: Normaliser
         dist = networks.parametric_action_distribution
         logits = networks.policy_network.apply(normaliser, params.policy, batch.obs)
         batch = batch._replace(kl_log_prob=jax.lax.stop_gradient(dist.log_prob(logits, batch.raw_action)))
-        start_count = opt_state[1].count  # optax.inject_hyperparams counts the updates
+    lr = jnp.asarray(lr, jnp.float32)
+    Carry = tuple[Params, optax.OptState, jax.Array, jax.Array]  # (params, opt state, lr, first minibatch)
 
-    def minibatch_step(carry: tuple[Params, optax.OptState], xs: tuple[Batch, jax.Array]):
-        params, opt_state = carry
+    def minibatch_step(carry: Carry, xs: tuple[Batch, jax.Array]):
+        params, opt_state, lr, first = carry
         minibatch, k = xs
         (_, metrics), grads = loss_and_grad(params, normaliser, minibatch, k, networks, cfg, axis_name)
         if kl_rule is not None:
-            lr = learning_rate_of(opt_state)
             adapted = lr_schedule.kl_adaptive_lr(jnp, kl_rule, lr, metrics["step_kl"])
-            opt_state = with_learning_rate(opt_state, jnp.where(opt_state[1].count == start_count, lr, adapted))
+            lr = jnp.where(first, lr, adapted)
         updates, opt_state = optimizer.update(grads, opt_state, params)
         metrics["grad_norm"] = optax.tree.norm(grads)
-        return (optax.apply_updates(params, updates), opt_state), metrics
+        params = optax.apply_updates(params, apply_learning_rate(updates, lr))
+        return (params, opt_state, lr, jnp.zeros((), bool)), metrics
 
-    def epoch(carry: tuple[Params, optax.OptState], k: jax.Array):
+    def epoch(carry: Carry, k: jax.Array):
         k_perm, k_mb = jax.random.split(k)
         if axis_name is not None:
             k_perm = jax.random.fold_in(k_perm, jax.lax.axis_index(axis_name))
@@ -92,20 +95,21 @@ def sgd_epochs(params: Params, opt_state: optax.OptState, normaliser: Normaliser
         return jax.lax.scan(minibatch_step, carry, (shuffled, jax.random.split(k_mb, cfg.num_minibatches)))
 
     keys = jax.random.split(key, cfg.num_epochs)
+    start: Carry = (params, opt_state, lr, jnp.ones((), bool))
     if epochs is None:
-        (params, opt_state), metrics = jax.lax.scan(epoch, (params, opt_state), keys)
-        return params, opt_state, metrics
+        (params, opt_state, lr, _), metrics = jax.lax.scan(epoch, start, keys)
+        return params, opt_state, lr, metrics
 
-    def counted_epoch(e: jax.Array, carry: tuple[tuple[Params, optax.OptState], dict[str, jax.Array]]):
+    def counted_epoch(e: jax.Array, carry: tuple[Carry, dict[str, jax.Array]]):
         state, sums = carry
         state, metrics = epoch(state, keys[e])
         return state, jax.tree_util.tree_map(lambda total, x: total + jnp.sum(x, axis=0), sums, metrics)
 
-    shapes = jax.eval_shape(epoch, (params, opt_state), keys[0])[1]
+    shapes = jax.eval_shape(epoch, start, keys[0])[1]
     zeros = jax.tree_util.tree_map(lambda x: jnp.zeros(x.shape[1:], x.dtype), shapes)
-    (params, opt_state), sums = jax.lax.fori_loop(0, epochs, counted_epoch, ((params, opt_state), zeros))
+    (params, opt_state, lr, _), sums = jax.lax.fori_loop(0, epochs, counted_epoch, (start, zeros))
     steps = (epochs * cfg.num_minibatches).astype(jnp.float32)
-    return params, opt_state, jax.tree_util.tree_map(lambda total: total / steps, sums)
+    return params, opt_state, lr, jax.tree_util.tree_map(lambda total: total / steps, sums)
 
 
 def epochs_at(cfg: PPOConfig, progress: jax.Array) -> jax.Array | None:
@@ -136,13 +140,15 @@ def update_normaliser(normaliser: Normaliser, obs: jax.Array, cfg: PPOConfig,
                               std=jnp.where(mask, 1.0, normaliser.std).astype(normaliser.std.dtype))
 
 
-def iteration(train_state: TrainingState, env_state: State, key: jax.Array, progress: jax.Array, *,
+def iteration(train_state: TrainingState, env_state: State, key: jax.Array, progress: jax.Array, lr: jax.Array, *,
               env: Env, networks: PPONetworks, optimizer: optax.GradientTransformation,
               cfg: PPOConfig, axis_name: str | None = None, hand_scaled: np.ndarray | None = None,
               critic_extra: int = 0, kl_rule: lr_schedule.Rule | None = None) -> tuple[TrainingState, State, dict[str, Any]]:
-    """One PPO iteration; if the loss or new params are non-finite the old train state is kept.
+    """One PPO iteration at learning rate ``lr``; if the loss or new params are non-finite the old train state
+    (and ``lr``) is kept.
 
-    ``metrics["finite"]`` tells the host to count the rollback (the envs keep running).  With
+    ``metrics["finite"]`` tells the host to count the rollback (the envs keep running); ``metrics["learning_rate"]``
+    is the lr the iteration ended at (``lr`` itself but under ``kl_rule``, see ``sgd_epochs``).  With
     ``axis_name`` (inside ``shard_map``) ``env_state`` is this device's share of the env batch;
     normaliser statistics, advantage statistics, gradients and metrics are global.
     """
@@ -154,9 +160,9 @@ def iteration(train_state: TrainingState, env_state: State, key: jax.Array, prog
     entropy = pmean(mean_policy_entropy(networks, params, train_state.normaliser, data.obs), axis_name)
     normaliser = update_normaliser(train_state.normaliser, data.obs, cfg, hand_scaled, axis_name)
     batch = make_batch(networks, params, normaliser, data, env_state.obs, cfg, critic_extra_of(env_state, critic_extra))
-    new_params, opt_state, sgd_metrics = sgd_epochs(params, train_state.opt_state, normaliser, batch, k_sgd,
-                                                    networks, optimizer, cfg, axis_name, kl_rule,
-                                                    epochs_at(cfg, progress))
+    new_params, opt_state, new_lr, sgd_metrics = sgd_epochs(params, train_state.opt_state, normaliser, batch, k_sgd,
+                                                            networks, optimizer, cfg, axis_name, kl_rule,
+                                                            epochs_at(cfg, progress), lr=lr)
     new_state = TrainingState(params=new_params, opt_state=opt_state, normaliser=normaliser)
     finite = _all_finite(sgd_metrics["loss"]) & _all_finite(new_state)
     if axis_name is not None:  # every device must take the same branch
@@ -164,7 +170,7 @@ def iteration(train_state: TrainingState, env_state: State, key: jax.Array, prog
     kept = jax.tree_util.tree_map(lambda new, old: jnp.where(finite, new, old), new_state, train_state)
     metrics: dict[str, Any] = {k: jnp.mean(v) for k, v in sgd_metrics.items()}
     metrics.update(entropy=entropy, finite=finite, reward_mean=pmean(jnp.mean(data.reward), axis_name),
-                   episodes=episodes)
+                   episodes=episodes, learning_rate=jnp.where(finite, new_lr, jnp.asarray(lr, jnp.float32)))
     return kept, env_state, metrics
 
 
@@ -176,15 +182,17 @@ def make_cycle(env: Env, networks: PPONetworks, optimizer: optax.GradientTransfo
 
     ``cycle(train_state, env_state, window, train_key, first, count, progress, lr)`` runs iterations
     ``first … first + count - 1`` (``count ≤ length``; iteration i uses ``fold_in(train_key, i)``,
-    ``progress[i - first]`` and, under a ``per_iteration`` lr schedule, ``lr[i - first]``),
-    stopping after a non-finite one (its state is not kept, see ``iteration``).  ``lr_rule``
-    (``lr_schedule.Rule``; default: the host's lr) says how the lr moves inside the call:
-    ``fixed`` (constant, sa) keeps the optimizer state's, ``per_iteration`` (cosine, linear)
-    sets ``lr[j]`` before iteration j, ``kl`` (kl-adaptive) adapts it after every minibatch.
+    ``progress[i - first]`` and the lr the host gave it), stopping after a non-finite one (its
+    state is not kept, see ``iteration``).  The host's lr schedule owns the lr; ``lr_rule``
+    (``lr_schedule.Rule``; default: ``fixed``) says what the call does with its ``lr`` rows
+    (``lr_schedule.iteration_lrs``): ``fixed`` (constant, sa) and ``per_iteration`` (cosine,
+    linear) run iteration j at ``lr[j]``; ``kl`` (kl-adaptive) starts at ``lr[0]`` and adapts it
+    after every minibatch, each iteration going on from the lr the last one ended at.
     Each iteration appends its finished episodes to ``window`` (``init_window``).  Returns the
     new states and per-iteration metrics of shape [length]: ``executed`` marks the iterations
-    that ran; ``window`` holds the window means; ``learning_rate`` the optimizer's lr after it
-    (and under ``kl``, ``step_kl`` the mean KL its minibatches measured, see ``sgd_epochs``).
+    that ran; ``window`` holds the window means; ``learning_rate`` the lr each iteration ended at,
+    what the host's schedule keeps (``lr_schedule.observe``), and under ``kl``, ``step_kl`` the
+    mean KL its minibatches measured (see ``sgd_epochs``).
 
     With ``seed_axis`` every argument and result leads with a seed axis (a seed group, env states
     [S, B, ...] split over the mesh on B): the cycle is vmapped over it, each seed with its own
@@ -206,17 +214,15 @@ def make_cycle(env: Env, networks: PPONetworks, optimizer: optax.GradientTransfo
                               "steps_to_success": f32(), "window_episodes": i32(),
                               **{k: f32() for k in kind_success_keys(window["values"])}}}
 
-        def run(carry: tuple[TrainingState, State, dict[str, Any]], j: jax.Array):
+        def run(carry: tuple[TrainingState, State, dict[str, Any]], j: jax.Array, lr_j: jax.Array):
             ts, es, win = carry
             key = jax.random.fold_in(train_key, first + j)
-            if mode == "per_iteration":
-                ts = ts._replace(opt_state=with_learning_rate(ts.opt_state, lr[j]))
-            ts, es, metrics = iteration(ts, es, key, progress[j], env=env, networks=networks, optimizer=optimizer,
+            ts, es, metrics = iteration(ts, es, key, progress[j], lr_j, env=env, networks=networks, optimizer=optimizer,
                                         cfg=cfg, axis_name=BATCH_AXIS, hand_scaled=hand_scaled,
                                         critic_extra=critic_extra, kl_rule=kl_rule)
             episodes = metrics["episodes"]
             out = {k: metrics[k].astype(jnp.float32) for k in CYCLE_METRICS}
-            out["learning_rate"] = learning_rate_of(ts.opt_state).astype(jnp.float32)
+            out["learning_rate"] = metrics["learning_rate"]
             if kl_rule is not None:  # the mean KL the kl-adaptive rule read over the iteration's minibatches
                 out["step_kl"] = metrics["step_kl"].astype(jnp.float32)
             out.update({name: jax.lax.psum(jnp.sum(episodes.get(name, jnp.zeros(()))), BATCH_AXIS).astype(jnp.float32)
@@ -228,18 +234,19 @@ def make_cycle(env: Env, networks: PPONetworks, optimizer: optax.GradientTransfo
             return (ts, es, win), out
 
         def cond(carry: tuple[Any, ...]) -> jax.Array:
-            j, _, _, _, stopped, _ = carry
+            j, _, _, _, stopped, _, _ = carry
             return (j < count) & ~stopped
 
         def body(carry: tuple[Any, ...]) -> tuple[Any, ...]:
-            j, ts, es, win, _, outs = carry
-            (ts, es, win), out = run((ts, es, win), j)
+            j, ts, es, win, _, outs, last_lr = carry
+            (ts, es, win), out = run((ts, es, win), j, last_lr if mode == "kl" else lr[j])
             outs = jax.tree_util.tree_map(lambda buf, x: buf.at[j].set(x), outs, out)
-            return j + 1, ts, es, win, ~out["finite"], outs
+            return j + 1, ts, es, win, ~out["finite"], outs, out["learning_rate"]
 
         outs = jax.tree_util.tree_map(lambda x: jnp.zeros((length,) + x.shape, x.dtype), skipped)
-        init = (jnp.zeros((), jnp.int32), train_state, env_state, window, jnp.zeros((), bool), outs)
-        ran, ts, es, win, _, outs = jax.lax.while_loop(cond, body, init)
+        init = (jnp.zeros((), jnp.int32), train_state, env_state, window, jnp.zeros((), bool), outs,
+                jnp.asarray(lr[0], jnp.float32))
+        ran, ts, es, win, _, outs, _ = jax.lax.while_loop(cond, body, init)
         outs["executed"] = jnp.arange(length) < ran
         return ts, es, win, outs
 
