@@ -3,7 +3,7 @@
 Franka Panda) changes ARM_JOINTS and nothing else.  The scan reads the package's source for the shapes a
 literal joint count took in the old code and fails naming file:line; the 6s that are not joint counts (a box's
 6 faces, the camera intrinsics' 6 numbers, a hand-eye pair's 6 columns) are allowed by name below, and so are
-the joint counts left in training/ while parallel work there lands (PENDING_IN_TRAINING)."""
+any joint counts left in training/ named in PENDING_IN_TRAINING (none now)."""
 
 import dataclasses
 import re
@@ -35,10 +35,7 @@ NOT_JOINT_COUNTS = {
 }
 # Joint counts still literal in training/, left while issue 56's parallel work there (the learning-rate plumbing)
 # lands: each should read control.ACTION_SIZE (or take the action count from the env, with no default).
-PENDING_IN_TRAINING = {
-    ("training/lr_schedule.py", "n_actions: int = 6"): "ScheduleState update's default action count",
-    ("training/sa_schedule.py", "n_actions: int = 6"): "temperature's and update's default action count",
-}
+PENDING_IN_TRAINING: dict[tuple[str, str], str] = {}  # none left: training/ reads control.ACTION_SIZE too
 
 
 def joint_count_literals(root: Path) -> list[str]:
@@ -72,11 +69,11 @@ def test_the_scan_sees_the_old_shapes(tmp_path):
         "deploy/twin.py": "        v = [0.0] * 6 if velocity is None else velocity",
         "task/robot.py": "        jac = np.zeros((n, 6))",
         "task/observation.py": 'PENDING = tuple(f"pending{j}" for j in range(1, 7))',
+        "training/sa_schedule.py": "def t(n_actions: int = 6):",
     }
     for rel, line in old.items():
         (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
         (tmp_path / rel).write_text(f"x = 1\n{line}\n")
-    (tmp_path / "training" / "sa_schedule.py").write_text("def t(n_actions: int = 6):\n")  # pending, named
     (tmp_path / "task").joinpath("camera.py").write_text("if v.shape != (6,) or bad:\n")  # allowed by name
     (tmp_path / "export.py").write_text("keys = jax.random.split(key, 6)\nz = zlib.compress(raw, 6)\n")  # calls
     found = joint_count_literals(tmp_path)
