@@ -140,12 +140,7 @@ def measure_startup(repeats: int, cycles: int) -> list[dict[str, Any]]:
     rows = []
     for _ in range(repeats):
         with tempfile.TemporaryDirectory() as tmp:
-            env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=os.path.join(tmp, "cache"))
-            code = f"import experiments.readme_line as m, json; print(json.dumps(m._startup_once({tmp!r}, {cycles})))"
-            done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True)
-            if done.returncode:
-                raise SystemExit(done.stderr[-3000:])
-            rows.append(json.loads(done.stdout.strip().splitlines()[-1]))
+            rows.append(_fresh_process_json(tmp, f"m._startup_once({tmp!r}, {cycles})"))
     return rows
 
 
@@ -646,12 +641,18 @@ def parse_options(items: list[str]) -> dict[str, Any]:
 def measure_options(options: dict[str, Any], programs: list[str]) -> dict[str, Any]:
     """``programs`` of the README trainer compiled under ``options`` in a fresh process on an empty compilation cache."""
     with tempfile.TemporaryDirectory() as tmp:
-        env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=os.path.join(tmp, "cache"))
-        code = f"import experiments.readme_line as m, json; print(json.dumps(m._options_once({tmp!r}, {options!r}, {programs!r})))"
-        done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True)
-        if done.returncode:
-            raise SystemExit(done.stderr[-3000:])
-        return json.loads(done.stdout.strip().splitlines()[-1])
+        return _fresh_process_json(tmp, f"m._options_once({tmp!r}, {options!r}, {programs!r})")
+
+
+def _fresh_process_json(tmp: str, call: str) -> dict[str, Any]:
+    """``call`` (an expression on this module as ``m``) in a fresh Python with its compilation cache in ``tmp``
+    (empty: a cold start), its JSON result read from the last line of its output; its stderr tail on failure."""
+    env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=os.path.join(tmp, "cache"))
+    code = f"import experiments.readme_line as m, json; print(json.dumps({call}))"
+    done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True)
+    if done.returncode:
+        raise SystemExit(done.stderr[-3000:])
+    return json.loads(done.stdout.strip().splitlines()[-1])
 
 
 def _options_once(tmp: str, options: dict[str, Any], programs: list[str]) -> dict[str, Any]:
