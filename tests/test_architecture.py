@@ -438,3 +438,17 @@ def test_the_layout_check_sees_a_misplaced_test(tmp_path):
     assert _test_layout_problems(str(tmp_path / "tests"), str(tmp_path / "pkg")) == [
         "tests/gadgets/ mirrors no folder of sagrasp_jax/", "tests/test_reward.py belongs in the tests/ folder of "
         "the package folder it tests"]
+
+
+def test_the_wheel_lists_every_package_folder():
+    """pyproject's explicit package list ships every folder of sagrasp_jax that holds code: a subpackage left out
+    installs from the checkout (editable) but is missing from the wheel a robot PC installs (it happened to
+    training/agents/ppo)."""
+    import tomllib
+
+    with open(os.path.join(REPO, "pyproject.toml"), "rb") as f:
+        listed = set(tomllib.load(f)["tool"]["setuptools"]["packages"])
+    code = {os.path.relpath(d, REPO).replace(os.sep, ".") for d, _, files in os.walk(PACKAGE)
+            if "__init__.py" in files and "__pycache__" not in d}
+    assert code - listed == set(), "add these to [tool.setuptools] packages in pyproject.toml"
+    assert {"sagrasp_jax", "sagrasp_jax.training.agents.ppo"} <= code
