@@ -53,6 +53,7 @@ from typing import Any
 import numpy as np
 import pybullet as pb
 
+from sagrasp_jax.task import point_fits
 from sagrasp_jax.task import collision
 from sagrasp_jax.task import robot
 from sagrasp_jax.task import sampling
@@ -82,7 +83,7 @@ def size_error(kind: str, true_size: np.ndarray, true_yaw: float, det: perceptio
     if kind == "cylinder":
         return max(abs(got[0] - ref[0]) / ref[0], abs(got[1] - ref[1]) / ref[1])
     if kind == "box":
-        if abs(perception.wrap(det.yaw - true_yaw, math.pi)) > math.pi / 4:
+        if abs(point_fits.wrap(det.yaw - true_yaw, math.pi)) > math.pi / 4:
             got = got[[1, 0, 2]]
         return float(np.max(np.abs(got - ref) / ref))
     if kind == "capsule":  # radius and tip-to-tip length
@@ -145,7 +146,7 @@ def evaluate_scene(spec: sampling.ResetSpec, truth: list[dict[str, Any]], cloud:
     rec: dict[str, Any] = {
         "refused": None, "perception_s": seconds, "target_err_m": float(np.linalg.norm(err)),
         "target_err_xy_m": float(np.linalg.norm(err[:2])), "target_err_z_m": float(err[2]),
-        "yaw_err_deg": abs(math.degrees(perception.wrap(det.target_yaw - float(spec.target_yaw), math.pi / 2))),
+        "yaw_err_deg": abs(math.degrees(point_fits.wrap(det.target_yaw - float(spec.target_yaw), math.pi / 2))),
         "detected": len(det.obstacles), "obstacles": [],
     }
     pairs = dict(match_obstacles(truth, det.obstacles))

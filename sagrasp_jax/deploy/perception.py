@@ -78,7 +78,7 @@ import numpy as np
 
 from sagrasp_jax.task import geometry
 from sagrasp_jax.task import shapes
-from sagrasp_jax.task.point_fits import convex_hull, fit_circle, min_area_rect, polygon_area, wrap  # noqa: F401
+from sagrasp_jax.task.point_fits import convex_hull, min_area_rect, wrap
 from sagrasp_jax.task.config import SamplingConfig
 from sagrasp_jax.deploy.calibration import CameraCalibration, detected_top_to_cube_centre
 from sagrasp_jax.deploy.loop import Obstacle
@@ -438,7 +438,7 @@ def label_regions(mask: np.ndarray, points: np.ndarray, max_gap: float, valid: n
 
 
 # ---------------------------------------------------------------------------------------------- 2-D outline maths
-# (convex_hull, min_area_rect, polygon_area, fit_circle, wrap: task/point_fits.py)
+# (convex_hull, min_area_rect, wrap and the other 2-D fits: task/point_fits.py)
 
 
 def _grown_sides(sides: tuple[float, float], area: float) -> tuple[float, float]:

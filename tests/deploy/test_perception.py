@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from sagrasp_jax.deploy import perception as P
+from sagrasp_jax.task import point_fits
 from sagrasp_jax.deploy.calibration import CameraCalibration
 from sagrasp_jax.deploy.loop import Obstacle
 from sagrasp_jax.task.config import EnvConfig, SamplingConfig
@@ -467,12 +468,12 @@ def test_minimum_area_rectangle_and_hull():
     u, v = rng.uniform(-0.03, 0.03, 400), rng.uniform(-0.01, 0.01, 400)
     a = 0.4
     xy = np.c_[u * math.cos(a) - v * math.sin(a), u * math.sin(a) + v * math.cos(a)] + (0.2, -0.3)
-    centre, sides, angle = P.min_area_rect(xy)
+    centre, sides, angle = point_fits.min_area_rect(xy)
     np.testing.assert_allclose(centre, (0.2, -0.3), atol=1e-3)
     np.testing.assert_allclose(sorted(sides), (0.02, 0.06), atol=1.5e-3)
-    assert abs(P.wrap(angle - a, math.pi / 2)) < 0.02
-    hull = P.convex_hull(np.array([[0, 0], [1, 0], [1, 1], [0, 1], [0.5, 0.5]], float))
-    assert len(hull) == 4 and P.polygon_area(hull) == pytest.approx(1.0)
+    assert abs(point_fits.wrap(angle - a, math.pi / 2)) < 0.02
+    hull = point_fits.convex_hull(np.array([[0, 0], [1, 0], [1, 1], [0, 1], [0.5, 0.5]], float))
+    assert len(hull) == 4 and point_fits.polygon_area(hull) == pytest.approx(1.0)
 
 
 # ---------------------------------------------------------------------- the twin camera's renders
