@@ -42,22 +42,12 @@ import numpy as np
 from sagrasp_jax.task import geometry
 from sagrasp_jax.task import shapes
 from sagrasp_jax.task.config import EnvConfig
-from sagrasp_jax.task.robot import ARM_JOINTS, BOX, CAPSULE, CYLINDER, SPHERE, Kinematics, RobotModel, primitive_poses
+from sagrasp_jax.task.robot import BOX, CAPSULE, CYLINDER, SPHERE, Kinematics, RobotModel, primitive_poses
 from sagrasp_jax.task.scene import SCENE
 
 HIT_KINDS = ("obstacle", "gantry", "camera", "table", "target", "self")
 CAPSULE_DIP = 0.005  # m, max surface dip between consecutive capsule cover spheres
 BOX_CELL = 0.025  # m, max half-size of a box cover cell
-REACH_LINK = 2  # primitives of links from the upper arm on can reach the table, posts and target
-
-
-def _child_links(joints: tuple[str, ...]) -> tuple[int, ...]:
-    """The link indices (RobotModel.link_names: 0 the base, i + 1 the link ARM_JOINTS[i] turns) of ``joints``."""
-    return tuple(ARM_JOINTS.index(j) + 1 for j in joints)
-
-
-SELF_MOVING_LINKS = _child_links(("wrist1_joint", "wrist2_joint", "wrist3_joint"))  # flange and gripper ride on wrist3
-SELF_STATIC_LINKS = (0, *_child_links(("shoulder_joint", "upperArm_joint")))  # base, shoulder, upper arm
 UNREACHABLE_ROLES_MIN_Z = 1.3  # m: static parts wholly above this are out of the arm's reach (tested)
 
 
@@ -403,7 +393,7 @@ def check(xp: Any, robot: RobotModel, kin: Kinematics, reset: Any, cfg: EnvConfi
     gripper_to_obstacle = xp.where(active[:, None], gripper_vec, 0.0)
 
     # gantry posts (camera, bracket and beam are out of reach)
-    reach = _link_slice(cover, REACH_LINK, last)
+    reach = _link_slice(cover, robot.spec.reach_link, last)
     hit_gantry = xp.zeros((), bool)
     hit_camera = xp.zeros((), bool)
     for i in reachable_parts():
@@ -422,7 +412,7 @@ def check(xp: Any, robot: RobotModel, kin: Kinematics, reset: Any, cfg: EnvConfi
 
     # table: exact support function of every reaching primitive
     prim_pos, prim_rot = primitive_poses(xp, robot, kin)
-    g_reach = np.nonzero(robot.prim_link >= REACH_LINK)[0]
+    g_reach = np.nonzero(robot.prim_link >= robot.spec.reach_link)[0]
     lowest = [
         geometry.plane_distance(xp, int(robot.prim_kind[g]), prim_pos[g], prim_rot[g], xp.asarray(robot.prim_size[g], dtype=dtype), SCENE.table.top_z)
         for g in g_reach
@@ -433,7 +423,7 @@ def check(xp: Any, robot: RobotModel, kin: Kinematics, reset: Any, cfg: EnvConfi
     t_half = xp.asarray([s / 2 for s in cfg.sampling.target_size], dtype=dtype)
     t_pos = xp.asarray(reset.target_pos, dtype=dtype)
     t_rot = shapes.yaw_rotation(xp, xp.asarray(reset.target_yaw, dtype=dtype))
-    arm = _link_slice(cover, REACH_LINK, last - 1)
+    arm = _link_slice(cover, robot.spec.reach_link, last - 1)
     rel = centres[arm] - t_pos
     local = rel @ t_rot
     q = xp.abs(local) - t_half
@@ -441,9 +431,9 @@ def check(xp: Any, robot: RobotModel, kin: Kinematics, reset: Any, cfg: EnvConfi
     hit_target = _target_hits(xp, robot, prim_pos, prim_rot, t_pos, t_rot, t_half) | xp.any(d_arm < 0.0)
 
     # self-collision: cover spheres of the wrists and gripper vs the exact base, shoulder, upper arm
-    mov = _link_slice(cover, SELF_MOVING_LINKS[0], SELF_MOVING_LINKS[-1])
+    mov = _link_slice(cover, robot.self_moving_links[0], robot.self_moving_links[-1])
     self_gaps = []
-    for g in np.nonzero(np.isin(robot.prim_link, SELF_STATIC_LINKS))[0]:
+    for g in np.nonzero(np.isin(robot.prim_link, robot.self_static_links))[0]:
         d = geometry.point_distance(
             xp, int(robot.prim_kind[g]), centres[mov], prim_pos[g], prim_rot[g], xp.asarray(robot.prim_size[g], dtype=dtype)
         )

@@ -1,8 +1,8 @@
-"""Robot facts read from the project URDF, and forward kinematics for NumPy and JAX.
+"""Robot facts read from a robot's URDF, and forward kinematics for NumPy and JAX.
 
-The URDF (``sagrasp_jax/urdf/aubo_i5_eg2.urdf``) is the only place where joint origins, limits
-and collision geometry are written.  ``load_robot`` parses it once into plain NumPy
-constants; ``forward_kinematics(xp, robot, q)`` then runs with ``xp = numpy`` (the
+Each registered robot's URDF (``task/robots.py``; the default ``sagrasp_jax/urdf/aubo_i5_eg2.urdf``) is the
+only place where its joint origins, limits and collision geometry are written.  ``load_robot(name)`` parses
+it once into plain NumPy constants; ``forward_kinematics(xp, robot, q)`` then runs with ``xp = numpy`` (the
 PyBullet reference env, the deployment runtime) or ``xp = jax.numpy`` (the MJX env)
 and broadcasts over any leading batch dimensions of ``q``.
 """
@@ -18,19 +18,14 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from sagrasp_jax.base import assets
+from sagrasp_jax.task import robots
 
-URDF_PATH = assets.URDF  # shipped in the package (sagrasp_jax/urdf/), found through importlib.resources
+URDF_PATH = assets.URDF  # the default robot's, shipped in the package (sagrasp_jax/urdf/), found through importlib.resources
 
-ARM_JOINTS = (
-    "shoulder_joint",
-    "upperArm_joint",
-    "foreArm_joint",
-    "wrist1_joint",
-    "wrist2_joint",
-    "wrist3_joint",
-)
-FINGER_JOINTS = ("left_finger_joint", "right_finger_joint")
-ARM_DOF = len(ARM_JOINTS)  # the arm's joint count, the one place it is stated (a robot registry swaps ARM_JOINTS)
+# The default robot's (the AUBO-i5's) joints; code that serves every arm reads RobotModel.spec / .dof instead.
+ARM_JOINTS = robots.AUBO_I5.arm_joints
+FINGER_JOINTS = robots.AUBO_I5.finger_joints
+ARM_DOF = robots.AUBO_I5.dof  # the AUBO-i5's joint count: its driver and its packaged policy's files
 
 # Primitive kinds (sizes in MuJoCo's convention), shared with geometry.py and shapes.py.
 SPHERE, CAPSULE, BOX, CYLINDER = 0, 1, 2, 3
@@ -86,6 +81,21 @@ class RobotModel:
     finger_open: float  # finger joint value when fully open
     primitives: tuple[Primitive, ...]
     urdf_path: str
+    spec: robots.RobotSpec = robots.AUBO_I5  # the registry entry: joint roles, home pose, servo model
+
+    @property
+    def name(self) -> str:
+        return self.spec.name
+
+    @property
+    def self_moving_links(self) -> tuple[int, ...]:
+        """Link indices of the self-collision group that moves against the static one (wrist and gripper)."""
+        return tuple(range(self.spec.self_moving_from_link, self.dof + 1))
+
+    @property
+    def self_static_links(self) -> tuple[int, ...]:
+        """Link indices of the base and the first links, which the moving group must not touch."""
+        return tuple(range(0, self.spec.self_static_to_link + 1))
 
     @property
     def dof(self) -> int:
@@ -155,8 +165,8 @@ def _geometry(elem: ET.Element, path: str, what: str) -> tuple[int, tuple[float,
     raise URDFError(f"{path}: {what} uses <{shape.tag}>; only sphere, capsule, cylinder and box are supported")
 
 
-def parse_urdf(path: str) -> RobotModel:
-    """Parse the project URDF; raises URDFError naming the file and the problem."""
+def parse_urdf(path: str, spec: robots.RobotSpec = robots.AUBO_I5) -> RobotModel:
+    """Parse a robot's URDF, its joints' roles named by ``spec``; raises URDFError naming the file and the problem."""
     if not os.path.isfile(path):
         raise URDFError(f"{path}: URDF file not found")
     try:
@@ -167,7 +177,8 @@ def parse_urdf(path: str) -> RobotModel:
         raise URDFError(f"{path}: root element is <{root.tag}>, expected <robot>")
     links = {link.get("name"): link for link in root.findall("link")}
     joints = {joint.get("name"): joint for joint in root.findall("joint")}
-    for name in ARM_JOINTS + FINGER_JOINTS + ("flange_joint", "gripper_center_joint"):
+    arm_joints = spec.arm_joints
+    for name in arm_joints + spec.finger_joints + (spec.flange_joint, spec.gripper_centre_joint):
         if name not in joints:
             raise URDFError(f"{path}: joint {name!r} is missing")
 
@@ -183,10 +194,10 @@ def parse_urdf(path: str) -> RobotModel:
             raise URDFError(f"{path}: joint {jname!r} has no valid <parent>")
         return parent.get("link")
 
-    base = parent_of(ARM_JOINTS[0])
+    base = parent_of(arm_joints[0])
     link_names = [base]
     origins, lower, upper, vel, eff = [], [], [], [], []
-    for jname in ARM_JOINTS:
+    for jname in arm_joints:
         joint = joints[jname]
         if joint.get("type") != "revolute":
             raise URDFError(f"{path}: joint {jname!r} must be revolute")
@@ -231,9 +242,9 @@ def parse_urdf(path: str) -> RobotModel:
                     raise URDFError(f"{path}: joint {jname!r} below the wrist must be fixed or prismatic")
                 attached[child] = attached[parent] @ local
                 changed = True
-    flange = child_of("flange_joint")
-    gripper_center = child_of("gripper_center_joint")
-    fingers = [child_of(j) for j in FINGER_JOINTS]
+    flange = child_of(spec.flange_joint)
+    gripper_center = child_of(spec.gripper_centre_joint)
+    fingers = [child_of(j) for j in spec.finger_joints]
     for name in (flange, gripper_center, *fingers):
         if name not in attached:
             raise URDFError(f"{path}: link {name!r} is not attached below {wrist3!r}")
@@ -272,19 +283,32 @@ def parse_urdf(path: str) -> RobotModel:
         finger_open=float(finger_open),
         primitives=tuple(primitives),
         urdf_path=path,
+        spec=spec,
     )
 
 
-@functools.lru_cache(maxsize=4)
-def load_robot(path: str = URDF_PATH) -> RobotModel:
-    return parse_urdf(path)
+def load_robot(robot: str = robots.DEFAULT) -> RobotModel:
+    """The registered robot ``robot`` (``env.robot``), parsed once; a path to a ``.urdf`` file is read with the
+    default robot's joint names (a variant of its URDF)."""
+    if robot.endswith(".urdf"):
+        return _load(robot, robots.DEFAULT)
+    spec = robots.get(robot)
+    return _load(assets.path("urdf", spec.urdf), spec.name)
+
+
+@functools.lru_cache(maxsize=8)
+def _load(path: str, name: str) -> RobotModel:
+    return parse_urdf(path, robots.get(name))
+
+
+robots.on_change(_load.cache_clear)
 
 
 class Kinematics(NamedTuple):
     """World-frame poses for a joint vector (leading batch dims of q are kept)."""
 
-    link_pos: Any  # (..., 7, 3) base + six arm links
-    link_rot: Any  # (..., 7, 3, 3)
+    link_pos: Any  # (..., dof + 1, 3) base + one link per arm joint
+    link_rot: Any  # (..., dof + 1, 3, 3)
     joint_axes: Any  # (..., dof, 3) world axis of each arm joint
     joint_pos: Any  # (..., dof, 3)
     flange_pos: Any  # (..., 3)
