@@ -12,6 +12,7 @@ import sagrasp_jax  # noqa: F401
 from sagrasp_jax.base import assets
 from sagrasp_jax.task import config
 from sagrasp_jax.task import robot
+from sagrasp_jax.task import robots
 from sagrasp_jax.task import scene
 from paths import REPO as ROOT  # noqa: E402
 
@@ -21,7 +22,10 @@ TOOL = os.path.join(ROOT, "tools", "urdf_to_mjcf.py")
 def test_committed_mjcf_is_what_the_tool_generates(tmp_path):
     out = subprocess.run([sys.executable, TOOL, "--out-dir", str(tmp_path)], capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
-    for name in ("aubo_i5_eg2.xml", "scene.xml"):
+    files = [name for r in robots.names() for name in (robots.get(r).mjcf_robot, robots.get(r).mjcf_scene)]
+    assert {"aubo_i5_eg2.xml", "scene.xml", "panda.xml", "scene_panda.xml"} <= set(files)
+    assert sorted(os.listdir(tmp_path)) == sorted(files)  # every registered robot's two files, nothing else
+    for name in files:
         with open(os.path.join(assets.MJCF_DIR, name)) as committed, open(tmp_path / name) as fresh:
             assert committed.read() == fresh.read(), f"sagrasp_jax/mjcf/{name} is stale: run python tools/urdf_to_mjcf.py"
 
@@ -107,24 +111,33 @@ def test_camera_pose_and_field_of_view_cover_the_target_region():
     assert uv[:, 0].min() > 10 and uv[:, 0].max() < k.width - 10 and uv[:, 1].min() > 10 and uv[:, 1].max() < k.height - 10
 
 
-def test_dynamic_servo_tracks_a_small_step():
-    """Position servos + gravity compensation: hold the home pose and follow a 0.05 rad step."""
+@pytest.mark.parametrize("name", robots.names())
+def test_dynamic_servo_tracks_a_small_step(name):
+    """Position servos + gravity compensation: hold the home pose and follow a 0.05 rad step on every joint
+    within two control periods, without overshooting or limit-cycling afterwards."""
     import mujoco
 
-    model = mujoco.MjModel.from_xml_path(assets.MJCF_SCENE)
+    spec = robots.get(name)
+    model = mujoco.MjModel.from_xml_path(assets.path("mjcf", spec.mjcf_scene))
     data = mujoco.MjData(model)
-    home = np.array(config.HOME_Q)
-    data.qpos[:6] = home
-    data.qpos[6:8] = 0.033
-    data.ctrl[:6] = home
-    data.ctrl[6:8] = 0.033
+    n, arm = spec.dof, robot.load_robot(name)
+    home = np.array(spec.home_q)
+    data.qpos[:n] = home
+    data.qpos[n:n + 2] = arm.finger_open
+    data.ctrl[:n] = home
+    data.ctrl[n:n + 2] = arm.finger_open
     for _ in range(50):
         mujoco.mj_step(model, data)
-    assert np.abs(data.qpos[:6] - home).max() < 1e-6  # gravity compensated
-    data.ctrl[:6] = home + 0.05
+    assert np.abs(data.qpos[:n] - home).max() < 1e-6  # gravity compensated
+    data.ctrl[:n] = home + 0.05
     for _ in range(10):  # two control periods
         mujoco.mj_step(model, data)
-    assert np.abs(data.qpos[:6] - (home + 0.05)).max() < 0.01
+    assert np.abs(data.qpos[:n] - (home + 0.05)).max() < 0.01
+    after = []
+    for _ in range(50):  # five more periods: settled, no limit cycle
+        mujoco.mj_step(model, data)
+        after.append(np.abs(data.qpos[:n] - (home + 0.05)).max())
+    assert max(after) < 0.01 and after[-1] < 0.002
     mujoco.mj_kinematics(model, data)
-    kin = robot.forward_kinematics(np, robot.load_robot(), data.qpos[:6])
+    kin = robot.forward_kinematics(np, arm, data.qpos[:n])
     assert np.linalg.norm(kin.gripper_centre - data.site("gripper_center").xpos) < 1e-9
