@@ -131,7 +131,8 @@ class ServoModel:
 
 
 def load_servo_model(xml_path: str | None = None) -> ServoModel:
-    """The servo constants of the MJCF the MJX env loads (one source: ``tools/urdf_to_mjcf.py``)."""
+    """The servo constants of the MJCF the MJX env loads (one source: the robot's ``robots.RobotSpec.servo``, which
+    ``tools/urdf_to_mjcf.py`` writes into it)."""
     import mujoco
 
     path = xml_path or assets.MJCF_ROBOT
