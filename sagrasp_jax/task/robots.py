@@ -125,6 +125,9 @@ def on_change(listener: Callable[[], None]) -> None:
     _LISTENERS.append(listener)
 
 
+DEFAULT_DOF = AUBO_I5.dof  # the default robot's joint count: the action size where a library call names no robot
+
+
 def names() -> tuple[str, ...]:
     """The registered robots, the default first."""
     return tuple(_REGISTRY)
