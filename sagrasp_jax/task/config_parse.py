@@ -19,6 +19,7 @@ from sagrasp_jax.task.config import (
     PRESETS, Config, ConfigError, KeySpec, flatten_keys, format_number, get_config, get_key, key_specs,
     robot_defaults, valid_keys, validate,
 )
+from sagrasp_jax.task import robots
 from sagrasp_jax.task.config_history import RENAMED_KEYS, current_name, upgrade_flat
 
 
@@ -87,7 +88,7 @@ def apply_overrides(cfg: Config, overrides: list[str]) -> Config:
                               else unknown_key_message(name))
         cfg = _replaced(cfg, name.split("."), _parse(text, key_specs()[name], name))
         given.add(name)
-    if "env.robot" in given:
+    if "env.robot" in given and cfg.env.robot in robots.names():  # an unknown one: validate names the choices
         for name, value in robot_defaults(cfg.env.robot).items():
             if name not in given:
                 cfg = _replaced(cfg, name.split("."), value)

@@ -12,8 +12,9 @@ loop) is read from here and from ``robot.load_robot(name)``: a new arm is a URDF
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Iterator
 
 DEFAULT = "aubo_i5"
 
@@ -139,3 +140,18 @@ def get(name: str) -> RobotSpec:
         return _REGISTRY[name]
     except KeyError:
         raise UnknownRobot(name) from None
+
+
+@contextlib.contextmanager
+def registered(*extra: RobotSpec) -> Iterator[tuple[RobotSpec, ...]]:
+    """The registry with ``extra`` robots added for the block (``register``), restored after, whatever happens."""
+    before = dict(_REGISTRY)
+    try:
+        for spec in extra:
+            register(spec)
+        yield extra
+    finally:
+        _REGISTRY.clear()
+        _REGISTRY.update(before)
+        for listener in _LISTENERS:
+            listener()
