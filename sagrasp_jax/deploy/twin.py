@@ -262,7 +262,7 @@ class PyBulletTwin:
         gain = np.clip(nominal * np.asarray(e.servo_gains), 0.0, 1.0)
         weight = control.held_command_weight(np, fraction, nominal)  # the fraction's weight: the nominal servo (as MJX)
         command = (1.0 - weight) * current + weight * previous
-        q_next = control.servo_model_step(np, self.cfg.control, q_now, self._q_prev, command, gain)
+        q_next = control.servo_model_step(np, self.robot, self.cfg.control, q_now, self._q_prev, command, gain)
         self._q_prev = q_now
         return q_next
 

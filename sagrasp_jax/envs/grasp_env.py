@@ -40,8 +40,8 @@ from sagrasp_jax.task import sampling
 from sagrasp_jax.task import config as config_mod
 from sagrasp_jax.task.config import EnvConfig
 
-MJCF_SCENE = assets.MJCF_SCENE
-MJCF_ROBOT = assets.MJCF_ROBOT  # the dynamic mode's model
+MJCF_SCENE = assets.MJCF_SCENE  # the default robot's; an env's own: GraspEnv.mjcf_scene
+MJCF_ROBOT = assets.MJCF_ROBOT  # the default robot's dynamic-mode model; an env's own: GraspEnv.mjcf_robot
 
 OBS_SIZE = observation.OBS_SIZE  # the paper layout's 17; an env's own size is ``GraspEnv.observation_size``
 POSE_METRICS = ("distance", "tilt", "slowed", "finetuned")  # state.metrics besides the reward terms (step_metric_keys)
@@ -97,9 +97,8 @@ def servo_physics_step(model: Any, data: Any) -> Any:
 
 
 class GraspEnv:
-    """AUBO-i5 + EG2 gripper reaching a cuboid among random obstacles (docs/task.md §1-§2)."""
-
-    action_size = control.ACTION_SIZE
+    """A registered arm (``env.robot``: the AUBO-i5 + EG2 gripper by default) reaching a cuboid among random
+    obstacles (docs/task.md §1-§2)."""
 
     def __init__(self, cfg: EnvConfig, privileged: bool = False):
         config_mod.check_fields(cfg, "env.")  # each key's declared type, range and choices (an EnvConfig built in code)
@@ -111,8 +110,11 @@ class GraspEnv:
         # privileged critic inputs in info["privileged"] (ppo.privileged_critic); the policy never sees them
         self.privileged = privileged
         self.privileged_size = len(observation.privileged_layout(cfg)) if privileged else 0
-        self.robot = robot.load_robot()
-        self.n_uniforms = sampling.uniforms_needed(cfg.sampling)
+        self.robot = robot.load_robot(cfg.robot)
+        self.action_size = self.robot.dof  # one joint-target increment per arm joint
+        self.mjcf_scene = assets.path("mjcf", self.robot.spec.mjcf_scene)
+        self.mjcf_robot = assets.path("mjcf", self.robot.spec.mjcf_robot)
+        self.n_uniforms = sampling.uniforms_needed(cfg.sampling, self.robot.dof)
         self._mjx_model = None
         self.randomized = config_mod.randomization_enabled(cfg)  # env.randomize: per-episode draws in info["randomize"]
         self.queue_size = control.latency_queue_size(cfg.randomize.latency)  # commands kept in info["commands"] (0: no latency, no queue)
@@ -128,23 +130,24 @@ class GraspEnv:
         only matter to contacts and rendering (inertias are explicit); the fingers, held open during
         episodes, are welded open (their servo held them rigid) and every joint-less body is fused into
         its parent.  No constraints either: collisions are analytic and the servo targets are clipped
-        to the joint limits, so no joint-limit solver runs.  What is left is the ARM_DOF-joint arm, its position
+        to the joint limits, so no joint-limit solver runs.  What is left is the arm's joints, their position
         servos (with armature, damping and actuator gravity compensation) and implicitfast."""
         import mujoco
         from mujoco import mjx
 
-        spec = mujoco.MjSpec.from_file(os.path.normpath(MJCF_ROBOT))
+        spec = mujoco.MjSpec.from_file(os.path.normpath(self.mjcf_robot))
         for geom in list(spec.geoms):
             spec.delete(geom)
         for site in list(spec.sites):
             spec.delete(site)
-        finger_joints = [spec.joint(name) for name in robot.FINGER_JOINTS]
+        fingers = self.robot.spec.finger_joints
+        finger_joints = [spec.joint(name) for name in fingers]
         for body in spec.bodies:
             for joint in body.joints:
-                if joint.name in robot.FINGER_JOINTS:
+                if joint.name in fingers:
                     body.pos = [p + self.robot.finger_open * a for p, a in zip(body.pos, joint.axis)]
         for act in list(spec.actuators):
-            if act.target in robot.FINGER_JOINTS:
+            if act.target in fingers:
                 spec.delete(act)
         for joint in finger_joints:
             spec.delete(joint)
@@ -152,8 +155,9 @@ class GraspEnv:
         model = spec.compile()
         model.opt.timestep = self.cfg.control.physics_dt
         model.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_CONTACT | mujoco.mjtDisableBit.mjDSBL_CONSTRAINT
-        if model.nq != robot.ARM_DOF or model.nu != robot.ARM_DOF:
-            raise RuntimeError(f"{MJCF_ROBOT}: expected the {robot.ARM_DOF}-joint arm after welding the fingers, got nq={model.nq}")
+        dof = self.robot.dof
+        if model.nq != dof or model.nu != dof:
+            raise RuntimeError(f"{self.mjcf_robot}: expected the {dof}-joint arm after welding the fingers, got nq={model.nq}")
         self._mj_model = model  # Warp's make_data takes the MuJoCo model
         # servo_physics_step's premises (else mjx.step): the JAX backend, implicitfast, nothing but the servos
         self._lean_physics = (self.cfg.control.impl == "jax" and model.opt.integrator == mujoco.mjtIntegrator.mjINT_IMPLICITFAST
@@ -196,7 +200,7 @@ class GraspEnv:
             servo = info["servo"]
             weight = control.held_command_weight(jnp, fraction, nominal)  # the fraction's weight: the nominal servo
             command = (1.0 - weight) * current + weight * previous
-            q_new = control.servo_model_step(jnp, self.cfg.control, servo["q"], servo["q_prev"], command, gain)
+            q_new = control.servo_model_step(jnp, self.robot, self.cfg.control, servo["q"], servo["q_prev"], command, gain)
             return None, q_new, {"servo": {"q": q_new, "q_prev": servo["q"]}}
         from mujoco import mjx
 
@@ -220,12 +224,12 @@ class GraspEnv:
         pipeline, _ = jax.lax.scan(substep, pipeline, jnp.arange(self.cfg.control.substeps))
         if self._lean_physics:
             pipeline = ServoState(qpos=pipeline.qpos, qvel=pipeline.qvel)
-        return pipeline, pipeline.qpos[:robot.ARM_DOF].astype(dtype), {}
+        return pipeline, pipeline.qpos[:self.robot.dof].astype(dtype), {}
 
     def measured_joints(self, state: State) -> jax.Array:
         """The arm's actual joint positions in ``state`` (no sensor noise), in every mode."""
         if self.cfg.control.mode == "dynamic":
-            return state.pipeline_state.qpos[..., :robot.ARM_DOF].astype(state.info["q_target"].dtype)
+            return state.pipeline_state.qpos[..., :self.robot.dof].astype(state.info["q_target"].dtype)
         if self.lagged:
             return state.info["servo"]["q"]
         return state.info["q_target"]
@@ -238,10 +242,10 @@ class GraspEnv:
         k = jax.random.split(key, 6)
         u = lambda kk, shape, half: half * jax.random.uniform(kk, shape, dtype, -1.0, 1.0)  # noqa: E731
         return {
-            "kp_scale": 1.0 + u(k[0], (robot.ARM_DOF,), r.servo_gain),
-            "kv_scale": 1.0 + u(k[1], (robot.ARM_DOF,), r.servo_gain),
+            "kp_scale": 1.0 + u(k[0], (self.robot.dof,), r.servo_gain),
+            "kv_scale": 1.0 + u(k[1], (self.robot.dof,), r.servo_gain),
             "latency": r.latency * jax.random.uniform(k[2], (), dtype),  # control steps (delayed_commands)
-            "joint_offset": u(k[3], (robot.ARM_DOF,), r.joint_offset),
+            "joint_offset": u(k[3], (self.robot.dof,), r.joint_offset),
             "joint_noise": r.joint_noise * jax.random.uniform(k[4], (), dtype),
             "target_error": u(k[5], (3,), r.target_error),
         }

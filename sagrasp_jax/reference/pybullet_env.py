@@ -205,8 +205,8 @@ class PyBulletGraspEnv(gym.Env if gym is not None else object):  # type: ignore[
             raise ValueError(f"the scene has {SCENE.obstacles.count} obstacle slots, config asks for {cfg.sampling.max_obstacles}")
         self.cfg = cfg
         self.render_mode = render_mode
-        self.robot = robot.load_robot()
-        self.n_uniforms = sampling.uniforms_needed(cfg.sampling)
+        self.robot = robot.load_robot(cfg.robot)
+        self.n_uniforms = sampling.uniforms_needed(cfg.sampling, self.robot.dof)
         self.position_gains = np.asarray(position_gains or DYNAMIC_POSITION_GAINS, dtype=float)
         self.velocity_gains = np.asarray(velocity_gains or DYNAMIC_VELOCITY_GAINS, dtype=float)
         self.gravity_compensation = gravity_compensation
@@ -214,7 +214,7 @@ class PyBulletGraspEnv(gym.Env if gym is not None else object):  # type: ignore[
         self.servo_model = load_servo_model() if cfg.control.mode == "dynamic" and servo == "mujoco" else None
         self.progress = 0.0
 
-        self.action_space = spaces.Box(-1.0, 1.0, (control.ACTION_SIZE,), dtype=np.float32)
+        self.action_space = spaces.Box(-1.0, 1.0, (self.robot.dof,), dtype=np.float32)
         self.obs_layout = observation.layout_of(cfg)
         self.observation_space = spaces.Box(-np.inf, np.inf, (len(self.obs_layout),), dtype=np.float64)
 
@@ -462,7 +462,7 @@ class PyBulletGraspEnv(gym.Env if gym is not None else object):  # type: ignore[
         if self._spec is None or self._done:
             raise RuntimeError("call reset() before step() (the episode has ended)")
         cfg, spec = self.cfg, self._spec
-        action = np.asarray(action, dtype=np.float64).reshape(control.ACTION_SIZE)
+        action = np.asarray(action, dtype=np.float64).reshape(self.robot.dof)
         ctl = control.control_step(np, self.robot, cfg.control, self._q_target, self._q, spec.target_pos, action)
         self._q_target = np.asarray(ctl.q_target, dtype=float)
         self._apply(self._q_target)

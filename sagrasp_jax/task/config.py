@@ -21,23 +21,17 @@ import typing
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
+from sagrasp_jax.task import robots
 from sagrasp_jax.task import shapes
 
 Q_LIMIT = 3.0543  # ±175° on every AUBO-i5 joint (docs/task.md §1); the URDF holds the same value.
 
-# Home pose: damped-least-squares IK seeded from docs/task.md §2's vector, solved once by
-# ``sagrasp_jax.task.robot.solve_home_pose`` and pasted here (tests re-solve and compare).
-HOME_SEED = (1.1538, -0.4919, -1.8145, 0.2482, -1.5708, 0.0)
-HOME_Q = (
-    1.1538174961752017,
-    -0.49293447743928726,
-    -1.8197668542055943,
-    0.2439639500285898,
-    -1.5707963267948966,
-    0.0,
-)
+# The default robot's home pose: damped-least-squares IK seeded from docs/task.md §2's vector, solved once by
+# ``sagrasp_jax.task.robot.solve_home_pose`` and pasted into its registry entry (tests re-solve and compare).
+HOME_SEED = robots.AUBO_I5.home_seed
+HOME_Q = robots.AUBO_I5.home_q
 HOME_GRIPPER_CENTRE = (0.0, -0.30, 0.35)
-Joints = tuple[float, float, float, float, float, float]  # one value per arm joint
+Joints = tuple[float, ...]  # one value per arm joint of env.robot (validate checks the count)
 
 # The choices of every string key, declared once; the modules that act on them import these.
 ControlMode = Literal["kinematic", "dynamic", "lagged"]  # env.control.mode (env.py)
@@ -47,6 +41,7 @@ NearMissMode = Literal["change", "per_step"]  # env.reward.near_miss_mode (rewar
 ObsLayout = Literal["paper", "relative", "relative_lag"]  # env.task.obs_layout (observation.py)
 ObstacleGeometry = Literal["fine", "cover"]  # env.task.obstacle_geometry (collision.py)
 ShapeName = Literal[shapes.NAMES]  # type: ignore[valid-type]  # env.sampling.obstacle_kinds (shapes.py; live: _kinds_changed)
+RobotName = Literal[robots.names()]  # type: ignore[valid-type]  # env.robot (robots.py; live: _robots_changed)
 Activation = Literal["tanh", "relu", "silu", "elu"]  # ppo.network.activation (ppo.py: flax.linen's functions)
 LRSchedule = Literal["constant", "sa", "kl-adaptive", "cosine", "linear"]  # lr.schedule (lr_schedule.py)
 SAMetric = Literal["return", "success"]  # sa.metric
@@ -118,7 +113,9 @@ class ControlConfig:
     fine_gain: float = key(1.0, "k: gain of the damped least-squares wrist correction", within(0, 100))
     fine_damping: float = key(0.05, "λ: damping of that least-squares step", above(0, 10))
     fine_clip: float = key(0.015, "rad: the correction is clipped to ±this (c = 0.3·q_max)", within(0, 0.5))
-    q_limit: float = key(Q_LIMIT, "rad: joint targets are clipped to ±this (the URDF limit, ±175°)", above(0, math.pi))
+    q_limit: float = key(
+        Q_LIMIT, "rad: joint targets are clipped to ±this and to the URDF's limits of env.robot (the AUBO-i5's: ±175°)",
+        above(0, math.pi))
     mode: ControlMode = key(
         "kinematic", '"kinematic": qpos = q_target, no physics; "dynamic": MuJoCo servos track q_target; "lagged": '
         "no physics, the joints follow q_target through the per-step servo model below (lag_gain, lag_momentum), "
@@ -131,12 +128,12 @@ class ControlConfig:
         "jax", 'Physics backend of the dynamic mode: "jax" (MJX\'s JAX implementation, any device) or "warp" '
         '(MuJoCo Warp through MJX: needs the warp extra, pip install "sagrasp_jax[warp]", and is meant for CUDA GPUs)')
     lag_gain: Joints = key(
-        (0.639, 0.601, 0.632, 0.806, 0.785, 0.798),
+        robots.AUBO_I5.servo.lag_gain,
         '"lagged" mode, per joint: each control step the joint closes this fraction of its distance to the command '
         "(q ← q + lag_gain·(c − q) + lag_momentum·(q − q_prev)); fitted by least squares to the dynamic mode's "
         "servos (python -m experiments.robot_grade servo-fit, experiments/results/fit_servo_lag.json)", above(0, 1))
     lag_momentum: Joints = key(
-        (0.070, 0.143, 0.080, 0.037, 0.077, 0.059), '"lagged" mode: carry-over of the last step\'s motion',
+        robots.AUBO_I5.servo.lag_momentum, '"lagged" mode: carry-over of the last step\'s motion',
         within(0, 0.9))
 
 
@@ -187,7 +184,8 @@ class TaskConfig:
     """Start state, observation, success and episode length (docs/task.md §2)."""
 
     home_q: Joints = key(
-        HOME_Q, "rad: start pose, gripper centre at (0, −0.30, 0.35) pointing down", within(-math.pi, math.pi))
+        HOME_Q, "rad: start pose, gripper centre at (0, −0.30, 0.35) pointing down (setting env.robot sets its robot's)",
+        within(-math.pi, math.pi))
     start_noise: float = key(0.05, "rad: uniform noise added to every start joint", within(0, 1))
     obs_noise_std: float = key(0.005, "rad: Gaussian noise on the observed joints", within(0, 1))
     obs_noise_growth: float = key(0.0, "the noise std is multiplied by 1 + this × progress (0 = fixed)", within(0, 100))
@@ -304,6 +302,10 @@ class RandomizeConfig:
 
 @dataclass(frozen=True)
 class EnvConfig:
+    robot: RobotName = key(
+        robots.DEFAULT, "The arm (robots.py's registry): its URDF, MJCF, joint roles and servo model.  Setting it "
+        "(--set robot=NAME) also sets the keys that hold one value per joint (ROBOT_KEYS: env.task.home_q, "
+        "env.control.lag_gain, env.control.lag_momentum) to that robot's, unless they are set too")
     control: ControlConfig = field(default_factory=ControlConfig)
     reward: RewardConfig = field(default_factory=RewardConfig)
     task: TaskConfig = field(default_factory=TaskConfig)
@@ -629,6 +631,29 @@ def _kinds_changed() -> None:
 shapes.on_change(_kinds_changed)
 
 
+def _robots_changed() -> None:
+    """A robot registered: ``env.robot`` takes the registry's names."""
+    global RobotName
+    RobotName = Literal[robots.names()]  # type: ignore[valid-type]
+    key_specs.cache_clear()
+
+
+robots.on_change(_robots_changed)
+
+# The keys that hold one value per arm joint, and where a robot's registry entry keeps its own.
+ROBOT_KEYS: dict[str, typing.Callable[[robots.RobotSpec], tuple[float, ...]]] = {
+    "env.task.home_q": lambda spec: spec.home_q,
+    "env.control.lag_gain": lambda spec: spec.servo.lag_gain,
+    "env.control.lag_momentum": lambda spec: spec.servo.lag_momentum,
+}
+
+
+def robot_defaults(name: str) -> dict[str, tuple[float, ...]]:
+    """{dotted key: value} of the per-joint keys for robot ``name`` (what setting env.robot=name sets)."""
+    spec = robots.get(name)
+    return {key_name: value(spec) for key_name, value in ROBOT_KEYS.items()}
+
+
 def valid_keys() -> list[str]:
     """All dotted keys that ``apply_overrides`` accepts."""
     return list(key_specs())
@@ -683,6 +708,11 @@ def validate(cfg: Config) -> None:
     """Reject values that would make training meaningless or crash later: each key's declaration
     (``check_fields``), then what one key's declaration cannot say."""
     check_fields(cfg)
+    dof = robots.get(cfg.env.robot).dof
+    for name in ROBOT_KEYS:
+        if len(get_key(cfg, name)) != dof:
+            raise ConfigError(f"{name} has {len(get_key(cfg, name))} values; env.robot={cfg.env.robot} has {dof} joints "
+                              f"(one value each; setting env.robot alone sets its own)")
     kinds = cfg.env.sampling.obstacle_kinds
     checks = [
         ("sa.lr_min", cfg.lr.schedule != "sa" or cfg.sa.lr_min <= cfg.ppo.learning_rate),  # SA starts above its floor

@@ -16,8 +16,10 @@ import textwrap
 from typing import Any
 
 from sagrasp_jax.task.config import (
-    PRESETS, Config, ConfigError, KeySpec, flatten_keys, format_number, get_config, get_key, key_specs, valid_keys, validate,
+    PRESETS, Config, ConfigError, KeySpec, flatten_keys, format_number, get_config, get_key, key_specs,
+    robot_defaults, valid_keys, validate,
 )
+from sagrasp_jax.task import robots
 from sagrasp_jax.task.config_history import RENAMED_KEYS, current_name, upgrade_flat
 
 
@@ -68,18 +70,28 @@ def _replaced(section: Any, path: list[str], value: Any) -> Any:
     return dataclasses.replace(section, **{path[0]: inner})
 
 
+SHORT_KEYS = {"robot": "env.robot"}  # ``--set robot=panda``: the one key short enough to deserve a short name
+
+
 def apply_overrides(cfg: Config, overrides: list[str]) -> Config:
-    """Apply ``key=value`` strings, e.g. ``ppo.num_envs=512``; validates the result."""
+    """Apply ``key=value`` strings, e.g. ``ppo.num_envs=512``; validates the result.  Setting ``env.robot`` also
+    sets the per-joint keys (``config.ROBOT_KEYS``) to that robot's values, except those set in the same list."""
+    given = set()
     for item in overrides:
         if "=" not in item:
             raise ConfigError(f"override {item!r} is not of the form key=value")
         name, text = item.split("=", 1)
-        name = current_name(name.strip())
+        name = SHORT_KEYS.get(name.strip(), current_name(name.strip()))
         if name not in key_specs():
             section = any(k.startswith(name + ".") for k in key_specs())
             raise ConfigError(f"{name!r} is a section, not a value; set one of its keys" if section
                               else unknown_key_message(name))
         cfg = _replaced(cfg, name.split("."), _parse(text, key_specs()[name], name))
+        given.add(name)
+    if "env.robot" in given and cfg.env.robot in robots.names():  # an unknown one: validate names the choices
+        for name, value in robot_defaults(cfg.env.robot).items():
+            if name not in given:
+                cfg = _replaced(cfg, name.split("."), value)
     validate(cfg)
     return cfg
 

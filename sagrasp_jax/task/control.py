@@ -14,13 +14,19 @@ from __future__ import annotations
 import math
 from typing import Any, NamedTuple
 
-from sagrasp_jax.task.config import ControlConfig
-from sagrasp_jax.task.robot import ARM_DOF, RobotModel, forward_kinematics, tilt
+import numpy as np
 
-# Zero-based indices of the two wrist joints that the fine-tuning corrects (docs/task.md §2
-# step 3: "joints 4 and 5"); fixed by the task definition, not a tunable.
-FINE_JOINTS = (3, 4)
-ACTION_SIZE = ARM_DOF  # one joint-target increment per arm joint (docs/task.md §2 step 1)
+from sagrasp_jax.task.config import ControlConfig
+from sagrasp_jax.task.robot import RobotModel, forward_kinematics, tilt
+
+# The action has one joint-target increment per arm joint (docs/task.md §2 step 1): its size is the robot's
+# ``RobotModel.dof``.  The two wrist joints that the fine-tuning corrects are the robot's
+# ``spec.fine_tune_joints`` (the AUBO-i5's: docs/task.md §2 step 3's "joints 4 and 5").
+
+
+def joint_limits(robot: RobotModel, cfg: ControlConfig) -> tuple[Any, Any]:
+    """Lower and upper joint-target limits (dof,): the URDF's, inside ±``cfg.q_limit``."""
+    return np.maximum(robot.q_lower, -cfg.q_limit), np.minimum(robot.q_upper, cfg.q_limit)
 
 
 class ControlResult(NamedTuple):
@@ -30,7 +36,7 @@ class ControlResult(NamedTuple):
     dq: Any  # (..., dof) joint increment applied to the target (before the limit clip)
     slowed: Any  # (...,) bool: proximity deceleration was applied
     finetuned: Any  # (...,) bool: vertical-alignment correction was applied
-    correction: Any  # (..., 2) Δq_c added to joints 4 and 5 (zeros when inactive)
+    correction: Any  # (..., 2) Δq_c added to the fine-tune joints (zeros when inactive)
 
 
 def gripper_state(xp: Any, robot: RobotModel, q: Any) -> tuple[Any, Any]:
@@ -98,20 +104,21 @@ def control_step(
     else:
         slowed = no_flag
 
+    lo, hi = robot.spec.fine_tune_joints[0], robot.spec.fine_tune_joints[1] + 1
     if cfg.finetune_enabled:
         theta = tilt(xp, kin.approach_axis)
         finetuned = (dist < cfg.d_fine) & (theta > math.radians(cfg.fine_tilt_deg))
-        axes = kin.joint_axes[..., FINE_JOINTS[0] : FINE_JOINTS[1] + 1, :]
+        axes = kin.joint_axes[..., lo:hi, :]
         correction = alignment_correction(xp, cfg, axes, kin.approach_axis)
         correction = xp.where(finetuned[..., None], correction, 0.0)
-        lo, hi = FINE_JOINTS[0], FINE_JOINTS[1] + 1
         wrist = xp.clip(dq[..., lo:hi] + correction, -cfg.q_max, cfg.q_max)
         dq = xp.concatenate([dq[..., :lo], wrist, dq[..., hi:]], axis=-1)
     else:
         finetuned = no_flag
-        correction = xp.zeros(dist.shape + (len(FINE_JOINTS),), dtype=dq.dtype)
+        correction = xp.zeros(dist.shape + (hi - lo,), dtype=dq.dtype)
 
-    new_target = xp.clip(q_target + dq, -cfg.q_limit, cfg.q_limit)
+    q_lo, q_hi = joint_limits(robot, cfg)
+    new_target = xp.clip(q_target + dq, xp.asarray(q_lo, dtype=dq.dtype), xp.asarray(q_hi, dtype=dq.dtype))
     return ControlResult(
         q_target=new_target,
         dq=dq,
@@ -148,11 +155,13 @@ def held_command_weight(xp: Any, fraction: Any, gain: Any) -> Any:
     return 1.0 - (1.0 - (1.0 - gain) ** (1.0 - fraction)) / gain
 
 
-def servo_model_step(xp: Any, cfg: ControlConfig, q: Any, q_prev: Any, command: Any, gain: Any) -> Any:
+def servo_model_step(xp: Any, robot: RobotModel, cfg: ControlConfig, q: Any, q_prev: Any, command: Any,
+                     gain: Any) -> Any:
     """The lagged mode's servos over one control period: each joint closes ``gain`` (per joint; normally
     ``cfg.lag_gain``) of its distance to ``command`` and carries ``cfg.lag_momentum`` of its last step's
     motion ``q − q_prev`` — a least-squares fit of the dynamic mode's MJX servos
-    (python -m experiments.robot_grade servo-fit) — inside the joint limits."""
+    (python -m experiments.robot_grade servo-fit) — inside the joint limits (``joint_limits``)."""
     momentum = xp.asarray(cfg.lag_momentum, dtype=q.dtype)
     q_next = q + gain * (command - q) + momentum * (q - q_prev)
-    return xp.clip(q_next, -cfg.q_limit, cfg.q_limit)
+    q_lo, q_hi = joint_limits(robot, cfg)
+    return xp.clip(q_next, xp.asarray(q_lo, dtype=q.dtype), xp.asarray(q_hi, dtype=q.dtype))

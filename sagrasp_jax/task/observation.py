@@ -35,14 +35,23 @@ import numpy as np
 from sagrasp_jax.task import collision
 from sagrasp_jax.task import shapes
 from sagrasp_jax.task.config import OBS_LAYOUTS, Config, EnvConfig, TaskConfig
-from sagrasp_jax.task.robot import ARM_DOF, Kinematics, RobotModel, forward_kinematics, tilt
+from sagrasp_jax.task import robots
+from sagrasp_jax.task.robot import Kinematics, RobotModel, forward_kinematics, tilt
 
-_ROBOT_ENTRIES: tuple[str, ...] = (
-    *(f"q{j}" for j in range(1, ARM_DOF + 1)),
-    "gripper_x", "gripper_y", "gripper_z",
-    "target_x", "target_y", "target_z",
-)  # fmt: skip
-PAPER_LAYOUT: tuple[str, ...] = _ROBOT_ENTRIES + ("obstacle_x", "obstacle_y", "obstacle_z", "d_po", "theta_gz")
+
+def _robot_entries(dof: int) -> tuple[str, ...]:
+    """One reading per arm joint, then the gripper centre and the target centre."""
+    return (*(f"q{j}" for j in range(1, dof + 1)),
+            "gripper_x", "gripper_y", "gripper_z",
+            "target_x", "target_y", "target_z")  # fmt: skip
+
+
+def _paper_layout(dof: int) -> tuple[str, ...]:
+    return _robot_entries(dof) + ("obstacle_x", "obstacle_y", "obstacle_z", "d_po", "theta_gz")
+
+
+DEFAULT_DOF = robots.DEFAULT_DOF
+PAPER_LAYOUT: tuple[str, ...] = _paper_layout(DEFAULT_DOF)  # the default robot's (the AUBO-i5's)
 OBS_LAYOUT = PAPER_LAYOUT  # the first release's names (policy files of version 0.1 hold exactly these)
 OBS_SIZE = len(OBS_LAYOUT)
 _SLOT_ENTRIES = ("present", "gripper_dx", "gripper_dy", "gripper_dz", "robot_dx", "robot_dy", "robot_dz", "closeness")
@@ -50,39 +59,44 @@ _SLOT_ENTRIES = ("present", "gripper_dx", "gripper_dy", "gripper_dz", "robot_dx"
 
 _SHAPE_ENTRIES = ("centre_dx", "centre_dy", "centre_dz", "extent_x", "extent_y", "extent_z")  # obs_obstacle_shape
 EXTENT_SCALE = 0.1  # m: obs_obstacle_shape's bounding-box half-extents (0.02-0.17 m in the sampled ranges) / this
-PENDING_ENTRIES = tuple(f"pending{j}" for j in range(1, ARM_DOF + 1))  # relative_lag: (q_target − q_reading) / q_max per joint
 
 
-def _relative_layout(slots: int, shape: bool) -> tuple[str, ...]:
+def _pending_entries(dof: int) -> tuple[str, ...]:
+    """relative_lag: (q_target − q_reading) / q_max per joint."""
+    return tuple(f"pending{j}" for j in range(1, dof + 1))
+
+
+def _relative_layout(slots: int, shape: bool, dof: int) -> tuple[str, ...]:
     entries = _SLOT_ENTRIES + _SHAPE_ENTRIES * shape
-    return _ROBOT_ENTRIES + ("theta_gz",) + tuple(f"obstacle{k}_{e}" for k in range(slots) for e in entries)
+    return _robot_entries(dof) + ("theta_gz",) + tuple(f"obstacle{k}_{e}" for k in range(slots) for e in entries)
 
 
 LAYOUT_NAMES = OBS_LAYOUTS  # declared once in config (env.task.obs_layout's choices)
 
 
-def layout(name: str, slots: int = 2, obstacle_shape: bool = False) -> tuple[str, ...]:
-    """Entry names of a layout, in order (``obstacle_shape``: ``env.task.obs_obstacle_shape``)."""
+def layout(name: str, slots: int = 2, obstacle_shape: bool = False, dof: int = DEFAULT_DOF) -> tuple[str, ...]:
+    """Entry names of a layout, in order (``obstacle_shape``: ``env.task.obs_obstacle_shape``; ``dof``: the
+    arm's joint count, the default robot's unless given)."""
     if name == "paper":
         if obstacle_shape:
             raise ValueError("obstacle shape entries need a relative layout; the paper's layout has no obstacle slots")
-        return PAPER_LAYOUT
+        return _paper_layout(dof)
     if name == "relative":
-        return _relative_layout(slots, obstacle_shape)
+        return _relative_layout(slots, obstacle_shape, dof)
     if name == "relative_lag":
-        return _relative_layout(slots, obstacle_shape) + PENDING_ENTRIES
+        return _relative_layout(slots, obstacle_shape, dof) + _pending_entries(dof)
     raise ValueError(f"unknown observation layout {name!r}; valid layouts: {', '.join(LAYOUT_NAMES)}")
 
 
 
 def layout_of(cfg: EnvConfig) -> tuple[str, ...]:
-    return layout(cfg.task.obs_layout, cfg.sampling.max_obstacles, cfg.task.obs_obstacle_shape)
+    return layout(cfg.task.obs_layout, cfg.sampling.max_obstacles, cfg.task.obs_obstacle_shape, robots.get(cfg.robot).dof)
 
 
 def hand_scaled_mask(names: tuple[str, ...]) -> np.ndarray:
     """Entries the running normaliser must leave alone (mean 0, std 1): the relative layouts'
     obstacle entries and pending commands, already scaled by hand and 0 when absent."""
-    return np.array([re.fullmatch(r"obstacle\d+_\w+|pending\d", n) is not None for n in names])
+    return np.array([re.fullmatch(r"obstacle\d+_\w+|pending\d+", n) is not None for n in names])
 
 
 class Observed(NamedTuple):

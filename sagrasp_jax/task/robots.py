@@ -12,8 +12,9 @@ loop) is read from here and from ``robot.load_robot(name)``: a new arm is a URDF
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Iterator
 
 DEFAULT = "aubo_i5"
 
@@ -155,6 +156,9 @@ def on_change(listener: Callable[[], None]) -> None:
     _LISTENERS.append(listener)
 
 
+DEFAULT_DOF = AUBO_I5.dof  # the default robot's joint count: the action size where a library call names no robot
+
+
 def names() -> tuple[str, ...]:
     """The registered robots, the default first."""
     return tuple(_REGISTRY)
@@ -166,3 +170,18 @@ def get(name: str) -> RobotSpec:
         return _REGISTRY[name]
     except KeyError:
         raise UnknownRobot(name) from None
+
+
+@contextlib.contextmanager
+def registered(*extra: RobotSpec) -> Iterator[tuple[RobotSpec, ...]]:
+    """The registry with ``extra`` robots added for the block (``register``), restored after, whatever happens."""
+    before = dict(_REGISTRY)
+    try:
+        for spec in extra:
+            register(spec)
+        yield extra
+    finally:
+        _REGISTRY.clear()
+        _REGISTRY.update(before)
+        for listener in _LISTENERS:
+            listener()

@@ -28,7 +28,8 @@ import numpy as np
 from sagrasp_jax.task import collision
 from sagrasp_jax.task import reward
 from sagrasp_jax.task import shapes
-from sagrasp_jax.task.robot import ARM_DOF, Kinematics, RobotModel, forward_kinematics
+from sagrasp_jax.task import robots
+from sagrasp_jax.task.robot import Kinematics, RobotModel, forward_kinematics
 from sagrasp_jax.task.shapes import ObstacleShape
 
 _PER_CANDIDATE = 8  # kind order offset, 3 sizes, disc radius, disc angle, height, yaw (shapes.draw)
@@ -50,10 +51,12 @@ class ResetSpec(NamedTuple):
     fallback: Any  # () 1 if obstacles were wanted but none was feasible
 
 
-def uniforms_needed(cfg: SamplingConfig) -> int:
+def uniforms_needed(cfg: SamplingConfig, dof: int = robots.DEFAULT_DOF) -> int:
+    """How many uniforms ``sample_reset`` turns into a scene for an arm of ``dof`` joints (the package passes
+    its env's robot's; the default robot's by default)."""
     attempts = cfg.scene_redraws + 1
     per_attempt = cfg.target_candidates * _PER_TARGET + cfg.max_obstacles * cfg.obstacle_candidates * _PER_CANDIDATE
-    return 2 + ARM_DOF + attempts * per_attempt + 1  # presence, count, start noise, attempts, blocking placement
+    return 2 + dof + attempts * per_attempt + 1  # presence, count, start noise, attempts, blocking placement
 
 
 PATH_SAMPLES = 24  # points along the approach segment for the blocking test of obstacle candidates
@@ -324,8 +327,9 @@ def sample_reset(xp: Any, robot: RobotModel, cfg: SamplingConfig, task: TaskConf
     n_t, slots = cfg.target_candidates, cfg.max_obstacles
     groups = _kind_groups(cfg)
     u_present, u_count = u[0], u[1]
-    q0 = xp.asarray(task.home_q) + _lerp((-task.start_noise, task.start_noise), u[2:2 + ARM_DOF])
-    body = u[2 + ARM_DOF:-1].reshape(attempts, -1)
+    dof = len(task.home_q)  # one start joint per arm joint (validate: as many as env.robot has)
+    q0 = xp.asarray(task.home_q) + _lerp((-task.start_noise, task.start_noise), u[2:2 + dof])
+    body = u[2 + dof:-1].reshape(attempts, -1)
     u_target = body[:, : n_t * _PER_TARGET].reshape(attempts, n_t, _PER_TARGET)
     u_obs = body[:, n_t * _PER_TARGET :].reshape(attempts, slots, cfg.obstacle_candidates, _PER_CANDIDATE)
     u_obs = u_obs[..., : groups.count, :]

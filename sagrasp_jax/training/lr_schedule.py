@@ -50,7 +50,7 @@ import optax
 
 from sagrasp_jax.training import sa_schedule
 from sagrasp_jax.task.config import LR_SCHEDULES, Config, SAConfig
-from sagrasp_jax.task.control import ACTION_SIZE
+from sagrasp_jax.task import robots
 from sagrasp_jax.training.sa_schedule import DecisionKind, SAState
 
 SCHEDULES = LR_SCHEDULES
@@ -197,7 +197,7 @@ def observe(rule: Rule, state: ScheduleState, *, ended_lr: float, progress: floa
 
 
 def end_cycle(rule: Rule, sa_cfg: SAConfig, state: ScheduleState, metric: float, entropy: float,
-              rng: np.random.Generator | float, n_actions: int = ACTION_SIZE) -> tuple[ScheduleState, CycleOutcome]:
+              rng: np.random.Generator | float, n_actions: int = robots.DEFAULT_DOF) -> tuple[ScheduleState, CycleOutcome]:
     """The end-of-cycle decision.  ``sa``: docs/task.md §3 (``sa_schedule.update``: one uniform draw of
     ``rng``); with ``sa.rollback`` off a reject does not restore.  Every other schedule keeps the
     cycle's updates (and draws nothing)."""

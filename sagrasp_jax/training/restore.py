@@ -15,7 +15,7 @@ import numpy as np
 from sagrasp_jax.task import observation
 from sagrasp_jax.task import policy_file as runtime
 from sagrasp_jax.task.config import Config, config_to_dict
-from sagrasp_jax.task.control import ACTION_SIZE
+from sagrasp_jax.task import robots
 from sagrasp_jax.training import checkpoint, run_dir, sharding
 from sagrasp_jax.training.agents.ppo import actor_critic
 
@@ -45,13 +45,14 @@ def restore_policy(cfg: Config, ckpt: checkpoint.Checkpoint, obs_size: int,
     return restored.params, restored.normaliser
 
 
-def load_policy_state(run: str, obs_size: int | None = None, action_size: int = ACTION_SIZE
+def load_policy_state(run: str, obs_size: int | None = None, action_size: int | None = None
                       ) -> tuple[Config, actor_critic.Params, actor_critic.Normaliser, dict[str, Any]]:
-    """Config, params and normaliser of the run's latest checkpoint (and its counters); the
-    observation size defaults to that of the run's observation layout."""
+    """Config, params and normaliser of the run's latest checkpoint (and its counters); the observation
+    and action sizes default to those of the run's observation layout and robot."""
     cfg = run_dir.load_config(run)
     ckpt = run_dir.load_checkpoint(run, cfg)
     obs_size = len(observation.layout_of(cfg.env)) if obs_size is None else obs_size
+    action_size = robots.get(cfg.env.robot).dof if action_size is None else action_size
     params, normaliser = restore_policy(cfg, ckpt, obs_size, action_size)
     return cfg, params, normaliser, run_dir.checkpoint_counters(ckpt)
 
@@ -82,7 +83,7 @@ def check_init_from(cfg: Config) -> tuple[Config, checkpoint.Checkpoint]:
     return src, ckpt
 
 
-def init_policy_state(ts: actor_critic.TrainingState, cfg: Config, obs_size: int, action_size: int = ACTION_SIZE
+def init_policy_state(ts: actor_critic.TrainingState, cfg: Config, obs_size: int, action_size: int
                       ) -> actor_critic.TrainingState:
     """``ts`` with the policy, value network and normaliser of ``cfg.train.init_from``'s checkpoint: a
     fine-tuning start, e.g. a kinematic run continued in dynamic mode.  The optimizer state stays

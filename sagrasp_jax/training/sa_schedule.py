@@ -35,7 +35,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from sagrasp_jax.task.config import SAConfig
-from sagrasp_jax.task.control import ACTION_SIZE
+from sagrasp_jax.task import robots
 
 DecisionKind = Literal["accept", "accept-worse", "reject"]
 
@@ -129,7 +129,7 @@ def gaussian_entropy(log_std: ArrayLike | None = None, *, std: ArrayLike | None 
     return float(np.mean(per_sample))
 
 
-def temperature(cfg: SAConfig, state: SAState, entropy: float, n_actions: int = ACTION_SIZE) -> float:
+def temperature(cfg: SAConfig, state: SAState, entropy: float, n_actions: int = robots.DEFAULT_DOF) -> float:
     """T = T0·exp(κ·(H − H0)/n_actions): hot while the policy explores, cold as it converges.
 
     Before H0 is known (first call) H0 = H, so T = T0.  Dividing by n_actions makes κ a
@@ -184,7 +184,7 @@ def update(
     metric: float,
     entropy: float,
     rng: np.random.Generator | float,
-    n_actions: int = ACTION_SIZE,
+    n_actions: int = robots.DEFAULT_DOF,
 ) -> tuple[SAState, AnnealOutcome]:
     """One end-of-cycle decision (docs/task.md §3 rules 1-3).
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sagrasp_jax.task import control, robot
+from sagrasp_jax.task import robot, robots
 from tests.paths import REPO
 
 PACKAGE = Path(REPO) / "sagrasp_jax"
@@ -34,8 +34,8 @@ NOT_JOINT_COUNTS = {
     ("calibrate.py", "if len(row) != 6:"): "a hand-eye pair's 6 columns",
 }
 # Joint counts still literal in training/, left while issue 56's parallel work there (the learning-rate plumbing)
-# lands: each should read control.ACTION_SIZE (or take the action count from the env, with no default).
-PENDING_IN_TRAINING: dict[tuple[str, str], str] = {}  # none left: training/ reads control.ACTION_SIZE too
+# lands: each should take the action count from the env (or robots.DEFAULT_DOF where a library call names no robot).
+PENDING_IN_TRAINING: dict[tuple[str, str], str] = {}  # none left
 
 
 def joint_count_literals(root: Path) -> list[str]:
@@ -84,7 +84,7 @@ def test_the_scan_sees_the_old_shapes(tmp_path):
 def test_the_joint_count_comes_from_the_robot_description():
     model = robot.load_robot()
     assert robot.ARM_DOF == len(robot.ARM_JOINTS) == 6  # the AUBO-i5
-    assert model.dof == robot.ARM_DOF == control.ACTION_SIZE
+    assert model.dof == robot.ARM_DOF == robots.get("aubo_i5").dof == robots.DEFAULT_DOF
     assert model.joint_origins.shape == (robot.ARM_DOF, 4, 4) and len(model.link_names) == robot.ARM_DOF + 1
 
 
