@@ -18,6 +18,7 @@ MJX evaluation, condition by condition (``TWIN_DOC``).
     python -m experiments.robot_grade --run s0=runs/robot_s0 --run s1=runs/robot_s1 --run s2=runs/robot_s2 \\
         --blocking --physical --out experiments/results/robot_grade_cpu.json
     python -m experiments.robot_grade servo-fit --out experiments/results/fit_servo_lag.json
+    python -m experiments.robot_grade servo-fit --set env.robot=panda --out experiments/results/fit_servo_lag_panda.json
     python -m experiments.robot_grade sysid-check --out experiments/results/sysid_check.json
     python -m experiments.robot_grade twin-vs-mjx --run s0=runs/quick_s0 --cases kinematic:mix robot:mix \\
         kinematic:blocking robot:blocking robot-wide:mix --twin-episodes 500 --mjx-episodes 1000 --physical \\
@@ -166,8 +167,11 @@ open-loop in the dynamic and lagged envs (with and without command latency) and 
 gripper centres drift apart: the cheap model is what the policy trains in, the dynamic env is the judge."""
 
 
+SERVO_SETS: list[str] = []  # servo-fit's --set overrides (e.g. env.robot=panda), applied to every env it builds
+
+
 def _servo_env(mode: str, extra: list[str], gains: dict[str, tuple[float, ...]] | None = None) -> GraspEnv:
-    overrides = [*config.KNOBS_OFF,  # the preset trains with them on
+    overrides = [*SERVO_SETS, *config.KNOBS_OFF,  # the preset trains with them on
                  f"env.control.mode={mode}", "env.task.obs_noise_std=0", "env.task.obs_layout=relative_lag",
                  *extra]
     if gains:
@@ -195,7 +199,7 @@ def record(env: GraspEnv, episodes: int, steps: int, seed: int, scripted_actions
         return jax.lax.scan(body, state, noise)[1]
 
     keys = jax.random.split(jax.random.PRNGKey(seed), episodes)
-    noise = 0.6 * jax.random.uniform(jax.random.PRNGKey(seed + 1), (steps, episodes, 6), minval=-1.0, maxval=1.0)
+    noise = 0.6 * jax.random.uniform(jax.random.PRNGKey(seed + 1), (steps, episodes, env.robot.dof), minval=-1.0, maxval=1.0)
     q, command, q_next, centre = (np.asarray(a) for a in jax.jit(run)(keys, noise))
     return {"q": q, "command": command, "q_next": q_next, "centre": centre}
 
@@ -204,7 +208,7 @@ def fit(data: dict[str, np.ndarray]) -> dict[str, list[float]]:
     q, c, qn = data["q"], data["command"], data["q_next"]
     q_prev = np.concatenate([q[:1], q[:-1]], axis=0)  # the first step of an episode starts at rest
     gain, momentum, rms, rms_first_order, step_rms = [], [], [], [], []
-    for j in range(6):
+    for j in range(q.shape[-1]):
         x = np.stack([(c - q)[..., j].ravel(), (q - q_prev)[..., j].ravel()], axis=1)
         y = (qn - q)[..., j].ravel()
         coef, *_ = np.linalg.lstsq(x, y, rcond=None)
@@ -238,14 +242,17 @@ def servo_fit_main(argv: list[str] | None = None) -> int:
     parser.add_argument("--steps", type=int, default=60)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default="experiments/results/fit_servo_lag.json")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="config override for every env the fit builds, e.g. env.robot=panda (repeatable)")
     args = parser.parse_args(argv)
+    SERVO_SETS[:] = args.set
     data = record(_servo_env("dynamic", []), args.episodes, args.steps, args.seed, scripted_actions=True)
     result = fit(data)
     gains = {"lag_gain": tuple(result["lag_gain"]), "lag_momentum": tuple(result["lag_momentum"])}
     print("env.control.lag_gain =", tuple(round(v, 3) for v in result["lag_gain"]))
     print("env.control.lag_momentum =", tuple(round(v, 3) for v in result["lag_momentum"]))
     print("residual rms per joint, mrad (2nd order | 1st order | step):")
-    for j in range(6):
+    for j in range(len(result["lag_gain"])):
         print(f"  q{j + 1}: {1e3 * result['residual_rms_rad'][j]:.2f} | {1e3 * result['residual_rms_first_order_rad'][j]:.2f}"
               f" | {1e3 * result['step_rms_rad'][j]:.1f}")
     checks = [drift(args.episodes, 40, args.seed + 7, lat, gains) for lat in (0.0, 1.0, 2.0)]

@@ -114,10 +114,10 @@ PANDA = RobotSpec(
         kp=(3000.0, 3000.0, 3000.0, 3000.0, 400.0, 400.0, 400.0),
         kv=(150.0, 150.0, 150.0, 150.0, 20.0, 20.0, 20.0),
         armature=(0.2, 0.2, 0.2, 0.2, 0.1, 0.1, 0.1),  # kp/kv: a 0.05 rad step within 0.0065 rad after 0.1 s, overshoot <= 5 mrad
-        # MuJoCo-only fit of panda.xml's control step (env.robot plumbing not yet there for servo-fit; the same fit gives
-        # the AUBO's published values within 0.04); the wrists saturate at their 12 N·m, residual 7-11 mrad vs 2 mrad
-        lag_gain=(0.669, 0.649, 0.672, 0.658, 0.493, 0.540, 0.550),
-        lag_momentum=(0.045, 0.076, 0.033, 0.052, 0.240, 0.131, 0.181),
+        # experiments/results/fit_servo_lag_panda.json (servo-fit --set env.robot=panda; lagged vs dynamic 2.1 mm); the wrists
+        # saturate at their 12 N·m: residual 7-12 mrad there vs 2-3 mrad on joints 1-4
+        lag_gain=(0.552, 0.566, 0.567, 0.548, 0.300, 0.455, 0.524),
+        lag_momentum=(0.199, 0.173, 0.160, 0.203, 0.549, 0.496, 0.301),
     ),
 )
 
