@@ -1,4 +1,4 @@
-"""Regenerate ``sagrasp_jax/mjcf/aubo_i5_eg2.xml`` (robot) and ``scene.xml`` (robot + cell) from the URDF.
+"""Regenerate each registered robot's MJCF (the arm alone and the arm in the cell) from its URDF.
 
 MuJoCo's own importer (``mujoco.MjSpec``) reads the URDF; this tool adds what MJCF
 needs and URDF lacks: position actuators tuned for 20 Hz joint-target control,
@@ -7,8 +7,13 @@ gravity), ``flange`` and ``gripper_center`` sites, and, for the scene, the table
 gantry, camera (body and MJCF camera), the target and the dynamic-obstacle slots,
 all from ``sagrasp_jax.task.scene.SCENE``.
 
-Usage: ``python tools/urdf_to_mjcf.py [--urdf PATH] [--out-dir DIR]`` (default: the package's
-``sagrasp_jax/mjcf/``, which ships in the wheel).  On a
+The robot's registry entry (``sagrasp_jax.task.robots``) names the joints, the servo model (kp, kv, armature,
+damping: ``spec.servo``), the finger links that touch the cube (``spec.contact_links``) and the two output
+files (``spec.mjcf_robot``, ``spec.mjcf_scene``).
+
+Usage: ``python tools/urdf_to_mjcf.py [--robot NAME] [--urdf PATH] [--out-dir DIR]``: without ``--robot`` it
+writes every registered robot's files; ``--urdf`` reads another URDF with one robot's joint names (default
+out-dir: the package's ``sagrasp_jax/mjcf/``, which ships in the wheel).  On a
 missing or malformed URDF it exits non-zero naming the file and writes nothing.
 """
 
@@ -27,21 +32,17 @@ sys.path.insert(0, ROOT)
 
 from sagrasp_jax.base import assets  # noqa: E402
 from sagrasp_jax.base.fileio import atomic_write_text  # noqa: E402
-from sagrasp_jax.task.robot import ARM_JOINTS, FINGER_JOINTS, URDF_PATH, URDFError, parse_urdf  # noqa: E402
+from sagrasp_jax.task import robots  # noqa: E402
+from sagrasp_jax.task.robot import URDFError, parse_urdf  # noqa: E402
 from sagrasp_jax.task.scene import SCENE  # noqa: E402
 from sagrasp_jax.task import scene_mjcf  # noqa: E402
 from sagrasp_jax.task import shapes  # noqa: E402
 
-# Position servo gains per arm joint (N·m/rad) and velocity feedback (N·m·s/rad). With gravity
-# compensation on, the servo only fights inertia; these track a 0.05 rad step within one 0.05 s
-# control period (see tests/mjcf/test_mjcf.py).
-ARM_KP = (3000.0, 3000.0, 3000.0, 300.0, 300.0, 300.0)
-ARM_KV = (150.0, 150.0, 150.0, 10.0, 10.0, 10.0)
-ARM_ARMATURE = (0.2, 0.2, 0.2, 0.1, 0.1, 0.1)  # wrist armature 0.02 let a full 0.05 rad step limit-cycle
-ARM_DAMPING = 1.0
+# The arm's position servos are the robot's (spec.servo: with gravity compensation on they only fight
+# inertia and track a 0.05 rad step within one 0.05 s control period, tests/mjcf/test_mjcf.py); the
+# fingers' are the same for every gripper.
 FINGER_KP, FINGER_KV, FINGER_FORCE = 400.0, 10.0, 20.0
 PARK_Z = -5.0  # unused obstacle slots wait below the floor
-CONTACT_GEOMS = ("left_finger", "right_finger")  # robot geoms that touch things in the physical grasp check
 
 
 def _quat(rot: np.ndarray) -> np.ndarray:
@@ -59,14 +60,15 @@ def _urdf_colours(path: str) -> dict[str, list[float]]:
     return colours
 
 
-def build_robot_spec(urdf_path: str) -> mujoco.MjSpec:
-    """The robot alone: URDF import plus actuators, sites and joint dynamics."""
-    robot = parse_urdf(urdf_path)  # validates the URDF with messages that name the file
+def build_robot_spec(urdf_path: str, robot_spec: robots.RobotSpec = robots.AUBO_I5) -> mujoco.MjSpec:
+    """The robot alone: URDF import plus actuators, sites and joint dynamics (``robot_spec``: joint names, servos)."""
+    robot = parse_urdf(urdf_path, robot_spec)  # validates the URDF with messages that name the file
+    servo = robot_spec.servo
     try:
         spec = mujoco.MjSpec.from_file(urdf_path)
     except Exception as exc:  # mujoco raises ValueError with its own parser message
         raise URDFError(f"{urdf_path}: MuJoCo could not import the URDF ({exc})") from None
-    spec.modelname = "aubo_i5_eg2"
+    spec.modelname = os.path.splitext(robot_spec.mjcf_robot)[0]
     spec.compiler.fusestatic = False
     spec.compiler.discardvisual = False  # keep contype-0 geoms: they are the collision primitives
     spec.option.timestep = 0.01
@@ -76,25 +78,25 @@ def build_robot_spec(urdf_path: str) -> mujoco.MjSpec:
         if body.name == "world":
             continue
         body.gravcomp = 1.0
-        for geom in body.geoms:
-            geom.name = f"{body.name}_geom"
+        for k, geom in enumerate(body.geoms):  # one per URDF collision primitive (MuJoCo merges identical visuals)
+            geom.name = f"{body.name}_geom" + (f"_{k}" if k else "")
             geom.rgba = colours.get(body.name, [0.8, 0.8, 0.8, 1.0])
-            touching = body.name in CONTACT_GEOMS
+            touching = body.name in robot_spec.contact_links
             geom.contype = 1 if touching else 0
             geom.conaffinity = 1 if touching else 0
             geom.friction = [1.5, 0.01, 0.001] if touching else geom.friction
-    for i, name in enumerate(ARM_JOINTS):
+    for i, name in enumerate(robot_spec.arm_joints):
         joint = spec.joint(name)
-        joint.armature = ARM_ARMATURE[i]
-        joint.damping = [ARM_DAMPING, 0.0, 0.0]
+        joint.armature = servo.armature[i]
+        joint.damping = [servo.damping, 0.0, 0.0]
         joint.actgravcomp = True
         act = spec.add_actuator(name=f"{name}_servo", target=name, trntype=mujoco.mjtTrn.mjTRN_JOINT)
-        act.set_to_position(kp=ARM_KP[i], kv=ARM_KV[i])
+        act.set_to_position(kp=servo.kp[i], kv=servo.kv[i])
         act.ctrlrange = [float(robot.q_lower[i]), float(robot.q_upper[i])]
         act.ctrllimited = True
         act.forcerange = [-float(robot.effort_limit[i]), float(robot.effort_limit[i])]
         act.forcelimited = True
-    for name in FINGER_JOINTS:
+    for name in robot_spec.finger_joints:
         joint = spec.joint(name)
         joint.armature = 0.01
         joint.damping = [1.0, 0.0, 0.0]
@@ -165,15 +167,17 @@ def add_scene(spec: mujoco.MjSpec) -> None:
             scene_mjcf.add_obstacle_geom(body, slot, shape)  # unit size: the renderer and the physical check size it
 
 
-def generate(urdf_path: str) -> dict[str, str]:
-    """Return {filename: xml text}; raises URDFError on a bad URDF."""
-    robot_spec = build_robot_spec(urdf_path)
-    robot_spec.compile()
-    scene_spec = build_robot_spec(urdf_path)
+def generate(urdf_path: str | None = None, robot: str = robots.DEFAULT) -> dict[str, str]:
+    """Return {filename: xml text} of robot ``robot`` (its URDF, or ``urdf_path``); raises URDFError on a bad URDF."""
+    spec = robots.get(robot)
+    urdf_path = urdf_path or assets.path("urdf", spec.urdf)
+    arm = build_robot_spec(urdf_path, spec)
+    arm.compile()
+    scene_spec = build_robot_spec(urdf_path, spec)
     add_scene(scene_spec)
     scene_spec.compile()
-    header = "<!-- Generated by tools/urdf_to_mjcf.py from sagrasp_jax/urdf/aubo_i5_eg2.urdf and sagrasp_jax/task/scene.py; do not edit. -->\n"
-    return {"aubo_i5_eg2.xml": header + robot_spec.to_xml(), "scene.xml": header + scene_spec.to_xml()}
+    header = f"<!-- Generated by tools/urdf_to_mjcf.py from sagrasp_jax/urdf/{spec.urdf} and sagrasp_jax/task/scene.py; do not edit. -->\n"
+    return {spec.mjcf_robot: header + arm.to_xml(), spec.mjcf_scene: header + scene_spec.to_xml()}
 
 
 def write_atomically(files: dict[str, str], out_dir: str) -> None:
@@ -184,11 +188,16 @@ def write_atomically(files: dict[str, str], out_dir: str) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--urdf", default=URDF_PATH, help="input URDF (default: the project URDF)")
+    parser.add_argument("--robot", choices=robots.names(), help="the registered robot to write (default: every one)")
+    parser.add_argument("--urdf", help="input URDF, read with --robot's joint names (default: the robot's own URDF)")
     parser.add_argument("--out-dir", default=assets.MJCF_DIR, help="output folder (default: the package's mjcf/)")
     args = parser.parse_args(argv)
+    if args.urdf and not args.robot and len(robots.names()) > 1:
+        args.robot = robots.DEFAULT  # a URDF variant is read with the default robot's joint names
+    files: dict[str, str] = {}
     try:
-        files = generate(args.urdf)
+        for name in [args.robot] if args.robot else robots.names():
+            files.update(generate(args.urdf, name))
     except URDFError as exc:
         print(f"urdf_to_mjcf: error: {exc}", file=sys.stderr)
         return 2

@@ -90,7 +90,35 @@ AUBO_I5 = RobotSpec(
     ),
 )
 
-_REGISTRY: dict[str, RobotSpec] = {AUBO_I5.name: AUBO_I5}
+PANDA = RobotSpec(
+    name="panda",
+    summary="Franka Emika Panda with the Franka hand (7 joints)",
+    urdf="panda.urdf",
+    mjcf_robot="panda.xml",
+    mjcf_scene="scene_panda.xml",
+    arm_joints=tuple(f"panda_joint{i}" for i in range(1, 8)),
+    finger_joints=("panda_finger_joint1", "panda_finger_joint2"),
+    flange_joint="panda_joint8",  # panda_link8, 0.107 m past link7: Franka's flange
+    gripper_centre_joint="panda_grasptarget_hand",
+    contact_links=("panda_leftfinger", "panda_rightfinger"),
+    # elbow up, the arm in the y-z plane (joints 3 and 5 at 0), every joint >= 0.4 rad inside its limits
+    home_seed=(-1.5708, -0.8318, 0.0, -2.7327, 0.0, 1.9009, 0.7854),
+    home_q=(-1.5707979980527682, -0.831828851125138, 1.441343513827482e-06, -2.7327045416640114,
+            1.1261920348188903e-06, 1.9008756905391966, 0.7854),
+    fine_tune_joints=(4, 5),  # joints 5 and 6: their axes span the gripper's tilt about home
+    self_moving_from_link=5,  # link5 (the forearm), link6, link7 (the hand and fingers ride on link7)
+    self_static_to_link=2,  # base, link1, link2 (the shoulder)
+    reach_link=2,  # from link2 on
+    servo=ServoModel(
+        kp=(3000.0, 3000.0, 3000.0, 3000.0, 400.0, 400.0, 400.0),
+        kv=(150.0, 150.0, 150.0, 150.0, 20.0, 20.0, 20.0),
+        armature=(0.2, 0.2, 0.2, 0.2, 0.1, 0.1, 0.1),
+        lag_gain=(0.6,) * 7,
+        lag_momentum=(0.1,) * 7,
+    ),
+)
+
+_REGISTRY: dict[str, RobotSpec] = {AUBO_I5.name: AUBO_I5, PANDA.name: PANDA}
 _LISTENERS: list[Callable[[], None]] = []
 
 
