@@ -5,8 +5,8 @@ A command that breaks a rule raises ``SafetyViolation`` naming the joint or axis
 value and the limit; the loop must then stop the arm.  Clipping silently would hide a
 policy, calibration or control-step bug behind a motion nobody asked for.
 
-Every limit comes from the robot description (``sagrasp_jax/urdf/aubo_i5_eg2.urdf`` via
-``robot.load_robot``) and the deployment's own settings (``DeploySettings``: the controller's
+Every limit comes from the robot description (the URDF of the policy's ``env.robot``, e.g.
+``sagrasp_jax/urdf/aubo_i5_eg2.urdf``, via ``robot.load_robot``) and the deployment's own settings (``DeploySettings``: the controller's
 command period and the largest joint-target change per command, docs/task.md §2; the cell's cube
 size, target region and obstacle clearance, docs/task.md §1.4-1.5), **never from a policy file**: a
 policy is data from elsewhere, and an edited one must not be able to loosen a limit.  A policy trained
@@ -52,7 +52,6 @@ import dataclasses
 from sagrasp_jax.task.config import ControlConfig, EnvConfig, SamplingConfig
 from sagrasp_jax.task.scene import SCENE
 from sagrasp_jax.task.robot import (
-    ARM_JOINTS,
     BOX,
     CAPSULE,
     CYLINDER,
@@ -130,7 +129,9 @@ def check_policy_constants(env_cfg: EnvConfig, settings: DeploySettings | None =
     its actions would not mean what they meant in training, and its joint clip would not be the
     robot's limit.  Raises PolicyMismatch naming each constant, the policy's value and ours."""
     settings = settings or DeploySettings()
-    robot = robot or load_robot()
+    robot = robot or load_robot(env_cfg.robot)
+    if env_cfg.robot != robot.name:
+        raise PolicyMismatch(f"{source} was trained for the robot {env_cfg.robot!r}; this robot is {robot.name!r}")
     ctl = env_cfg.control
     urdf_limit = float(np.min(np.minimum(-robot.q_lower, robot.q_upper)))
     problems = [
@@ -205,7 +206,7 @@ class SafetyLayer:
         self.workspace = workspace or self.settings.workspace
         self.table_clearance = float(self.settings.table_clearance if table_clearance is None else table_clearance)
         self.collision_check = collision_check
-        self.joint_names = tuple(f"joint {i + 1} ({name})" for i, name in enumerate(ARM_JOINTS))
+        self.joint_names = tuple(f"joint {i + 1} ({name})" for i, name in enumerate(self.robot.spec.arm_joints))
         self.control_dt = float(self.settings.control_dt)
         self.max_step = float(self.settings.max_step)
         # Per-joint bound on one control step's change of the commanded target.
