@@ -63,7 +63,6 @@ from sagrasp_jax.task.robot import (
 )
 
 _TOL = 1e-9  # float slack: the control step clips to the limit exactly, do not refuse that
-_FIRST_CHECKED_LINK = 2  # upper arm; base (0) and shoulder (1) never change height
 
 
 class SafetyViolation(RuntimeError):
@@ -123,6 +122,17 @@ class DeploySettings:
             raise ValueError(f"deployment setting table_clearance = {self.table_clearance!r} m must be in [0, 0.5]")
 
 
+def deployment_q_limit(robot: RobotModel) -> tuple[float, str]:
+    """The joint-target cap (``env.control.q_limit``, rad) a policy for ``robot`` must have been trained with, and
+    what it is: the URDF's bound where every joint has the same symmetric limit ±L (the AUBO-i5: ±175°), so that the
+    policy's clip is the robot's limit; otherwise (the Panda's limits differ per joint and are not symmetric) the
+    config's default cap, the one training applies on top of the URDF's limits."""
+    bound = float(np.min(np.minimum(-robot.q_lower, robot.q_upper)))
+    if np.allclose(-robot.q_lower, bound, rtol=0, atol=1e-12) and np.allclose(robot.q_upper, bound, rtol=0, atol=1e-12):
+        return bound, "URDF joint limit"
+    return float(ControlConfig().q_limit), f"default cap ({robot.name}'s URDF limits are not one symmetric bound)"
+
+
 def check_policy_constants(env_cfg: EnvConfig, settings: DeploySettings | None = None,
                            robot: RobotModel | None = None, source: str = "policy") -> None:
     """Refuse a policy whose control constants differ from the deployment's and the robot's:
@@ -133,13 +143,13 @@ def check_policy_constants(env_cfg: EnvConfig, settings: DeploySettings | None =
     if env_cfg.robot != robot.name:
         raise PolicyMismatch(f"{source} was trained for the robot {env_cfg.robot!r}; this robot is {robot.name!r}")
     ctl = env_cfg.control
-    urdf_limit = float(np.min(np.minimum(-robot.q_lower, robot.q_upper)))
+    q_limit, q_limit_what = deployment_q_limit(robot)
     problems = [
         f"{name} {ours_name}: policy {theirs!r}, {where} {ours!r}"
         for name, theirs, ours, ours_name, where in (
             ("env.control.q_max", ctl.q_max, settings.max_step, "(rad per step)", "deployment"),
             ("env.control.control_dt", ctl.control_dt, settings.control_dt, "(s)", "deployment"),
-            ("env.control.q_limit", ctl.q_limit, urdf_limit, "(rad)", "URDF joint limit"),
+            ("env.control.q_limit", ctl.q_limit, q_limit, "(rad)", q_limit_what),
         )
         if not np.isclose(float(theirs), float(ours), rtol=1e-9, atol=0.0)
     ]
@@ -211,7 +221,7 @@ class SafetyLayer:
         self.max_step = float(self.settings.max_step)
         # Per-joint bound on one control step's change of the commanded target.
         self.step_limit = np.minimum(self.robot.velocity_limit * self.control_dt, self.max_step)
-        self._checked_prims = np.nonzero(self.robot.prim_link >= _FIRST_CHECKED_LINK)[0]
+        self._checked_prims = np.nonzero(self.robot.prim_link >= self.robot.spec.reach_link)[0]  # the links below never reach the table
 
     def _as_q(self, q: Any, what: str) -> np.ndarray:
         q = np.asarray(q, dtype=float)
