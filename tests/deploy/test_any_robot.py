@@ -195,3 +195,41 @@ def test_twin_start_q_takes_one_angle_per_joint_of_the_policys_robot(panda_polic
     out = json.loads(capsys.readouterr().out)
     assert code == 0 and out["outcome"] == "dry_run", out
     assert all(len(q) == 7 for q in out["input"]["planned"]["first_commands_rad"])
+
+
+# ---- system identification of another arm ----
+
+
+def test_sysid_reads_and_fits_a_seven_joint_log(tmp_path, capsys) -> None:
+    """``sysid --robot panda``: a log of the Panda's own lagged servo model (no latency, known offsets) gives back
+    its gains and offsets, and overrides that training accepts on the Panda (led by robot=panda)."""
+    from sagrasp_jax.deploy import sysid
+    from sagrasp_jax.task import control
+
+    cfg = sysid.robot_control("panda")
+    rng = np.random.default_rng(0)
+    steps, offset = 300, np.linspace(-0.003, 0.003, 7)
+    t = np.arange(steps)[:, None] * cfg.control_dt  # sweeps of ±0.2 rad about the home pose (inside every limit)
+    command = np.asarray(robots.get("panda").home_q) + 0.1 * (np.sin(2.1 * t + rng.uniform(0, 6, 7))
+                                                              + np.sin(5.3 * t * rng.uniform(0.5, 1.5, 7)))
+    x = x_prev = command[0].copy()
+    readings = np.empty((steps, 7))
+    for t in range(steps):
+        readings[t] = x + offset
+        x, x_prev = control.servo_model_step(np, PANDA, cfg, x, x_prev, command[t], np.asarray(cfg.lag_gain)), x
+    header = ",".join(sysid.columns(7))
+    assert header.endswith("cmd_q7,q1,q2,q3,q4,q5,q6,q7")
+    log = tmp_path / "panda.csv"
+    log.write_text(header + "\n" + "".join(",".join(repr(float(v)) for v in (t * cfg.control_dt, *c, *y)) + "\n"
+                                         for t, (c, y) in enumerate(zip(command, readings))))
+    out = tmp_path / "sysid.json"
+    assert sysid.main(["--log", str(log), "--out", str(out), "--robot", "panda"]) == 0
+    report = json.loads(out.read_text())
+    np.testing.assert_allclose(report["lag_gain"], cfg.lag_gain, atol=0.01)
+    np.testing.assert_allclose(report["joint_offset"], offset, atol=0.001)
+    assert report["overrides"][0] == "robot=panda"
+    trained = apply_overrides(get_config("cpu-quick"), report["overrides"])
+    assert trained.env.robot == "panda" and len(trained.env.control.lag_gain) == 7
+    # the same log read as the default robot's (6 joints) is refused naming the columns
+    assert sysid.main(["--log", str(log), "--out", str(tmp_path / "aubo.json")]) == 2
+    assert "columns must be" in capsys.readouterr().err and not (tmp_path / "aubo.json").exists()

@@ -142,7 +142,7 @@ def _lagged_log(latency: float, offset: np.ndarray, noise: float, steps: int = 6
         queue = np.concatenate([command[t][None], queue[:-1]])
         c, p, f = control.delayed_commands(np, queue, latency)
         w = control.held_command_weight(np, f, gain)
-        x, x_prev = control.servo_model_step(np, cfg, x, x_prev, (1 - w) * c + w * p, gain), x
+        x, x_prev = control.servo_model_step(np, robot.load_robot(), cfg, x, x_prev, (1 - w) * c + w * p, gain), x
     return sysid.RobotLog(np.arange(steps) * cfg.control_dt, command, readings)
 
 
