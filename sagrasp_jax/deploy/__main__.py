@@ -638,7 +638,8 @@ def _perceive_camera(args: argparse.Namespace, cal: CameraCalibration, env_cfg: 
                         "robot_q": list(capture.robot_q) if capture.robot_q is not None else None}
     settings = perception.PerceptionSettings.for_policy(env_cfg)
     seen = perception.detect_scene(capture.cloud_mm, capture.rgb, cal, env_cfg.sampling.target_size,
-                                   robot_q=capture.robot_q, settings=settings)
+                                   robot_q=capture.robot_q, robot_model=robot_mod.load_robot(env_cfg.robot),
+                                   settings=settings)
     d = seen.diagnostics
     given["perception"] = {
         "target_world": [float(v) for v in seen.target_centre], "target_yaw_world": float(seen.target_yaw),
@@ -695,6 +696,9 @@ def _deploy(args: argparse.Namespace) -> int:
         truth = capture.truth if capture is not None and args.backend == "twin" else None
         start_q = args.twin_start_q if args.twin_start_q is not None else (truth["q0"] if truth else env_cfg.task.home_q)
         q_home = np.asarray(start_q, dtype=float)
+        if q_home.shape != (model.dof,):  # a replayed twin capture's start pose, of another robot's scene
+            raise InputRefused(f"the start pose {[float(v) for v in q_home]} has {q_home.size} joints; the policy's "
+                               f"robot {model.name} has {model.dof}")
         if not (np.isfinite(q_home).all() and np.all(np.abs(q_home) <= math.pi)):
             raise InputRefused(f"--twin-start-q {args.twin_start_q} must be {model.dof} finite joint angles within ±π rad")
         env_cfg = with_obstacle_kinds(env_cfg, obstacles)
