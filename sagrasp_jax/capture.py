@@ -46,7 +46,8 @@ def _parser() -> cli.Parser:
                    help=f"the arm in the cell (env.robot; default {robots.DEFAULT}): --arm-joints takes one angle per "
                         "joint of it; --camera twin renders its scene")
     p.add_argument("--arm-joints", nargs="+", type=float, default=None, metavar="Q",
-                   help="mecheye/realsense: the arm's joint angles (rad, one per joint of --robot) while the capture is taken, saved with it so "
+                   help="mecheye/realsense: the arm's joint angles (rad, one per joint of --robot) while the capture "
+                        "is taken, saved with it so "
                         "that perception leaves the arm out (deploy --camera reads them from the controller itself); "
                         "without them the arm must be out of the camera's view")
     p.add_argument("--out", required=True, help="the capture file to write (.npz)")
@@ -93,8 +94,8 @@ def _check(args: object) -> None:
         dof = robots.get(args.robot).dof
         if args.arm_joints is not None and not (len(args.arm_joints) == dof and all(
                 math.isfinite(q) and abs(q) <= 2 * math.pi for q in args.arm_joints)):
-            raise ValueError(f"--arm-joints {args.arm_joints} must be {dof} finite joint angles in rad (within ±2π), one "
-                             f"per joint of {args.robot}")
+            raise ValueError(f"--arm-joints {args.arm_joints} must be {dof} finite joint angles in rad (within "
+                             f"±2π), one per joint of {args.robot}")
     else:
         if args.camera_address is not None or args.arm_joints is not None:
             raise ValueError("--camera-address and --arm-joints are for a real camera, not the twin (its arm is parked "

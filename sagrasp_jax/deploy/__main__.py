@@ -700,7 +700,8 @@ def _deploy(args: argparse.Namespace) -> int:
             raise InputRefused(f"the start pose {[float(v) for v in q_home]} has {q_home.size} joints; the policy's "
                                f"robot {model.name} has {model.dof}")
         if not (np.isfinite(q_home).all() and np.all(np.abs(q_home) <= math.pi)):
-            raise InputRefused(f"--twin-start-q {args.twin_start_q} must be {model.dof} finite joint angles within ±π rad")
+            raise InputRefused(f"--twin-start-q {args.twin_start_q} must be {model.dof} finite joint angles within "
+                               "±π rad")
         env_cfg = with_obstacle_kinds(env_cfg, obstacles)
         if truth:  # a twin capture replayed on the twin: the twin holds the true scene, the loop the detection
             true_obstacles = [Obstacle(o["kind"], tuple(o["centre"]), tuple(o["size"]), o["yaw"]) for o in truth["obstacles"]]

@@ -6,7 +6,8 @@ value and the limit; the loop must then stop the arm.  Clipping silently would h
 policy, calibration or control-step bug behind a motion nobody asked for.
 
 Every limit comes from the robot description (the URDF of the policy's ``env.robot``, e.g.
-``sagrasp_jax/urdf/aubo_i5_eg2.urdf``, via ``robot.load_robot``) and the deployment's own settings (``DeploySettings``: the controller's
+``sagrasp_jax/urdf/aubo_i5_eg2.urdf``, via ``robot.load_robot``) and the deployment's own settings
+(``DeploySettings``: the controller's
 command period and the largest joint-target change per command, docs/task.md §2; the cell's cube
 size, target region and obstacle clearance, docs/task.md §1.4-1.5), **never from a policy file**: a
 policy is data from elsewhere, and an edited one must not be able to loosen a limit.  A policy trained
@@ -221,7 +222,8 @@ class SafetyLayer:
         self.max_step = float(self.settings.max_step)
         # Per-joint bound on one control step's change of the commanded target.
         self.step_limit = np.minimum(self.robot.velocity_limit * self.control_dt, self.max_step)
-        self._checked_prims = np.nonzero(self.robot.prim_link >= self.robot.spec.reach_link)[0]  # the links below never reach the table
+        # the table rule checks the links that can reach it (the robot's reach_link on: the AUBO's upper arm)
+        self._checked_prims = np.nonzero(self.robot.prim_link >= self.robot.spec.reach_link)[0]
 
     def _as_q(self, q: Any, what: str) -> np.ndarray:
         q = np.asarray(q, dtype=float)

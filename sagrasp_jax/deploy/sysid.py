@@ -186,8 +186,8 @@ def identify(log: RobotLog, control_cfg: ControlConfig | None = None) -> SysIdRe
     control_cfg = control_cfg or ControlConfig()
     log = check_log(log)
     if len(control_cfg.lag_gain) != log.command.shape[1]:
-        raise LogError(f"log: {log.command.shape[1]} joints, but the control constants are for {len(control_cfg.lag_gain)} "
-                       "(name the arm: --robot)")
+        raise LogError(f"log: {log.command.shape[1]} joints, but the control constants are for "
+                       f"{len(control_cfg.lag_gain)} (name the arm: --robot)")
     period = float(np.median(np.diff(log.time)))
     if abs(period / control_cfg.control_dt - 1.0) > PERIOD_TOLERANCE:
         raise LogError(f"log: median sample period {period * 1000:.1f} ms; the log must be sampled once per control "
@@ -296,7 +296,8 @@ def check_overrides(items: list[str]) -> list[str]:
     return items
 
 
-def to_dict(result: SysIdResult, control_cfg: ControlConfig | None = None, robot: str = robots.DEFAULT) -> dict[str, Any]:
+def to_dict(result: SysIdResult, control_cfg: ControlConfig | None = None,
+            robot: str = robots.DEFAULT) -> dict[str, Any]:
     control_cfg = control_cfg or ControlConfig()
     nominal = np.asarray(control_cfg.lag_momentum)
     servo_gain = np.where(result.lag_momentum > 1e-4, nominal / np.maximum(result.lag_momentum, 1e-4), np.inf)

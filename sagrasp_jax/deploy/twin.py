@@ -1,7 +1,8 @@
 """PyBullet digital twin of the cell: a ``deploy.loop.RobotInterface`` to rehearse deployment on.
 
 Built from the same sources as the training scene, never a hand-kept copy: the robot from
-the URDF of the config's ``env.robot`` (``robot.load_robot(env_cfg.robot)``: any registered arm), the table, gantry and camera from ``scene.SCENE``;
+the URDF of the config's ``env.robot`` (``robot.load_robot(env_cfg.robot)``: any registered arm), the table,
+gantry and camera from ``scene.SCENE``;
 the cube and the obstacles are placed at the given (true) positions.  DIRECT mode by default
 (headless), ``gui=True`` opens PyBullet's viewer.
 
@@ -74,10 +75,12 @@ class PyBulletTwin:
         self.robot = robot_mod.load_robot(self.cfg.robot)
         self.errors = errors or TransferErrors(dof=self.robot.dof)
         if self.errors.dof != self.robot.dof:
-            raise ValueError(f"transfer errors are for {self.errors.dof} joints; {self.robot.name} has {self.robot.dof}")
+            raise ValueError(f"transfer errors are for {self.errors.dof} joints; {self.robot.name} has "
+                             f"{self.robot.dof}")
         q0 = np.asarray(self.cfg.task.home_q if q0 is None else q0, dtype=float)
         if q0.shape != (self.robot.dof,) or not np.isfinite(q0).all():
-            raise ValueError(f"twin start pose must be {self.robot.dof} finite joint angles ({self.robot.name}), got {q0!r}")
+            raise ValueError(f"twin start pose must be {self.robot.dof} finite joint angles ({self.robot.name}), "
+                             f"got {q0!r}")
         size = control.latency_queue_size(self.errors.latency)
         self._queue = np.repeat(q0[None], max(size, 2), axis=0)  # commands, newest first
         self._q_prev = q0.copy()  # the servo model's joints one step ago

@@ -2,7 +2,8 @@
 
 Training scores a grasp kinematically (gripper centre over the cube, pointing down, no
 collision).  This check replays the end of an episode with physics on CPU MuJoCo, from
-the robot's scene MJCF (``RobotSpec.mjcf_scene``: ``sagrasp_jax/mjcf/scene.xml`` for the AUBO-i5) adapted in memory with ``mujoco.MjSpec`` for that episode:
+the robot's scene MJCF (``RobotSpec.mjcf_scene``: ``sagrasp_jax/mjcf/scene.xml`` for the AUBO-i5) adapted in
+memory with ``mujoco.MjSpec`` for that episode:
 
 * the target, a mocap body in the training model, gets a free joint (it can be lifted) and
   the episode's pose; the obstacle slots get the episode's shape, size and pose;

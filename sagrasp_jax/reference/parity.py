@@ -376,7 +376,8 @@ class _SourceRun:
             ok = _compare_step(self.traj, j_obs, j_row, obs, _pybullet_row(rew, info), j_flags, p_flags, self.gripper)
             if not ok and len(self.disagreements) < MAX_LISTED_DISAGREEMENTS:
                 self.disagreements.append({"episode": episode_id, "step": t + 1, "jax": j_flags, "pybullet": p_flags,
-                                           "gripper_gap": float(np.linalg.norm(j_obs[self.gripper] - obs[self.gripper]))})
+                                           "gripper_gap": float(np.linalg.norm(j_obs[self.gripper]
+                                                                               - obs[self.gripper]))})
             elif ok and j_flags["done"]:
                 for key in episode_keys():
                     diff = abs(float(jout["episode"][key][k]) - float(info[EPISODE_INFO][key]))

@@ -429,7 +429,8 @@ class PyBulletGraspEnv(gym.Env if gym is not None else object):  # type: ignore[
 
     def _observe(self, q: np.ndarray, kin: Kinematics, col: collision.CollisionResult, tilt: Any) -> np.ndarray:
         task = self.cfg.task
-        noise = self.np_random.normal(size=self.robot.dof) if observation.noise_std(task, self.progress) > 0 else np.zeros(self.robot.dof)
+        dof = self.robot.dof
+        noise = self.np_random.normal(size=dof) if observation.noise_std(task, self.progress) > 0 else np.zeros(dof)
         assert self._spec is not None
         noisy_q = observation.noisy_joints(task, q, self.progress, noise)
         return observation.assemble(np, self.cfg, noisy_q, kin.gripper_centre, self._spec, col, tilt,

@@ -153,8 +153,8 @@ class NumpyPolicy:
                                     "policy, refused before anything connects")
         arm = robots.get(self.env_config().robot)
         if self.action_size != arm.dof:
-            raise PolicyFormatError(f"{self.path}: {self.action_size} actions, but its robot {arm.name!r} has {arm.dof} "
-                                    "joints; refused before anything connects")
+            raise PolicyFormatError(f"{self.path}: {self.action_size} actions, but its robot {arm.name!r} has "
+                                    f"{arm.dof} joints; refused before anything connects")
 
     def _check_obs(self, obs: Any) -> np.ndarray:
         obs = np.asarray(obs, dtype=np.float64)

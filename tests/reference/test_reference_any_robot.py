@@ -13,7 +13,9 @@ pytest.importorskip("gymnasium")
 
 from sagrasp_jax.reference import EPISODE_INFO  # noqa: E402
 from sagrasp_jax.reference import parity  # noqa: E402
-from sagrasp_jax.reference.grasp_check import GraspScene, PhysicalCheckError, physical_grasp_check, scene_xml  # noqa: E402
+from sagrasp_jax.reference.grasp_check import (  # noqa: E402
+    GraspScene, PhysicalCheckError, physical_grasp_check, scene_xml,
+)
 from sagrasp_jax.reference.pybullet_env import PyBulletGraspEnv, load_servo_model  # noqa: E402
 from sagrasp_jax.task import config, robot, sampling, scripted  # noqa: E402
 from sagrasp_jax.task.config_parse import apply_overrides  # noqa: E402
@@ -90,7 +92,8 @@ def test_physical_grasp_check_uses_the_robots_scene_and_pads():
     scene = GraspScene(spec, spec.q0, arm=PANDA)
     assert scene.model.nu == 9 and scene_xml(PANDA).endswith("scene_panda.xml")  # 7 arm servos and 2 fingers
     np.testing.assert_allclose(scene.arm_q, spec.q0)
-    np.testing.assert_allclose(scene.gripper_centre, robot.forward_kinematics(np, PANDA, spec.q0).gripper_centre, atol=1e-6)
+    fk = robot.forward_kinematics(np, PANDA, spec.q0)
+    np.testing.assert_allclose(scene.gripper_centre, fk.gripper_centre, atol=1e-6)
     with pytest.raises(PhysicalCheckError, match=r"7 finite numbers \(panda\)"):
         GraspScene(spec, np.zeros(6), arm=PANDA)
     # the scripted controller's grasp pose in the reference env: closing and lifting there holds the cube
