@@ -49,7 +49,7 @@ def bench_jax(mode: str, batch: int, steps: int, auto_reset: bool, overrides: li
 
     def rollout(state, key):
         def body(st, k):
-            st = step(st, jax.random.uniform(k, (local, 6), minval=-1.0, maxval=1.0))
+            st = step(st, jax.random.uniform(k, (local, base.action_size), minval=-1.0, maxval=1.0))
             return st, st.done.sum()
 
         return jax.lax.scan(body, state, jax.random.split(key, steps))
@@ -108,7 +108,7 @@ def bench_pybullet(mode: str, steps: int) -> dict | None:
     env = PyBulletGraspEnv(cfg)
     env.reset(seed=0)
     rng = jax.random.PRNGKey(0)
-    actions = jax.device_get(jax.random.uniform(rng, (steps, 6), minval=-1.0, maxval=1.0))
+    actions = jax.device_get(jax.random.uniform(rng, (steps, env.robot.dof), minval=-1.0, maxval=1.0))
     t0 = time.perf_counter()
     for a in actions:
         _, _, terminated, truncated, _ = env.step(a)
@@ -119,12 +119,13 @@ def bench_pybullet(mode: str, steps: int) -> dict | None:
     return {"mode": mode, "backend": "pybullet", "batch": 1, "steps": steps, "env_steps_per_s": round(steps / elapsed, 1)}
 
 
-def bench_bare_pybullet(steps: int = 20_000, physics_steps: int = 0) -> dict | None:
+def bench_bare_pybullet(steps: int = 20_000, physics_steps: int = 0, robot_name: str = "aubo_i5") -> dict | None:
     """Raw stepping of a bare PyBullet AUBO-i5 chain (docs/task.md §6's anchor, no learning): per step
     the 6 arm joints' new targets, the gripper link's pose, one closest-point query to an obstacle, a
     17-number observation.  ``physics_steps`` 0 sets the joints (``resetJointState``: the kinematic
     stepping); N > 0 is the paper stack's dynamic stepping: position control of the 6 joints under
-    gravity and N ``stepSimulation`` calls of 1/240 s (12: one 0.05 s control period)."""
+    gravity and N ``stepSimulation`` calls of 1/240 s (12: one 0.05 s control period).  ``robot_name``: another
+    registered arm's chain instead (its URDF, joints and home pose)."""
     try:
         import pybullet as pb
     except ImportError:
@@ -135,15 +136,16 @@ def bench_bare_pybullet(steps: int = 20_000, physics_steps: int = 0) -> dict | N
 
     cid = pb.connect(pb.DIRECT)
     try:
-        arm = pb.loadURDF(robot.URDF_PATH, useFixedBase=True, physicsClientId=cid)
+        model = robot.load_robot(robot_name)
+        arm = pb.loadURDF(model.urdf_path, useFixedBase=True, physicsClientId=cid)
         joints = [j for j in range(pb.getNumJoints(arm, physicsClientId=cid))
-                  if pb.getJointInfo(arm, j, physicsClientId=cid)[2] == pb.JOINT_REVOLUTE][:6]
+                  if pb.getJointInfo(arm, j, physicsClientId=cid)[2] == pb.JOINT_REVOLUTE][:model.dof]
         tip = pb.getNumJoints(arm, physicsClientId=cid) - 1
         shape = pb.createCollisionShape(pb.GEOM_SPHERE, radius=0.05, physicsClientId=cid)
         obstacle = pb.createMultiBody(0, shape, basePosition=[0.0, -0.45, 0.2], physicsClientId=cid)
         rng = np.random.default_rng(0)
-        actions = rng.uniform(-1, 1, (steps, 6))
-        q = np.array(config.HOME_Q)
+        actions = rng.uniform(-1, 1, (steps, model.dof))
+        q = np.array(model.spec.home_q)
         for j, qj in zip(joints, q):
             pb.resetJointState(arm, j, qj, physicsClientId=cid)
         if physics_steps:
@@ -155,7 +157,7 @@ def bench_bare_pybullet(steps: int = 20_000, physics_steps: int = 0) -> dict | N
             q = np.clip(q + 0.05 * a, -config.Q_LIMIT, config.Q_LIMIT)
             if physics_steps:
                 pb.setJointMotorControlArray(arm, joints, pb.POSITION_CONTROL, targetPositions=q.tolist(),
-                                             forces=[150.0] * 6, physicsClientId=cid)
+                                             forces=[150.0] * model.dof, physicsClientId=cid)
                 for _ in range(physics_steps):
                     pb.stepSimulation(physicsClientId=cid)
             else:

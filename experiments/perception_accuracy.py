@@ -243,7 +243,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     base = EnvConfig()
     mixes = {"paper": base, "blocking": dataclasses.replace(base, sampling=blocking_sampling(base.sampling, 1.0, 1.0))}
     counts = {"paper": args.scenes, "blocking": args.blocking}
-    model = robot.load_robot()
+    model = robot.load_robot(base.robot)
     cal = CameraCalibration.default()
     camera = TwinCamera(args.resolution)
     results: dict[str, Any] = {"settings": {**vars(args), "intrinsics": dataclasses.asdict(camera.intrinsics),
@@ -254,7 +254,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         records: dict[str, list[dict[str, Any]]] = {n: [] for n in levels}
         build_s, render_s = [], []
         for i in range(counts[mix]):
-            spec = sampling.sample_reset(np, model, cfg.sampling, cfg.task, rng.random(sampling.uniforms_needed(cfg.sampling)))
+            spec = sampling.sample_reset(np, model, cfg.sampling, cfg.task, rng.random(sampling.uniforms_needed(cfg.sampling, model.dof)))
             t0 = time.perf_counter()
             with PyBulletTwin(spec, cfg, q0=spec.q0) as twin:
                 build_s.append(time.perf_counter() - t0)
@@ -358,7 +358,7 @@ def occluded_spec(rng: np.random.Generator, model: Any, base: EnvConfig, camera:
     Kept when the sphere keeps ``SPHERE_GAP_M`` off the obstacle, the sampler's target and robot clearances,
     and neither it nor the obstacle hides the cube's top face; otherwise new draws, then a new scene."""
     occ = dataclasses.replace(base.sampling, obstacle_kinds=OCCLUDED_KINDS, obstacle_prob=1.0)
-    n_u = sampling.uniforms_needed(occ)
+    n_u = sampling.uniforms_needed(occ, model.dof)
     cam = np.asarray(camera.cam_to_world[:3, 3], float)
     sphere_id = shapes.BY_NAME["sphere"].id
     cfg = base.sampling
@@ -629,7 +629,7 @@ def run_occluded(args: argparse.Namespace) -> dict[str, Any]:
         if n not in NOISE_MODELS:
             raise SystemExit(f"unknown --noise {n!r}; known: {', '.join(NOISE_MODELS)}")
     base = EnvConfig()
-    model = robot.load_robot()
+    model = robot.load_robot(base.robot)
     cal = CameraCalibration.default()
     camera = TwinCamera(args.resolution)
     cam = np.asarray(camera.cam_to_world[:3, 3], float)

@@ -56,7 +56,8 @@ from sagrasp_jax.deploy.handeye import (
     fit_hand_eye,
     plan_poses,
 )
-from sagrasp_jax.task.robot import load_robot
+from sagrasp_jax.task import robots
+from sagrasp_jax.task.robot import RobotModel, load_robot
 from sagrasp_jax.base.fileio import NotWritable, atomic_write_json, atomic_write_text, check_writable, read_regular
 
 COLUMNS = ("cam_x", "cam_y", "cam_z", "tcp_x", "tcp_y", "tcp_z")
@@ -144,6 +145,8 @@ def _parser() -> argparse.ArgumentParser:
                         f"(default {DEFAULT_MAX_MM:g} mm)")
     p.add_argument("--plan", action="store_true", help="print the TCP poses to take the pairs at, instead of fitting")
     p.add_argument("--plan-count", type=int, default=10, metavar="N", help="poses in the plan (default 10)")
+    p.add_argument("--robot", choices=robots.names(), default=robots.DEFAULT,
+                   help=f"--plan: the arm that takes the poses (env.robot; default {robots.DEFAULT})")
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     return p
 
@@ -178,9 +181,9 @@ def _report(fit: HandEyeFit, out: str) -> str:
 
 
 def plan_record(plan: HandEyePlan, max_rot_deg: float = DEFAULT_MAX_ROT_DEG,
-                max_mm: float = DEFAULT_MAX_MM) -> dict[str, Any]:
+                max_mm: float = DEFAULT_MAX_MM, model: RobotModel | None = None) -> dict[str, Any]:
     """The plan as JSON: the poses in the order to visit and the error predicted for pairs taken there."""
-    tcp_mm = 1000.0 * float(load_robot().gripper_centre_local[2])
+    tcp_mm = 1000.0 * float((model or load_robot()).gripper_centre_local[2])  # the planning arm's TCP
     over = [f"{what} {value:.3g}{unit} > {limit:g}{unit} ({option})" for what, value, limit, unit, option in (
         ("rotation", plan.rotation_p95_deg, max_rot_deg, "°", "--max-rot-deg"),
         ("mapped points", plan.workspace_p95_mm, max_mm, " mm", "--max-mm")) if value > limit]
@@ -253,7 +256,8 @@ def _plan_command(args: argparse.Namespace) -> int:
         _check_options(args)
         if args.out is not None:
             check_writable(args.out, "plan output", is_folder=False)
-        record = plan_record(plan_poses(args.plan_count, args.noise_mm), args.max_rot_deg, args.max_mm)
+        model = load_robot(args.robot)
+        record = plan_record(plan_poses(args.plan_count, args.noise_mm, model), args.max_rot_deg, args.max_mm, model)
         if args.out is not None:
             if args.out.lower().endswith(".json"):
                 atomic_write_json(args.out, record)

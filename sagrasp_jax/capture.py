@@ -31,7 +31,7 @@ from sagrasp_jax.base import cli, extras, fileio
 from sagrasp_jax.deploy import capture_file
 from sagrasp_jax.deploy.cameras import CameraError, capture_once
 from sagrasp_jax.task.camera import CAMERA_MODELS, NOISE_MODELS
-from sagrasp_jax.task.robot import ARM_DOF
+from sagrasp_jax.task import robots
 
 SOURCES = ("mecheye", "realsense", "twin")
 
@@ -42,8 +42,12 @@ def _parser() -> cli.Parser:
     p.add_argument("--camera-address", default=None, metavar="ADDRESS",
                    help="mecheye: its IP address (required); realsense: its serial number or a recording (.db3 or .bag) "
                         "(default the first connected)")
-    p.add_argument("--arm-joints", nargs=ARM_DOF, type=float, default=None, metavar="Q",
-                   help=f"mecheye/realsense: the arm's {ARM_DOF} joint angles (rad) while the capture is taken, saved with it so "
+    p.add_argument("--robot", choices=robots.names(), default=robots.DEFAULT,
+                   help=f"the arm in the cell (env.robot; default {robots.DEFAULT}): --arm-joints takes one angle per "
+                        "joint of it; --camera twin renders its scene")
+    p.add_argument("--arm-joints", nargs="+", type=float, default=None, metavar="Q",
+                   help="mecheye/realsense: the arm's joint angles (rad, one per joint of --robot) while the capture "
+                        "is taken, saved with it so "
                         "that perception leaves the arm out (deploy --camera reads them from the controller itself); "
                         "without them the arm must be out of the camera's view")
     p.add_argument("--out", required=True, help="the capture file to write (.npz)")
@@ -65,9 +69,10 @@ def _parser() -> cli.Parser:
 def _twin(args: object) -> capture_file.Capture:
     from sagrasp_jax.deploy import rehearse
     from sagrasp_jax.deploy.twin import PyBulletTwin
-    from sagrasp_jax.task.config import EnvConfig
+    from sagrasp_jax.task.config import Config
+    from sagrasp_jax.task.config_parse import apply_overrides
 
-    env_cfg = EnvConfig()
+    env_cfg = apply_overrides(Config(), [f"robot={args.robot}"]).env  # the arm's config (its home pose)
     scene_cfg = rehearse.scene_env(env_cfg, args.scene_set)
     spec, rng = rehearse.draw_scene(scene_cfg, args.seed, args.scene)
     camera = rehearse.camera_settings(args)  # the noise defaults to the camera model's
@@ -86,8 +91,11 @@ def _check(args: object) -> None:
             raise ValueError(f"{', '.join(given)} {'is' if len(given) == 1 else 'are'} only for --camera twin")
         if args.camera == "mecheye" and not args.camera_address:
             raise ValueError("--camera mecheye needs --camera-address IP")
-        if args.arm_joints is not None and not all(math.isfinite(q) and abs(q) <= 2 * math.pi for q in args.arm_joints):
-            raise ValueError(f"--arm-joints {args.arm_joints} must be {ARM_DOF} finite joint angles in rad (within ±2π)")
+        dof = robots.get(args.robot).dof
+        if args.arm_joints is not None and not (len(args.arm_joints) == dof and all(
+                math.isfinite(q) and abs(q) <= 2 * math.pi for q in args.arm_joints)):
+            raise ValueError(f"--arm-joints {args.arm_joints} must be {dof} finite joint angles in rad (within "
+                             f"±2π), one per joint of {args.robot}")
     else:
         if args.camera_address is not None or args.arm_joints is not None:
             raise ValueError("--camera-address and --arm-joints are for a real camera, not the twin (its arm is parked "

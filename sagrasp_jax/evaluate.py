@@ -75,11 +75,13 @@ def evaluate_physical(run: str, episodes: int, seed: int, max_steps: int, lift: 
     cube and lifts keeping its orientation.
     """
     from sagrasp_jax.reference import grasp_check as physical
+    from sagrasp_jax.task.robot import load_robot
 
     lift = physical.LIFT_HEIGHT if lift is None else lift
     replay = evaluation.replay_final_poses(run, episodes, seed, max_steps, overrides, scenes)
     successes = np.nonzero(replay.episodes["success"] > 0)[0]
-    checks = [physical.physical_grasp_check(physical_grasp_pose(replay, i), replay.spec(i), lift=lift)
+    arm = load_robot(replay.env_cfg.robot)
+    checks = [physical.physical_grasp_check(physical_grasp_pose(replay, i), replay.spec(i), lift=lift, arm=arm)
               for i in successes]
     held = sum(c["success"] for c in checks)
     names = dict.fromkeys(name for c in checks for name in c["criteria"])
@@ -112,7 +114,8 @@ def physical_grasp_pose(replay: evaluation.FinalPoses, i: int) -> np.ndarray:
     from sagrasp_jax.task import robot
     from sagrasp_jax.deploy.loop import centring_pose
 
-    model, cfg, spec, q = robot.load_robot(), replay.env_cfg, replay.spec(i), replay.q_final[i]
+    cfg, spec, q = replay.env_cfg, replay.spec(i), replay.q_final[i]
+    model = robot.load_robot(cfg.robot)  # the run's arm
     detected = np.asarray(spec.target_pos, float) + replay.target_error[i] * np.array([1.0, 1.0, 0.0])
     try:
         goal = centring_pose(model, cfg, q, detected)

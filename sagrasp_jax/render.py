@@ -78,7 +78,8 @@ TRACK_FRONT_BONUS = 0.5  # score for looking at the robot from the front of the 
 TRACK_WINDOW = 6  # frames either side averaged (0.3 s at 20 fps): the camera glides
 CUBE_MARGIN = 0.04  # m around the cube centre kept in view
 GRIPPER_MARGIN = 0.07  # m around the gripper centre and these bodies' origins (the gripper and the wrist above it)
-TRACK_GRIPPER_BODIES = ("flange", "wrist2_Link")
+# The gripper's bodies the tracking camera frames besides the grasp point: the flange (the child link of the robot's
+# flange joint) and the link before the wrist's (the AUBO-i5's: flange, wrist2_Link); ``gripper_bodies``.
 
 # A 5×7 bitmap font, rows top to bottom ("#" ink), drawn at an integer scale.
 FONT = {
@@ -255,7 +256,7 @@ def episode_scene(env_cfg: Any, model: Any, seed: int, index: int) -> tuple[Any,
     wanted = EPISODE_KINDS[index % len(EPISODE_KINDS)]
     s = kind_sampling(env_cfg, wanted)
     for attempt in range(SCENE_TRIES):
-        u = np.random.default_rng([seed, index, attempt]).random(sampling.uniforms_needed(s))
+        u = np.random.default_rng([seed, index, attempt]).random(sampling.uniforms_needed(s, model.dof))
         spec = sampling.ResetSpec(*(np.asarray(v) for v in sampling.sample_reset(np, model, s, env_cfg.task, u)))
         kind = scene_kind(spec, model, env_cfg)
         if kind == wanted:
@@ -305,8 +306,8 @@ class TrackingCamera:
         self.obstacles = [self.model.geom(scene_mjcf.obstacle_geom_name(slot, shapes.BY_ID[int(spec.obstacle_kind[slot])])).id
                           for slot in np.nonzero(np.asarray(spec.obstacle_active))[0]]
         self.cube = self.model.geom("target_geom").id
-        self.gripper = [self.model.body(name).id for name in TRACK_GRIPPER_BODIES]
-        self.arm_geoms = _arm_geoms(self.model)
+        self.gripper = [self.model.body(name).id for name in gripper_bodies(scene.robot)]
+        self.arm_geoms = _arm_geoms(self.model, scene.robot)
         self.centre = self.model.site("gripper_center").id
         self.data = mujoco.MjData(self.model)
         self.azimuth, self.elevation = 90.0, TRACK_ELEVATIONS[0]
@@ -389,10 +390,20 @@ class TrackingCamera:
         return [self.camera(a, d, self.azimuth, self.elevation) for a, d in zip(lookat, distance)]
 
 
-def _arm_geoms(model: Any) -> np.ndarray:
-    """The arm's geoms from its base to the wrist (the gripper, from the last wrist link on, is left out)."""
+def gripper_bodies(arm: Any) -> tuple[str, str]:
+    """The MJCF bodies of ``arm`` (a ``RobotModel``) the tracking camera keeps in view with the grasp point: its
+    flange (the URDF child link of ``spec.flange_joint``) and the link before its wrist's."""
+    import xml.etree.ElementTree as ET
+
+    joint = ET.parse(arm.urdf_path).getroot().find(f"joint[@name='{arm.spec.flange_joint}']")
+    return joint.find("child").get("link"), arm.link_names[-2]
+
+
+def _arm_geoms(model: Any, arm: Any) -> np.ndarray:
+    """The arm's geoms from its base to the wrist (the gripper, from the last wrist link on, is left out); ``arm``
+    is the ``RobotModel`` whose link names the MJCF's bodies carry."""
     parents = model.body_parentid
-    base, wrist = model.body("base_link").id, model.body("wrist3_Link").id
+    base, wrist = model.body(arm.link_names[0]).id, model.body(arm.link_names[-1]).id
 
     def under(body: int, root: int) -> bool:
         while body > 0 and body != root:
@@ -540,14 +551,14 @@ def render_episodes(policy_path: str, episodes: int = 3, camera: str = "tracking
         raise RenderError(f"--camera must be one of {', '.join(CAMERAS)}, got {camera!r}")
     policy = load_policy(policy_path)
     cfg = policy.env_config()
-    model = load_robot()
+    model = load_robot(cfg.robot)  # the policy's arm
     steps_limit = cfg.task.max_steps if max_steps is None else int(max_steps)
     frames: list[np.ndarray] = []
     reports: list[dict[str, Any]] = []
     still = -1
     for i in range(episodes):
         spec, kind = episode_scene(cfg, model, seed, i)
-        scene = GraspScene(spec, spec.q0)
+        scene = GraspScene(spec, spec.q0, arm=model)
         recorder = StateRecorder()
         recorder.capture(scene, "start")
         robot = _filmed_robot(scene, cfg.control.control_dt, recorder)

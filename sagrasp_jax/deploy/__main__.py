@@ -93,8 +93,8 @@ from sagrasp_jax.task import shapes
 from sagrasp_jax.deploy.loop import (
     DeployError, Obstacle, format_report, plan_episode, run_episode, scene_spec, with_obstacle_kinds,
 )
-from sagrasp_jax.task.config import HOME_Q
-from sagrasp_jax.task.robot import ARM_DOF
+from sagrasp_jax.task import robot as robot_mod
+from sagrasp_jax.task import robots
 from sagrasp_jax.deploy import aubo
 from sagrasp_jax.deploy.safety import SafetyViolation, check_policy_constants, check_policy_scene, deployment_env
 from sagrasp_jax.deploy.transfer import TransferErrors
@@ -267,8 +267,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="twin: offset of the joint readings, one or one per joint (default 0)")
     p.add_argument("--twin-joint-noise", type=float, default=0.0, metavar="RAD",
                    help="twin: std of the joint-reading noise (default 0)")
-    p.add_argument("--twin-start-q", nargs=ARM_DOF, type=float, default=None, metavar="Q",
-                   help="twin: the arm's start joints, rad (default the policy's home pose)")
+    p.add_argument("--twin-start-q", nargs="+", type=float, default=None, metavar="Q",
+                   help="twin: the arm's start joints, rad, one per joint of the policy's robot (default the "
+                        "policy's home pose)")
     p.add_argument("--twin-target-error", nargs=3, type=float, default=None, metavar=("DX", "DY", "DZ"),
                    help="twin: the detection's error, in --units (world axes): the loop is handed the detection "
                         "moved by this, the twin's cube stays where it stands")
@@ -307,17 +308,19 @@ def _emit(args: argparse.Namespace, payload: dict[str, Any], text: str, error: b
         print(text, file=sys.stderr if error else sys.stdout)
 
 
-def _twin_errors(args: argparse.Namespace) -> tuple[TransferErrors, np.ndarray]:
-    """The twin's transfer errors and the detection error the loop is handed (m, world axes)."""
+def _twin_errors(args: argparse.Namespace, model: robot_mod.RobotModel) -> tuple[TransferErrors, np.ndarray]:
+    """The twin's transfer errors for the policy's arm ``model`` and the detection error the loop is handed (m,
+    world axes)."""
     for name in ("twin_servo_gain", "twin_joint_offset"):
-        if len(getattr(args, name)) not in (1, ARM_DOF):
+        if len(getattr(args, name)) not in (1, model.dof):
             flag = "--" + name.replace("_", "-")
-            raise InputRefused(f"{flag} takes one value or one per joint ({ARM_DOF}), got {len(getattr(args, name))}")
+            raise InputRefused(f"{flag} takes one value or one per joint ({model.dof} for {model.name}), "
+                               f"got {len(getattr(args, name))}")
     one = lambda v: v[0] if len(v) == 1 else tuple(v)  # noqa: E731
     try:
         errors = TransferErrors(latency=args.twin_latency, servo_lag=args.twin_servo_lag,
                                 servo_gain=one(args.twin_servo_gain), joint_offset=one(args.twin_joint_offset),
-                                joint_noise=args.twin_joint_noise)
+                                joint_noise=args.twin_joint_noise, dof=model.dof)
     except ValueError as exc:
         raise InputRefused(f"--twin-*: {exc}") from None
     if args.twin_target_error is None:
@@ -440,11 +443,22 @@ def _camera_scenes(tokens: list[str]) -> int:
     return rehearse.run_cli(args.policy, args)
 
 
+def _check_aubo_robot(env_cfg: Any, source: str) -> None:
+    """Refuse a policy trained for another arm than the one the AUBO driver drives (its joints would not be
+    the controller's)."""
+    if env_cfg.robot != aubo.ROBOT:
+        raise InputRefused(f"{source} was trained for the robot {env_cfg.robot!r}; --backend aubo drives the "
+                           f"{aubo.ROBOT!r} only (the twin, --backend twin, serves every registered robot)")
+
+
 def _home_of(policy_arg: str | None) -> np.ndarray:
+    """The AUBO's home pose: the policy's ``env.task.home_q`` (refused unless it is an AUBO policy), else the
+    AUBO's registered one."""
     if policy_arg is None:
-        return np.asarray(HOME_Q, dtype=float)
+        return np.asarray(robots.get(aubo.ROBOT).home_q, dtype=float)
     policy = load_policy(policy_arg)
     policy.check_grasp_inputs()
+    _check_aubo_robot(policy.env_config(), policy_arg)
     return np.asarray(policy.env_config().task.home_q, dtype=float)
 
 
@@ -624,7 +638,8 @@ def _perceive_camera(args: argparse.Namespace, cal: CameraCalibration, env_cfg: 
                         "robot_q": list(capture.robot_q) if capture.robot_q is not None else None}
     settings = perception.PerceptionSettings.for_policy(env_cfg)
     seen = perception.detect_scene(capture.cloud_mm, capture.rgb, cal, env_cfg.sampling.target_size,
-                                   robot_q=capture.robot_q, settings=settings)
+                                   robot_q=capture.robot_q, robot_model=robot_mod.load_robot(env_cfg.robot),
+                                   settings=settings)
     d = seen.diagnostics
     given["perception"] = {
         "target_world": [float(v) for v in seen.target_centre], "target_yaw_world": float(seen.target_yaw),
@@ -652,6 +667,12 @@ def _deploy(args: argparse.Namespace) -> int:
         policy = load_policy(args.policy)
         policy.check_grasp_inputs()  # inputs its own config names, before anything connects
         env_cfg = policy.env_config()
+        if args.backend == "aubo":
+            _check_aubo_robot(env_cfg, args.policy)
+        model = robot_mod.load_robot(env_cfg.robot)  # the policy's arm: the twin's, the start pose's joint count
+        if args.twin_start_q is not None and len(args.twin_start_q) != model.dof:
+            raise InputRefused(f"--twin-start-q takes {model.dof} joint angles (one per joint of {model.name}, the "
+                               f"policy's robot), got {len(args.twin_start_q)}")
         check_policy_constants(env_cfg, source=args.policy)
         check_policy_scene(env_cfg, source=args.policy)
         env_cfg = deployment_env(env_cfg)  # the cell's facts are the deployment's, never the file's
@@ -675,8 +696,12 @@ def _deploy(args: argparse.Namespace) -> int:
         truth = capture.truth if capture is not None and args.backend == "twin" else None
         start_q = args.twin_start_q if args.twin_start_q is not None else (truth["q0"] if truth else env_cfg.task.home_q)
         q_home = np.asarray(start_q, dtype=float)
+        if q_home.shape != (model.dof,):  # a replayed twin capture's start pose, of another robot's scene
+            raise InputRefused(f"the start pose {[float(v) for v in q_home]} has {q_home.size} joints; the policy's "
+                               f"robot {model.name} has {model.dof}")
         if not (np.isfinite(q_home).all() and np.all(np.abs(q_home) <= math.pi)):
-            raise InputRefused(f"--twin-start-q {args.twin_start_q} must be {ARM_DOF} finite joint angles within ±π rad")
+            raise InputRefused(f"--twin-start-q {args.twin_start_q} must be {model.dof} finite joint angles within "
+                               "±π rad")
         env_cfg = with_obstacle_kinds(env_cfg, obstacles)
         if truth:  # a twin capture replayed on the twin: the twin holds the true scene, the loop the detection
             true_obstacles = [Obstacle(o["kind"], tuple(o["centre"]), tuple(o["size"]), o["yaw"]) for o in truth["obstacles"]]
@@ -684,7 +709,7 @@ def _deploy(args: argparse.Namespace) -> int:
             spec = scene_spec(q_home, truth["target_pos"], truth["target_yaw"], true_obstacles, env_cfg)
         else:
             spec = scene_spec(q_home, standing_cube_centre(centre, env_cfg.sampling), yaw, obstacles, env_cfg)
-        twin_errors, detection_error = _twin_errors(args)
+        twin_errors, detection_error = _twin_errors(args, model)
         detection = validate_target(centre + detection_error, env_cfg.sampling)
         if args.backend == "twin" and not args.dry_run:
             extras.require("twin", what="--backend twin (the PyBullet digital twin)")

@@ -63,8 +63,10 @@ import numpy as np
 from sagrasp_jax.base import extras
 from sagrasp_jax.deploy.loop import DeployError
 from sagrasp_jax.deploy.safety import DeploySettings, SafetyLayer
-from sagrasp_jax.task.robot import ARM_DOF
+from sagrasp_jax.task import robots
 
+ROBOT = robots.AUBO_I5.name  # the one arm this driver drives (env.robot); deploy refuses a policy of another
+ARM_DOF = robots.AUBO_I5.dof  # its joints: what the controller reports and takes
 DEFAULT_PORT = 30004  # the ARCS controller's RPC port (AUBO's SDK examples)
 DEFAULT_USER, DEFAULT_PASSWORD = "aubo", "123456"  # the controller's factory login (AUBO's SDK examples)
 SERVO_MODES = {1: "truncating planning servo (the newest target wins)", 5: "planning servo (every target is passed)"}

@@ -39,7 +39,7 @@ from sagrasp_jax.deploy.cameras import Capture, checked_capture, CameraError
 from sagrasp_jax.task import shapes
 from sagrasp_jax.task.camera import CAMERA_MODELS, Intrinsics
 from sagrasp_jax.task.policy_file import read_npz
-from sagrasp_jax.task.robot import ARM_DOF
+from sagrasp_jax.task import robots
 
 FORMAT = "sagrasp_jax capture 1"
 MAX_CAPTURE_BYTES = 512 << 20  # a 4K organized cloud and image (≈ 125 MB unpacked) with room to spare
@@ -61,6 +61,17 @@ def scene_truth(spec: Any, kind: str = "") -> dict[str, Any]:
                            "centre": [float(v) for v in spec.obstacle_pos[i]],
                            "size": [float(v) for v in spec.obstacle_size[i]], "yaw": float(spec.obstacle_yaw[i])}
                           for i in active]}
+
+
+def _joint_count(value: Any, path: str, field: str) -> int:
+    """The joint count of a capture's joint vector: any registered robot's (the file does not name the robot; the
+    deploy command checks it against the policy's)."""
+    counts = sorted({robots.get(name).dof for name in robots.names()})
+    n = len(value) if isinstance(value, (list, tuple)) else -1
+    if n not in counts:
+        raise CaptureFormatError(f"{path}: meta.{field} must be one joint angle per joint of a registered robot "
+                                 f"({' or '.join(map(str, counts))} numbers), got {value!r}")
+    return n
 
 
 def _finite(value: Any, n: int, path: str, field: str, what: str = "") -> list[float]:
@@ -94,7 +105,8 @@ def _check_truth(truth: Any, path: str) -> dict[str, Any] | None:
         checked.append({"kind": ob["kind"], "centre": numbers(ob["centre"], 3, f"obstacles[{i}].centre"),
                         "size": numbers(ob["size"], 3, f"obstacles[{i}].size"),
                         "yaw": numbers([ob["yaw"]], 1, f"obstacles[{i}].yaw")[0]})
-    return {"q0": numbers(truth["q0"], ARM_DOF, "q0"), "target_pos": numbers(truth["target_pos"], 3, "target_pos"),
+    return {"q0": numbers(truth["q0"], _joint_count(truth["q0"], path, "truth.q0"), "q0"),
+            "target_pos": numbers(truth["target_pos"], 3, "target_pos"),
             "target_yaw": numbers([truth["target_yaw"]], 1, "target_yaw")[0], "obstacles": checked,
             "kind": str(truth["kind"])}
 
@@ -173,8 +185,8 @@ def load_capture(path: str) -> Capture:
                                      f"{cloud.shape[1]} × {cloud.shape[0]} cloud")
     robot_q = meta["robot_q"]
     if robot_q is not None:
-        what = f"the arm's {ARM_DOF} joint angles in rad"
-        q = _finite(robot_q, ARM_DOF, path, "robot_q", what)
+        what = "the arm's joint angles in rad (one per joint of a registered robot)"
+        q = _finite(robot_q, _joint_count(robot_q, path, "robot_q"), path, "robot_q", what)
         if max(abs(v) for v in q) > 2 * math.pi:
             raise CaptureFormatError(f"{path}: meta.robot_q must be {what}, got {robot_q!r}")
         robot_q = tuple(q)

@@ -58,7 +58,7 @@ import numpy as np
 from sagrasp_jax.deploy.safety import SafetyLayer, SafetyViolation
 from sagrasp_jax.task import collision, geometry
 from sagrasp_jax.task.config import EnvConfig, SamplingConfig
-from sagrasp_jax.task.robot import ARM_DOF, RobotModel, forward_kinematics, load_robot, primitive_poses
+from sagrasp_jax.task.robot import RobotModel, forward_kinematics, load_robot, primitive_poses
 from sagrasp_jax.task.sampling import ResetSpec
 from sagrasp_jax.task.scene import SCENE
 
@@ -567,15 +567,15 @@ def _level_fingers(model: RobotModel, q: np.ndarray) -> np.ndarray:
     q = q.copy()
     rot = forward_kinematics(np, model, q).link_rot[:, -1]
     turn = np.arctan2(-rot[:, 2, 0], rot[:, 2, 1])
-    both = (np.stack([q[:, 5] + turn, q[:, 5] + turn + np.pi], -1) + np.pi) % (2 * np.pi) - np.pi
-    q[:, 5] = both[np.arange(len(q)), np.argmin(np.abs(both), axis=-1)]
+    both = (np.stack([q[:, -1] + turn, q[:, -1] + turn + np.pi], -1) + np.pi) % (2 * np.pi) - np.pi
+    q[:, -1] = both[np.arange(len(q)), np.argmin(np.abs(both), axis=-1)]
     return q
 
 
-def _empty_cell_spec(cfg: EnvConfig) -> ResetSpec:
+def _empty_cell_spec(cfg: EnvConfig, dof: int) -> ResetSpec:
     n = cfg.sampling.max_obstacles
     parked = np.tile([0.0, 0.0, -5.0], (n, 1))
-    return ResetSpec(np.zeros(ARM_DOF), np.array([0.0, 0.0, -5.0]), np.asarray(0.0), np.zeros(n, bool), np.zeros(n, np.int32),
+    return ResetSpec(np.zeros(dof), np.array([0.0, 0.0, -5.0]), np.asarray(0.0), np.zeros(n, bool), np.zeros(n, np.int32),
                      parked, np.zeros(n), np.full((n, 3), 0.01), np.asarray(0), np.asarray(False))
 
 
@@ -611,8 +611,8 @@ def _rpy(rot: np.ndarray) -> np.ndarray:
 def _reach(model: RobotModel, tcp_mm: np.ndarray, home: np.ndarray) -> list[PlannedPose | None]:
     """For each TCP position, the first orientation (PLAN_TILTS_DEG × PLAN_DIRECTIONS) the arm can take there
     safely with the TCP in the camera's view, or None."""
-    cfg, safety = EnvConfig(), SafetyLayer(robot=model)
-    spec = _empty_cell_spec(cfg)
+    cfg, safety = EnvConfig(robot=model.name), SafetyLayer(robot=model)
+    spec = _empty_cell_spec(cfg, model.dof)
     found: list[PlannedPose | None] = [None] * len(tcp_mm)
     for tilt in PLAN_TILTS_DEG:
         todo = [i for i, f in enumerate(found) if f is None]
@@ -649,7 +649,7 @@ def plan_poses(count: int = 10, noise_mm: float = DEFAULT_NOISE_MM, model: Robot
     if not MIN_PAIRS <= count <= MAX_PLAN_COUNT:
         raise HandEyeError(f"--plan-count {count}: plan between {MIN_PAIRS} and {MAX_PLAN_COUNT} poses")
     model = model or load_robot()
-    home = np.asarray(EnvConfig().task.home_q, dtype=float)
+    home = np.asarray(model.spec.home_q, dtype=float)  # the robot's start pose (EnvConfig's for the default robot)
     cands = plan_candidates()
     points = workspace_points_mm()
     allowed = np.ones(len(cands), bool)

@@ -53,9 +53,9 @@ from sagrasp_jax.task import shapes
 from sagrasp_jax.task.config import EnvConfig
 from sagrasp_jax.deploy.calibration import standing_cube_centre, validate_obstacle_clearance, validate_target
 from sagrasp_jax.deploy.safety import (
-    SafetyLayer, SafetyViolation, check_policy_constants, check_policy_scene, deployment_env,
+    PolicyMismatch, SafetyLayer, SafetyViolation, check_policy_constants, check_policy_scene, deployment_env,
 )
-from sagrasp_jax.task.robot import ARM_DOF, IKError, RobotModel, forward_kinematics, lift_pose, load_robot, translated_pose
+from sagrasp_jax.task.robot import IKError, RobotModel, forward_kinematics, lift_pose, load_robot, translated_pose
 from sagrasp_jax.task.policy_file import NumpyPolicy
 from sagrasp_jax.task.sampling import ResetSpec
 
@@ -233,10 +233,10 @@ def send_checked(robot: RobotInterface, safety: SafetyLayer, q_cmd: Any, q_prev:
     return q
 
 
-def _read(robot: RobotInterface) -> np.ndarray:
+def _read(robot: RobotInterface, model: RobotModel) -> np.ndarray:
     q = np.asarray(robot.read_joints(), dtype=float)
-    if q.shape != (ARM_DOF,) or not np.isfinite(q).all():
-        raise DeployError(f"robot reported joints {q!r}; expected {ARM_DOF} finite values")
+    if q.shape != (model.dof,) or not np.isfinite(q).all():
+        raise DeployError(f"robot reported joints {q!r}; expected {model.dof} finite values ({model.name})")
     return q
 
 
@@ -264,14 +264,17 @@ def run_episode(
     t0 = time.perf_counter()
     policy.check_grasp_inputs()  # a policy of another env would fail at its first observation
     env_cfg = with_obstacle_kinds(policy.env_config(), obstacles)
-    model = load_robot()
+    model = load_robot(env_cfg.robot)  # the policy's arm (its file's env.robot), never a module default
     settings = safety.settings if safety is not None else None
+    if safety is not None and safety.robot.name != model.name:
+        raise PolicyMismatch(f"{policy.path} was trained for the robot {model.name!r}; "
+                             f"the safety layer guards {safety.robot.name!r}")
     check_policy_constants(env_cfg, settings, model, policy.path)
     check_policy_scene(env_cfg, settings, policy.path)
     env_cfg = deployment_env(env_cfg, settings)  # the cell's facts are the deployment's, never the file's
     detected = validate_target(target_pos, env_cfg.sampling)
     target = standing_cube_centre(detected, env_cfg.sampling)
-    q0 = _read(robot)
+    q0 = _read(robot, model)
     spec = scene_spec(q0, target, target_yaw, obstacles, env_cfg)
     if safety is None:
         safety = SafetyLayer(robot=model, collision_check=collision_hook(model, env_cfg, spec))
@@ -286,7 +289,7 @@ def run_episode(
     period_ms: list[float] = []
     while True:
         t_step = time.perf_counter()
-        q = _read(robot)
+        q = _read(robot, model)
         ob = build_observation(model, env_cfg, q, spec, q_target)
         clearance = min(clearance, float(ob.collision.nearest_obstacle_dist))
         if bool(ob.collision.any_collision):
@@ -413,7 +416,7 @@ def _centre(robot: RobotInterface, model: RobotModel, env_cfg: EnvConfig, spec: 
         info["centring"] = f"stopped ({exc}); closing where the arm stands"
     for _ in range(SETTLE_STEPS):  # the last command was accepted: holding it is safe
         q_target = send_checked(robot, safety, q_target, q_target)
-    return _read(robot), q_target, info
+    return _read(robot, model), q_target, info
 
 
 def _held(robot: RobotInterface, cube0: np.ndarray | None, height: float) -> tuple[bool | None, dict[str, Any]]:
@@ -458,7 +461,7 @@ def _grasp_and_lift(robot: RobotInterface, model: RobotModel, env_cfg: EnvConfig
         result["lifted"] = True
     except (SafetyViolation, DeployError, IKError) as exc:
         result["message"] = f"lift stopped: {exc}"
-    q_end = _read(robot)
+    q_end = _read(robot, model)
     result["gripper_rise"] = float(forward_kinematics(np, model, q_end).gripper_centre[2] - kin.gripper_centre[2])
     held, evidence = _held(robot, cube0, height)
     result.update(evidence)

@@ -71,7 +71,7 @@ def _kind(spec: sampling.ResetSpec, model: robot.RobotModel, env_cfg: EnvConfig)
 
 def episode_kind(spec: sampling.ResetSpec, env_cfg: EnvConfig) -> str:
     """"no obstacle", "obstacle" or "blocking": how the evaluation counts this scene."""
-    return _kind(spec, robot.load_robot(), env_cfg)
+    return _kind(spec, robot.load_robot(env_cfg.robot), env_cfg)
 
 
 def _failure(report: DeployReport | None, refused: str) -> str:
@@ -172,10 +172,10 @@ def _perceive(twin: Any, spec: sampling.ResetSpec, camera: CameraSettings, rng: 
 def draw_scene(scene_cfg: EnvConfig, seed: int, index: int) -> tuple[sampling.ResetSpec, np.random.Generator]:
     """Scene ``index`` of ``seed`` (the same for any number of workers) and the generator that drew it, left where
     the rehearsal draws the episode's errors and the camera's noise from it."""
-    model = robot.load_robot()
+    model = robot.load_robot(scene_cfg.robot)
     rng = np.random.default_rng([seed, index])
     spec = sampling.sample_reset(np, model, scene_cfg.sampling, scene_cfg.task,
-                                 rng.uniform(size=sampling.uniforms_needed(scene_cfg.sampling)))
+                                 rng.uniform(size=sampling.uniforms_needed(scene_cfg.sampling, model.dof)))
     return sampling.ResetSpec(*(np.asarray(v) for v in spec)), rng
 
 
@@ -202,9 +202,9 @@ def run_scene(policy_path: str, env_cfg: EnvConfig, scene_cfg: EnvConfig, seed: 
     from sagrasp_jax.deploy.twin import PyBulletTwin
 
     policy = _policy(policy_path)
-    model = robot.load_robot()
+    model = robot.load_robot(env_cfg.robot)  # the policy's arm
     spec, rng = draw_scene(scene_cfg, seed, index)
-    errors, target_error = transfer.draw(env_cfg.randomize, env_cfg.control.mode != "kinematic", rng)
+    errors, target_error = transfer.draw(env_cfg.randomize, env_cfg.control.mode != "kinematic", rng, model.dof)
     detected = np.asarray(spec.target_pos, float) + target_error
     record: dict[str, Any] = {"index": index, "kind": _kind(spec, model, scene_cfg),
                               "target": [float(v) for v in spec.target_pos],

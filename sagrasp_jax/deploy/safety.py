@@ -5,8 +5,9 @@ A command that breaks a rule raises ``SafetyViolation`` naming the joint or axis
 value and the limit; the loop must then stop the arm.  Clipping silently would hide a
 policy, calibration or control-step bug behind a motion nobody asked for.
 
-Every limit comes from the robot description (``sagrasp_jax/urdf/aubo_i5_eg2.urdf`` via
-``robot.load_robot``) and the deployment's own settings (``DeploySettings``: the controller's
+Every limit comes from the robot description (the URDF of the policy's ``env.robot``, e.g.
+``sagrasp_jax/urdf/aubo_i5_eg2.urdf``, via ``robot.load_robot``) and the deployment's own settings
+(``DeploySettings``: the controller's
 command period and the largest joint-target change per command, docs/task.md §2; the cell's cube
 size, target region and obstacle clearance, docs/task.md §1.4-1.5), **never from a policy file**: a
 policy is data from elsewhere, and an edited one must not be able to loosen a limit.  A policy trained
@@ -52,7 +53,6 @@ import dataclasses
 from sagrasp_jax.task.config import ControlConfig, EnvConfig, SamplingConfig
 from sagrasp_jax.task.scene import SCENE
 from sagrasp_jax.task.robot import (
-    ARM_JOINTS,
     BOX,
     CAPSULE,
     CYLINDER,
@@ -64,7 +64,6 @@ from sagrasp_jax.task.robot import (
 )
 
 _TOL = 1e-9  # float slack: the control step clips to the limit exactly, do not refuse that
-_FIRST_CHECKED_LINK = 2  # upper arm; base (0) and shoulder (1) never change height
 
 
 class SafetyViolation(RuntimeError):
@@ -124,21 +123,34 @@ class DeploySettings:
             raise ValueError(f"deployment setting table_clearance = {self.table_clearance!r} m must be in [0, 0.5]")
 
 
+def deployment_q_limit(robot: RobotModel) -> tuple[float, str]:
+    """The joint-target cap (``env.control.q_limit``, rad) a policy for ``robot`` must have been trained with, and
+    what it is: the URDF's bound where every joint has the same symmetric limit ±L (the AUBO-i5: ±175°), so that the
+    policy's clip is the robot's limit; otherwise (the Panda's limits differ per joint and are not symmetric) the
+    config's default cap, the one training applies on top of the URDF's limits."""
+    bound = float(np.min(np.minimum(-robot.q_lower, robot.q_upper)))
+    if np.allclose(-robot.q_lower, bound, rtol=0, atol=1e-12) and np.allclose(robot.q_upper, bound, rtol=0, atol=1e-12):
+        return bound, "URDF joint limit"
+    return float(ControlConfig().q_limit), f"default cap ({robot.name}'s URDF limits are not one symmetric bound)"
+
+
 def check_policy_constants(env_cfg: EnvConfig, settings: DeploySettings | None = None,
                            robot: RobotModel | None = None, source: str = "policy") -> None:
     """Refuse a policy whose control constants differ from the deployment's and the robot's:
     its actions would not mean what they meant in training, and its joint clip would not be the
     robot's limit.  Raises PolicyMismatch naming each constant, the policy's value and ours."""
     settings = settings or DeploySettings()
-    robot = robot or load_robot()
+    robot = robot or load_robot(env_cfg.robot)
+    if env_cfg.robot != robot.name:
+        raise PolicyMismatch(f"{source} was trained for the robot {env_cfg.robot!r}; this robot is {robot.name!r}")
     ctl = env_cfg.control
-    urdf_limit = float(np.min(np.minimum(-robot.q_lower, robot.q_upper)))
+    q_limit, q_limit_what = deployment_q_limit(robot)
     problems = [
         f"{name} {ours_name}: policy {theirs!r}, {where} {ours!r}"
         for name, theirs, ours, ours_name, where in (
             ("env.control.q_max", ctl.q_max, settings.max_step, "(rad per step)", "deployment"),
             ("env.control.control_dt", ctl.control_dt, settings.control_dt, "(s)", "deployment"),
-            ("env.control.q_limit", ctl.q_limit, urdf_limit, "(rad)", "URDF joint limit"),
+            ("env.control.q_limit", ctl.q_limit, q_limit, "(rad)", q_limit_what),
         )
         if not np.isclose(float(theirs), float(ours), rtol=1e-9, atol=0.0)
     ]
@@ -205,12 +217,13 @@ class SafetyLayer:
         self.workspace = workspace or self.settings.workspace
         self.table_clearance = float(self.settings.table_clearance if table_clearance is None else table_clearance)
         self.collision_check = collision_check
-        self.joint_names = tuple(f"joint {i + 1} ({name})" for i, name in enumerate(ARM_JOINTS))
+        self.joint_names = tuple(f"joint {i + 1} ({name})" for i, name in enumerate(self.robot.spec.arm_joints))
         self.control_dt = float(self.settings.control_dt)
         self.max_step = float(self.settings.max_step)
         # Per-joint bound on one control step's change of the commanded target.
         self.step_limit = np.minimum(self.robot.velocity_limit * self.control_dt, self.max_step)
-        self._checked_prims = np.nonzero(self.robot.prim_link >= _FIRST_CHECKED_LINK)[0]
+        # the table rule checks the links that can reach it (the robot's reach_link on: the AUBO's upper arm)
+        self._checked_prims = np.nonzero(self.robot.prim_link >= self.robot.spec.reach_link)[0]
 
     def _as_q(self, q: Any, what: str) -> np.ndarray:
         q = np.asarray(q, dtype=float)

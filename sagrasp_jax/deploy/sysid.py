@@ -8,6 +8,9 @@ Log format (CSV, one header row, one row per control period, at least ``MIN_ROWS
 
     time,cmd_q1,cmd_q2,cmd_q3,cmd_q4,cmd_q5,cmd_q6,q1,q2,q3,q4,q5,q6
 
+(the AUBO-i5's six joints; ``--robot NAME`` reads a log of that registered robot, one ``cmd_qJ`` and ``qJ`` per
+joint, and fits around its servo model)
+
 * ``time``: seconds, strictly increasing, sampled at the policy's control period (``env.control.control_dt``,
   0.05 s; within ±20 %);
 * ``cmd_q1..6``: the joint targets sent in that period (rad), i.e. what the deploy loop commands;
@@ -35,6 +38,7 @@ identified, and nothing is written.  Nothing here imports jax: it runs on the ro
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import math
 import sys
@@ -48,9 +52,15 @@ from sagrasp_jax.task import control
 from sagrasp_jax.base import cli
 from sagrasp_jax.base import fileio
 from sagrasp_jax.task.config import ControlConfig
-from sagrasp_jax.task.robot import ARM_DOF
+from sagrasp_jax.task import robots
 
-COLUMNS = ("time", *(f"cmd_q{j}" for j in range(1, ARM_DOF + 1)), *(f"q{j}" for j in range(1, ARM_DOF + 1)))
+
+def columns(dof: int) -> tuple[str, ...]:
+    """The log's header for an arm of ``dof`` joints."""
+    return ("time", *(f"cmd_q{j}" for j in range(1, dof + 1)), *(f"q{j}" for j in range(1, dof + 1)))
+
+
+COLUMNS = columns(robots.DEFAULT_DOF)  # the default robot's (the AUBO-i5's) log
 MIN_ROWS = 100  # control periods: enough motion to separate gain, carry-over and latency
 MAX_LOG_BYTES = 64 << 20  # ≈ 250,000 rows, 3.5 h at 20 Hz: refused before it is read beyond this
 MAX_LATENCY_STEPS = 3.0  # the latency knob's range (env.randomize.latency ≤ 3): what training can centre on
@@ -86,8 +96,15 @@ class SysIdResult(NamedTuple):
     motion: np.ndarray  # (dof,) rad: the smaller of each joint's reading and command spans
 
 
-def read_log(path: str) -> RobotLog:
-    """Parse and check a log file (``LogError`` names what is wrong)."""
+def robot_control(robot: str) -> ControlConfig:
+    """The control constants of registered robot ``robot``: the defaults with its servo model (``ROBOT_KEYS``)."""
+    spec = robots.get(robot)
+    return dataclasses.replace(ControlConfig(), lag_gain=spec.servo.lag_gain, lag_momentum=spec.servo.lag_momentum)
+
+
+def read_log(path: str, dof: int = robots.DEFAULT_DOF) -> RobotLog:
+    """Parse and check a log file of an arm with ``dof`` joints (``LogError`` names what is wrong)."""
+    expected = columns(dof)
     try:
         text = fileio.read_regular(path, MAX_LOG_BYTES, "robot log").decode("utf-8")
         rows = [r for r in csv.reader(io.StringIO(text, newline="")) if r and not r[0].lstrip().startswith("#")]
@@ -96,26 +113,26 @@ def read_log(path: str) -> RobotLog:
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
         raise LogError(f"{path}: cannot read the log: {exc}") from None
     if not rows:
-        raise LogError(f"{path}: empty log; expected a header row {','.join(COLUMNS)}")
+        raise LogError(f"{path}: empty log; expected a header row {','.join(expected)}")
     header = tuple(c.strip() for c in rows[0])
-    if header != COLUMNS:
-        missing = [c for c in COLUMNS if c not in header]
-        extra = [c for c in header if c not in COLUMNS]
-        raise LogError(f"{path}: columns must be {','.join(COLUMNS)} in this order; got {','.join(header)}"
+    if header != expected:
+        missing = [c for c in expected if c not in header]
+        extra = [c for c in header if c not in expected]
+        raise LogError(f"{path}: columns must be {','.join(expected)} in this order; got {','.join(header)}"
                        + (f" (missing: {', '.join(missing)})" if missing else "")
                        + (f" (unexpected: {', '.join(extra)})" if extra else ""))
-    values = np.empty((len(rows) - 1, len(COLUMNS)))
+    values = np.empty((len(rows) - 1, len(expected)))
     for i, row in enumerate(rows[1:]):
-        if len(row) != len(COLUMNS):
-            raise LogError(f"{path}: row {i + 2} has {len(row)} values, expected {len(COLUMNS)}")
+        if len(row) != len(expected):
+            raise LogError(f"{path}: row {i + 2} has {len(row)} values, expected {len(expected)}")
         try:
             values[i] = [float(v) for v in row]
         except ValueError:
             raise LogError(f"{path}: row {i + 2} has a value that is not a number: {row}") from None
         if not np.isfinite(values[i]).all():
-            bad = [COLUMNS[k] for k in np.nonzero(~np.isfinite(values[i]))[0]]
+            bad = [expected[k] for k in np.nonzero(~np.isfinite(values[i]))[0]]
             raise LogError(f"{path}: row {i + 2} has NaN or infinite {', '.join(bad)}")
-    return check_log(RobotLog(values[:, 0], values[:, 1:7], values[:, 7:13]), path)
+    return check_log(RobotLog(values[:, 0], values[:, 1:dof + 1], values[:, dof + 1:]), path)
 
 
 def check_log(log: RobotLog, what: str = "log") -> RobotLog:
@@ -153,9 +170,10 @@ def _fit_at(log: RobotLog, latency: float, gain: np.ndarray) -> tuple[np.ndarray
     dy_next = y[2:] - y[1:-1]  # x' − x for periods 1..T-2
     error = c[1:-1] - y[1:-1]
     carry = y[1:-1] - y[:-2]
-    coef = np.empty((ARM_DOF, 3))
-    rms = np.empty(ARM_DOF)
-    for j in range(ARM_DOF):
+    dof = log.command.shape[1]
+    coef = np.empty((dof, 3))
+    rms = np.empty(dof)
+    for j in range(dof):
         a = np.stack([error[:, j], carry[:, j], np.ones(error.shape[0])], axis=1)
         coef[j], *_ = np.linalg.lstsq(a, dy_next[:, j], rcond=None)
         rms[j] = math.sqrt(float(np.mean((a @ coef[j] - dy_next[:, j]) ** 2)))
@@ -167,6 +185,9 @@ def identify(log: RobotLog, control_cfg: ControlConfig | None = None) -> SysIdRe
     result is the least-squares fit whatever the log; ``not_identified`` says which parts of it mean nothing."""
     control_cfg = control_cfg or ControlConfig()
     log = check_log(log)
+    if len(control_cfg.lag_gain) != log.command.shape[1]:
+        raise LogError(f"log: {log.command.shape[1]} joints, but the control constants are for "
+                       f"{len(control_cfg.lag_gain)} (name the arm: --robot)")
     period = float(np.median(np.diff(log.time)))
     if abs(period / control_cfg.control_dt - 1.0) > PERIOD_TOLERANCE:
         raise LogError(f"log: median sample period {period * 1000:.1f} ms; the log must be sampled once per control "
@@ -199,9 +220,10 @@ def not_identified(result: SysIdResult) -> list[str]:
     """What ``result`` could not identify, one sentence each (empty: every part of the fit holds): joints that
     never moved, joints whose motion the model does not explain, a latency beyond training's range, gains or
     carry-overs outside the model's."""
-    names = [f"q{j + 1}" for j in range(ARM_DOF)]
-    still = [j for j in range(ARM_DOF) if result.motion[j] < MIN_MOTION]
-    unexplained = [j for j in range(ARM_DOF) if j not in still and not result.explained[j] >= MIN_EXPLAINED]
+    dof = len(result.lag_gain)
+    names = [f"q{j + 1}" for j in range(dof)]
+    still = [j for j in range(dof) if result.motion[j] < MIN_MOTION]
+    unexplained = [j for j in range(dof) if j not in still and not result.explained[j] >= MIN_EXPLAINED]
     problems = []
     if still:
         problems.append(f"{', '.join(names[j] for j in still)} never move{'s' * (len(still) == 1)} (readings or "
@@ -214,7 +236,7 @@ def not_identified(result: SysIdResult) -> list[str]:
                         "swapped, or were the readings taken after the command?)")
     for what, values, (lo, hi) in (("lag_gain", result.lag_gain, GAIN_RANGE),
                                    ("lag_momentum", result.lag_momentum, MOMENTUM_RANGE)):
-        outside = [f"{names[j]} {values[j]:.3f}" for j in range(ARM_DOF)
+        outside = [f"{names[j]} {values[j]:.3f}" for j in range(dof)
                    if j not in still + unexplained and not lo - FIT_SLACK <= values[j] <= hi + FIT_SLACK]
         if outside:
             problems.append(f"fitted {what} outside the model's range [{lo:g}, {hi:g}] ({', '.join(outside)}): not "
@@ -227,10 +249,11 @@ def not_identified(result: SysIdResult) -> list[str]:
     return problems
 
 
-def overrides(result: SysIdResult, control_cfg: ControlConfig | None = None) -> list[str]:
+def overrides(result: SysIdResult, control_cfg: ControlConfig | None = None, robot: str = robots.DEFAULT) -> list[str]:
     """``--set`` items for training centred on this arm: its servo model, and randomisation ranges that cover
     the measured latency and offsets with margin (latency up to twice the measured, at least one step;
-    offsets ±1.5 × the largest measured, at least 5 mrad).  Raises LogError naming what the log could not
+    offsets ±1.5 × the largest measured, at least 5 mrad), led by ``robot=NAME`` for another robot than the
+    default.  Raises LogError naming what the log could not
     identify (``not_identified``) or any item that training would refuse (``check_overrides``)."""
     problems = not_identified(result)
     if problems:
@@ -239,7 +262,8 @@ def overrides(result: SysIdResult, control_cfg: ControlConfig | None = None) -> 
     momentum = np.clip(result.lag_momentum, *MOMENTUM_RANGE)
     latency = min(MAX_LATENCY_STEPS, max(1.0, round(2.0 * result.latency_steps, 2)))
     offset = max(0.005, round(1.5 * float(np.abs(result.joint_offset).max()), 4))
-    items = [
+    items = [f"robot={robot}"] if robot != robots.DEFAULT else []
+    items += [
         "env.control.lag_gain=" + ",".join(f"{v:.4f}" for v in gain),
         "env.control.lag_momentum=" + ",".join(f"{v:.4f}" for v in momentum),
         f"env.randomize.latency={latency:g}",
@@ -252,6 +276,8 @@ def check_overrides(items: list[str]) -> list[str]:
     """``items`` if training accepts them over ``TRAINING_PRESET`` (``config_parse.apply_overrides``: each key's
     declared range and the rules across keys), else LogError naming each refused item and why."""
     base = config.get_config(TRAINING_PRESET)
+    if items and items[0].startswith("robot="):  # another robot: the others are checked over its config
+        base = config_parse.apply_overrides(base, items[:1])
     refused = []
     for item in items:
         try:
@@ -270,7 +296,8 @@ def check_overrides(items: list[str]) -> list[str]:
     return items
 
 
-def to_dict(result: SysIdResult, control_cfg: ControlConfig | None = None) -> dict[str, Any]:
+def to_dict(result: SysIdResult, control_cfg: ControlConfig | None = None,
+            robot: str = robots.DEFAULT) -> dict[str, Any]:
     control_cfg = control_cfg or ControlConfig()
     nominal = np.asarray(control_cfg.lag_momentum)
     servo_gain = np.where(result.lag_momentum > 1e-4, nominal / np.maximum(result.lag_momentum, 1e-4), np.inf)
@@ -284,19 +311,23 @@ def to_dict(result: SysIdResult, control_cfg: ControlConfig | None = None) -> di
         "residual_rms": result.residual_rms.tolist(),
         "explained": result.explained.tolist(),
         "period_s": result.period_s,
-        "overrides": overrides(result, control_cfg),
+        "overrides": overrides(result, control_cfg, robot),
     }
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     p = cli.Parser(prog="python -m sagrasp_jax.sysid", description=__doc__.split("\n\n")[0])
-    p.add_argument("--log", required=True, help="robot log CSV: time,cmd_q1..cmd_q6,q1..q6 (see the module docstring)")
+    p.add_argument("--log", required=True, help="robot log CSV: time,cmd_q1..cmd_qN,q1..qN, N the robot's joints (see "
+                   "the module docstring)")
+    p.add_argument("--robot", choices=robots.names(), default=robots.DEFAULT,
+                   help=f"the arm the log is of (env.robot; default {robots.DEFAULT})")
     p.add_argument("--out", required=True, help="result JSON (written atomically)")
     args = p.parse_args(argv)
     try:
         fileio.check_output_file(args.out)  # /dev/full, a FIFO, a folder: refused before any work
-        result = identify(read_log(args.log))
-        report = to_dict(result)
+        control_cfg = robot_control(args.robot)
+        result = identify(read_log(args.log, robots.get(args.robot).dof), control_cfg)
+        report = to_dict(result, control_cfg, args.robot)
         fileio.atomic_write_json(args.out, report)
     except (LogError, fileio.NotWritable) as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -306,7 +337,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     print(f"latency {report['latency_steps']:.2f} control steps ({1000 * report['latency_s']:.1f} ms)")
     print("joint   lag_gain  momentum  servo_gain  offset_mrad  residual_mrad")
-    for j in range(ARM_DOF):
+    for j in range(len(result.lag_gain)):
         sg = report["servo_gain"][j]
         print(f"q{j + 1}      {result.lag_gain[j]:8.3f}  {result.lag_momentum[j]:8.3f}  {'-' if sg is None else f'{sg:10.2f}'}"
               f"  {1000 * result.joint_offset[j]:11.2f}  {1000 * result.residual_rms[j]:13.2f}")

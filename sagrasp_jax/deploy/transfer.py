@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from sagrasp_jax.task.config import RandomizeConfig
-from sagrasp_jax.task.robot import ARM_DOF
+from sagrasp_jax.task import robots
 
 MAX_TWIN_LATENCY = 10.0  # control steps
 SERVO_GAIN_RANGE = (0.1, 2.0)  # factor on the fitted servo model's gain
@@ -21,10 +21,10 @@ MAX_JOINT_OFFSET = 0.2  # rad: env.randomize.joint_offset's range
 MAX_JOINT_NOISE = 0.2  # rad
 
 
-def _per_joint(value: Any, what: str) -> tuple[float, ...]:
-    v = np.broadcast_to(np.asarray(value, dtype=float), (ARM_DOF,)) if np.ndim(value) == 0 else np.asarray(value, float)
-    if v.shape != (ARM_DOF,) or not np.isfinite(v).all():
-        raise ValueError(f"twin {what} must be one number or {ARM_DOF} finite numbers (one per joint), got {value!r}")
+def _per_joint(value: Any, what: str, dof: int) -> tuple[float, ...]:
+    v = np.broadcast_to(np.asarray(value, dtype=float), (dof,)) if np.ndim(value) == 0 else np.asarray(value, float)
+    if v.shape != (dof,) or not np.isfinite(v).all():
+        raise ValueError(f"twin {what} must be one number or {dof} finite numbers (one per joint), got {value!r}")
     return tuple(float(x) for x in v)
 
 
@@ -41,17 +41,18 @@ class TransferErrors:
     servo_gain: Any = 1.0  # the servo model's per-step gain is scaled by this (one factor, or one per joint): a gain error
     joint_offset: Any = 0.0  # rad added to every joint reading (one value or one per joint): a calibration error
     joint_noise: float = 0.0  # rad, std of the Gaussian noise on every joint reading
+    dof: int = robots.DEFAULT_DOF  # joints of the arm these errors are for (the twin's robot.dof; checked there)
     servo_gains: tuple[float, ...] = field(init=False, repr=False)
     offsets: tuple[float, ...] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         if not (0.0 <= float(self.latency) <= MAX_TWIN_LATENCY):
             raise ValueError(f"twin latency {self.latency} must be in [0, {MAX_TWIN_LATENCY}] control steps")
-        gains = _per_joint(self.servo_gain, "servo gain factor")
+        gains = _per_joint(self.servo_gain, "servo gain factor", self.dof)
         lo, hi = SERVO_GAIN_RANGE
         if not all(lo <= g <= hi for g in gains):
             raise ValueError(f"twin servo gain factor {self.servo_gain} must be in [{lo}, {hi}] (each joint)")
-        offsets = _per_joint(self.joint_offset, "joint offset")
+        offsets = _per_joint(self.joint_offset, "joint offset", self.dof)
         if not all(abs(o) <= MAX_JOINT_OFFSET for o in offsets):
             raise ValueError(f"twin joint offset {self.joint_offset} rad must be within ±{MAX_JOINT_OFFSET} (each joint)")
         if not (np.isfinite(self.joint_noise) and 0.0 <= float(self.joint_noise) <= MAX_JOINT_NOISE):
@@ -64,18 +65,20 @@ class TransferErrors:
         return bool(self.latency or self.servo_lag or any(self.offsets) or self.joint_noise)
 
 
-def draw(randomize: RandomizeConfig, servo_lag: bool, rng: np.random.Generator) -> tuple[TransferErrors, np.ndarray]:
+def draw(randomize: RandomizeConfig, servo_lag: bool, rng: np.random.Generator,
+         dof: int = robots.DEFAULT_DOF) -> tuple[TransferErrors, np.ndarray]:
     """One episode's transfer errors and detection error (m, (3,)) from ``randomize``, as the MJX env draws them:
     gain factors 1 ± U(servo_gain) per joint, latency U(0, latency), offsets U(±joint_offset) per joint, a noise
     std U(0, joint_noise), a detection error U(±target_error) per axis.  ``servo_lag`` is the control mode's
-    (the MJX servos lag in every mode but ``kinematic``)."""
+    (the MJX servos lag in every mode but ``kinematic``); ``dof`` is the arm's joint count (``robot.dof``)."""
     r = randomize
     u = lambda shape, half: half * rng.uniform(-1.0, 1.0, shape)  # noqa: E731
     errors = TransferErrors(
         latency=float(r.latency * rng.uniform()),
         servo_lag=servo_lag,
-        servo_gain=tuple(1.0 + u(ARM_DOF, r.servo_gain)),
-        joint_offset=tuple(u(ARM_DOF, r.joint_offset)),
+        servo_gain=tuple(1.0 + u(dof, r.servo_gain)),
+        joint_offset=tuple(u(dof, r.joint_offset)),
         joint_noise=float(r.joint_noise * rng.uniform()),
+        dof=dof,
     )
     return errors, u(3, r.target_error)

@@ -1,7 +1,8 @@
 """PyBullet digital twin of the cell: a ``deploy.loop.RobotInterface`` to rehearse deployment on.
 
 Built from the same sources as the training scene, never a hand-kept copy: the robot from
-the project URDF (``robot.URDF_PATH``), the table, gantry and camera from ``scene.SCENE``;
+the URDF of the config's ``env.robot`` (``robot.load_robot(env_cfg.robot)``: any registered arm), the table,
+gantry and camera from ``scene.SCENE``;
 the cube and the obstacles are placed at the given (true) positions.  DIRECT mode by default
 (headless), ``gui=True`` opens PyBullet's viewer.
 
@@ -41,7 +42,7 @@ import pybullet as pb  # noqa: E402
 from sagrasp_jax.task import control
 from sagrasp_jax.task import shapes
 from sagrasp_jax.task import robot as robot_mod
-from sagrasp_jax.task.config import HOME_Q, EnvConfig
+from sagrasp_jax.task.config import EnvConfig
 from sagrasp_jax.deploy.transfer import TransferErrors
 from sagrasp_jax.reference.bullet import disconnect, rotation_to_quaternion, shape_kwargs
 from sagrasp_jax.task.robot import BOX
@@ -66,17 +67,25 @@ def _yaw_xyzw(yaw: float) -> tuple[float, float, float, float]:
 class PyBulletTwin:
     """The cell in PyBullet with the cube and obstacles of one scene (``deploy.loop.scene_spec``)."""
 
-    def __init__(self, spec: ResetSpec, env_cfg: EnvConfig | None = None, q0: Any = HOME_Q, gui: bool = False,
+    def __init__(self, spec: ResetSpec, env_cfg: EnvConfig | None = None, q0: Any = None, gui: bool = False,
                  realtime: bool | None = None, errors: TransferErrors | None = None, seed: int = 0) -> None:
+        """The arm is ``env_cfg.robot`` (a policy's config: its arm), starting at ``q0`` (default its
+        ``env.task.home_q``)."""
         self.cfg = env_cfg or EnvConfig()
-        self.errors = errors or TransferErrors()
-        q0 = np.asarray(q0, dtype=float)
+        self.robot = robot_mod.load_robot(self.cfg.robot)
+        self.errors = errors or TransferErrors(dof=self.robot.dof)
+        if self.errors.dof != self.robot.dof:
+            raise ValueError(f"transfer errors are for {self.errors.dof} joints; {self.robot.name} has "
+                             f"{self.robot.dof}")
+        q0 = np.asarray(self.cfg.task.home_q if q0 is None else q0, dtype=float)
+        if q0.shape != (self.robot.dof,) or not np.isfinite(q0).all():
+            raise ValueError(f"twin start pose must be {self.robot.dof} finite joint angles ({self.robot.name}), "
+                             f"got {q0!r}")
         size = control.latency_queue_size(self.errors.latency)
         self._queue = np.repeat(q0[None], max(size, 2), axis=0)  # commands, newest first
         self._q_prev = q0.copy()  # the servo model's joints one step ago
         self._offsets = np.asarray(self.errors.offsets, dtype=float)
         self._rng = np.random.default_rng(seed)  # joint-reading noise
-        self.robot = robot_mod.load_robot()
         self.gui = gui
         self.realtime = gui if realtime is None else realtime
         self.control_dt = float(self.cfg.control.control_dt)
@@ -149,8 +158,8 @@ class PyBulletTwin:
             info = self._pb(pb.getJointInfo, self.robot_body, j)
             joints[info[1].decode()] = j
             efforts[j] = float(info[10])
-        self.arm_joints = [joints[n] for n in robot_mod.ARM_JOINTS]
-        self.finger_joints = [joints[n] for n in robot_mod.FINGER_JOINTS]
+        self.arm_joints = [joints[n] for n in self.robot.spec.arm_joints]
+        self.finger_joints = [joints[n] for n in self.robot.spec.finger_joints]
         self.arm_forces = [efforts[j] for j in self.arm_joints]
         # Only the finger pads collide with everything; every other link collides with the cube alone (it pushes
         # a cube it meets); contacts with obstacles and the table are measured geometrically (_record_contacts).
@@ -171,17 +180,17 @@ class PyBulletTwin:
                  targetPositions=[opening] * 2, forces=[FINGER_FORCE] * 2)
 
     def _set_arm(self, q: np.ndarray, velocity: np.ndarray | None = None) -> None:
-        v = np.zeros(robot_mod.ARM_DOF) if velocity is None else velocity
+        v = np.zeros(self.robot.dof) if velocity is None else velocity
         for j, value, dv in zip(self.arm_joints, q, v):
             self._pb(pb.resetJointState, self.robot_body, j, float(value), float(dv))
         self._hold_arm(q, v)
 
     def _hold_arm(self, q: np.ndarray, velocity: np.ndarray | None = None) -> None:
-        v = [0.0] * robot_mod.ARM_DOF if velocity is None else [float(x) for x in velocity]
+        v = [0.0] * self.robot.dof if velocity is None else [float(x) for x in velocity]
         self._pb(pb.setJointMotorControlArray, self.robot_body, self.arm_joints, pb.POSITION_CONTROL,
                  targetPositions=[float(v) for v in q], targetVelocities=v, forces=self.arm_forces,
-                 positionGains=[ARM_POSITION_GAIN] * robot_mod.ARM_DOF,
-                 velocityGains=[ARM_VELOCITY_GAIN] * robot_mod.ARM_DOF)
+                 positionGains=[ARM_POSITION_GAIN] * self.robot.dof,
+                 velocityGains=[ARM_VELOCITY_GAIN] * self.robot.dof)
 
     def _simulate(self, seconds: float) -> None:
         for _ in range(max(1, round(seconds * PHYSICS_HZ))):
@@ -226,13 +235,13 @@ class PyBulletTwin:
 
     def read_joints(self) -> np.ndarray:
         """The joints as the controller reports them: off by this episode's offset, with reading noise."""
-        noise = self.errors.joint_noise * self._rng.standard_normal(robot_mod.ARM_DOF) if self.errors.joint_noise else 0.0
+        noise = self.errors.joint_noise * self._rng.standard_normal(self.robot.dof) if self.errors.joint_noise else 0.0
         return self.true_joints() + self._offsets + noise
 
     def command_joint_targets(self, q: np.ndarray) -> None:
         q = np.asarray(q, dtype=float)
-        if q.shape != (robot_mod.ARM_DOF,) or not np.isfinite(q).all():
-            raise ValueError(f"joint target must be {robot_mod.ARM_DOF} finite values, got {q!r}")
+        if q.shape != (self.robot.dof,) or not np.isfinite(q).all():
+            raise ValueError(f"joint target must be {self.robot.dof} finite values, got {q!r}")
         if self.carrying:
             self._hold_arm(q)
             self._simulate(self.control_dt)

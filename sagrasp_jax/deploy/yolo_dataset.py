@@ -138,7 +138,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     cfg = EnvConfig()
     cfg = dataclasses.replace(cfg, sampling=blocking_sampling(
         dataclasses.replace(cfg.sampling, obstacle_kinds=kinds), args.obstacle_prob, args.blocking_prob))
-    model = robot.load_robot()
+    model = robot.load_robot(cfg.robot)
     rng = np.random.default_rng(args.seed)
     camera = TwinCamera(args.resolution)
     n_val = int(round(args.val_fraction * args.images))
@@ -146,7 +146,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     t0 = time.perf_counter()
     for i in range(args.images):
         split = "val" if i < n_val else "train"
-        spec = sampling.sample_reset(np, model, cfg.sampling, cfg.task, rng.random(sampling.uniforms_needed(cfg.sampling)))
+        spec = sampling.sample_reset(np, model, cfg.sampling, cfg.task, rng.random(sampling.uniforms_needed(cfg.sampling, model.dof)))
         with PyBulletTwin(spec, cfg, q0=spec.q0) as twin:
             frame = camera.capture(twin, colours=random_colours(rng, len(twin.obstacle_bodies)),
                                    lighting=random_lighting(rng), hide_robot=bool(rng.random() >= args.arm_visible_prob))

@@ -2,7 +2,8 @@
 
 Training scores a grasp kinematically (gripper centre over the cube, pointing down, no
 collision).  This check replays the end of an episode with physics on CPU MuJoCo, from
-``sagrasp_jax/mjcf/scene.xml`` adapted in memory with ``mujoco.MjSpec`` for that episode:
+the robot's scene MJCF (``RobotSpec.mjcf_scene``: ``sagrasp_jax/mjcf/scene.xml`` for the AUBO-i5) adapted in
+memory with ``mujoco.MjSpec`` for that episode:
 
 * the target, a mocap body in the training model, gets a free joint (it can be lifted) and
   the episode's pose; the obstacle slots get the episode's shape, size and pose;
@@ -35,7 +36,6 @@ from sagrasp_jax.task import shapes
 from sagrasp_jax.task.robot import lift_pose
 from sagrasp_jax.task.sampling import ResetSpec
 
-SCENE_XML = assets.MJCF_SCENE
 PHYSICS_DT = 0.002  # s; finer than the training model's 0.01 s: pad-cube contacts under squeeze
 SETTLE_S = 0.1  # s with fingers open before closing (the cube settles on the table)
 CLOSE_S = 0.5  # s for the fingers to close and squeeze
@@ -43,7 +43,6 @@ LIFT_S = 1.0  # s ramp of the arm servo targets to the lift pose
 HOLD_S = 0.5  # s holding the lifted pose before measuring
 LIFT_HEIGHT = 0.05  # m, docs/task.md §2
 HOLD_TOLERANCE = 0.01  # m the cube may lag behind the gripper's rise (soft contacts slip a few mm)
-ARM_DOF = robot_mod.ARM_DOF
 FrameCallback = Callable[["GraspScene"], None]
 
 
@@ -65,23 +64,35 @@ def _as_numpy(spec: ResetSpec) -> ResetSpec:
     return out
 
 
-class GraspScene:
-    """``mjcf/scene.xml`` for one episode: free-jointed target, obstacles placed, arm at ``q``."""
+def scene_xml(arm: robot_mod.RobotModel) -> str:
+    """The MJCF of ``arm`` in the cell (its registry entry's ``mjcf_scene``)."""
+    return assets.path("mjcf", arm.spec.mjcf_scene)
 
-    def __init__(self, reset_spec: ResetSpec, q: Any, physics_dt: float = PHYSICS_DT, xml_path: str = SCENE_XML) -> None:
+
+class GraspScene:
+    """The robot's scene MJCF for one episode: free-jointed target, obstacles placed, arm at ``q``.
+
+    ``arm`` is the robot (``robot.load_robot(env_cfg.robot)``; default the default robot); ``xml_path`` defaults
+    to its scene (``scene_xml``)."""
+
+    def __init__(self, reset_spec: ResetSpec, q: Any, physics_dt: float = PHYSICS_DT, xml_path: str | None = None,
+                 arm: robot_mod.RobotModel | None = None) -> None:
         spec = _as_numpy(reset_spec)
+        self.robot = arm or robot_mod.load_robot()
+        self.dof = self.robot.dof
         q = np.asarray(q, dtype=float)
-        if q.shape != (ARM_DOF,) or not np.isfinite(q).all():
-            raise PhysicalCheckError(f"arm joints must be {ARM_DOF} finite numbers, got {q!r}")
+        if q.shape != (self.dof,) or not np.isfinite(q).all():
+            raise PhysicalCheckError(f"arm joints must be {self.dof} finite numbers ({self.robot.name}), got {q!r}")
         self.reset_spec = spec
-        self.robot = robot_mod.load_robot()
-        self.model = self._build_model(spec, xml_path)
+        self.model = self._build_model(spec, xml_path or scene_xml(self.robot))
         self.model.opt.timestep = physics_dt
         self.data = mujoco.MjData(self.model)
         self.time_s = 0.0
-        self._finger_qpos = self.model.jnt_qposadr[[self.model.joint(n).id for n in robot_mod.FINGER_JOINTS]]
+        self._finger_qpos = self.model.jnt_qposadr[[self.model.joint(n).id for n in self.robot.spec.finger_joints]]
         self._target_qpos = int(self.model.jnt_qposadr[self.model.body("target").jntadr[0]])
-        self._pads = {self.model.geom(f"{side}_finger_geom").id: side for side in ("left", "right")}
+        # the pads: the contact links' geoms (tools/urdf_to_mjcf.py names a link's geom LINK_geom), left then right
+        self._pads = {self.model.geom(f"{link}_geom").id: side
+                      for link, side in zip(self.robot.spec.contact_links, ("left", "right"))}
         self._target_geom = self.model.geom("target_geom").id
         self.set_fingers(self.robot.finger_open)
         self.set_arm(q)
@@ -123,20 +134,20 @@ class GraspScene:
     def set_arm(self, q: Any) -> None:
         """Put the arm at ``q`` at rest with its servos aimed there (kinematic placement)."""
         q = np.asarray(q, dtype=float)
-        self.data.qpos[:ARM_DOF] = q
+        self.data.qpos[:self.dof] = q
         self.data.qvel[:] = 0.0
-        self.data.ctrl[:ARM_DOF] = q
+        self.data.ctrl[:self.dof] = q
         mujoco.mj_forward(self.model, self.data)
 
     def set_fingers(self, opening: float) -> None:
         """Put both fingers at ``opening`` (m per finger, 0 = closed) with their servos aimed there."""
         self.data.qpos[self._finger_qpos] = opening
-        self.data.ctrl[ARM_DOF:] = opening
+        self.data.ctrl[self.dof:] = opening
         mujoco.mj_forward(self.model, self.data)
 
     @property
     def arm_q(self) -> np.ndarray:
-        return self.data.qpos[:ARM_DOF].copy()
+        return self.data.qpos[:self.dof].copy()
 
     @property
     def fingers(self) -> np.ndarray:
@@ -176,7 +187,7 @@ class GraspScene:
         per_frame = max(1, int(round(frame_dt / dt)))
         for k in range(n):
             if arm_ctrl is not None:
-                self.data.ctrl[:ARM_DOF] = arm_ctrl((k + 1) / n)
+                self.data.ctrl[:self.dof] = arm_ctrl((k + 1) / n)
             mujoco.mj_step(self.model, self.data)
             self.time_s += dt
             if on_frame is not None and (k + 1) % per_frame == 0:
@@ -185,18 +196,19 @@ class GraspScene:
     def close_fingers(self, on_frame: FrameCallback | None = None, frame_dt: float = 0.05) -> None:
         """Let the cube settle under the open fingers, then close them on it (servo target 0)."""
         self.simulate(SETTLE_S, on_frame=on_frame, frame_dt=frame_dt)
-        self.data.ctrl[ARM_DOF:] = 0.0
+        self.data.ctrl[self.dof:] = 0.0
         self.simulate(CLOSE_S, on_frame=on_frame, frame_dt=frame_dt)
 
     def drive_arm(self, q_goal: Any, seconds: float, on_frame: FrameCallback | None = None) -> None:
         """Ramp the arm servo targets linearly from their current values to ``q_goal``."""
-        start = self.data.ctrl[:ARM_DOF].copy()
+        start = self.data.ctrl[:self.dof].copy()
         goal = np.asarray(q_goal, dtype=float)
         self.simulate(seconds, lambda f: start + f * (goal - start), on_frame)
 
 
 def physical_grasp_check(q_final: Any, reset_spec: ResetSpec, *, lift: float = LIFT_HEIGHT,
-                         physics_dt: float = PHYSICS_DT, on_frame: FrameCallback | None = None) -> dict[str, Any]:
+                         physics_dt: float = PHYSICS_DT, on_frame: FrameCallback | None = None,
+                         arm: robot_mod.RobotModel | None = None) -> dict[str, Any]:
     """Close the fingers at ``q_final``, lift ``lift`` m, report whether the cube came along.
 
     Returns a JSON-safe dict: ``success``, ``reason`` (why not, or ""), ``cube_rise`` and
@@ -204,7 +216,7 @@ def physical_grasp_check(q_final: Any, reset_spec: ResetSpec, *, lift: float = L
     ``cube_in_gripper`` (cube centre in the gripper frame at the end, m).
     """
     q_final = np.asarray(q_final, dtype=float)
-    scene = GraspScene(reset_spec, q_final, physics_dt)
+    scene = GraspScene(reset_spec, q_final, physics_dt, arm=arm)
     cube0, centre0 = scene.cube_pos, scene.gripper_centre
     scene.close_fingers(on_frame)
     closed = scene.fingers

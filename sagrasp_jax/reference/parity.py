@@ -106,8 +106,8 @@ def parity_configs(
 
 def draw_resets(cfg: EnvConfig, n: int, rng: np.random.Generator) -> list[sampling.ResetSpec]:
     """``n`` episode starts from NumPy uniforms through the shared sampler (as the reference env does)."""
-    model = robot.load_robot()
-    u = rng.random((n, sampling.uniforms_needed(cfg.sampling)))
+    model = robot.load_robot(cfg.robot)
+    u = rng.random((n, sampling.uniforms_needed(cfg.sampling, model.dof)))
     return [sampling.sample_reset(np, model, cfg.sampling, cfg.task, u[i]) for i in range(n)]
 
 
@@ -127,20 +127,32 @@ def _stack_specs(specs: list[sampling.ResetSpec]) -> sampling.ResetSpec:
 # --------------------------------------------------------------------------------------------
 # action sources
 # --------------------------------------------------------------------------------------------
-def _entries(first: str, n: int) -> slice:
-    """The slice of ``n`` observation entries from ``first`` on (every layout starts like the paper's)."""
-    start = observation.PAPER_LAYOUT.index(first)
+def _entries(cfg: EnvConfig, first: str, n: int) -> slice:
+    """The slice of ``n`` observation entries from ``first`` on in ``cfg``'s layout (its robot's joint count)."""
+    start = observation.layout_of(cfg).index(first)
     return slice(start, start + n)
 
 
-JOINTS, GRIPPER, TARGET = _entries("q1", robot.ARM_DOF), _entries("gripper_x", 3), _entries("target_x", 3)
+def joints_entries(cfg: EnvConfig) -> slice:
+    """The observation's joint angles q1..qN (N = the robot's joints)."""
+    return _entries(cfg, "q1", robot.load_robot(cfg.robot).dof)
+
+
+def gripper_entries(cfg: EnvConfig) -> slice:
+    """The observation's gripper centre."""
+    return _entries(cfg, "gripper_x", 3)
+
+
+def target_entries(cfg: EnvConfig) -> slice:
+    """The observation's target centre."""
+    return _entries(cfg, "target_x", 3)
 
 
 def scripted_actions(cfg: EnvConfig, obs: np.ndarray) -> np.ndarray:
     """The package's scripted controller (``sagrasp_jax.task.scripted``) from observations (n, size): every
     layout starts with the joints, the gripper centre and the target centre."""
     obs = np.atleast_2d(np.asarray(obs, dtype=np.float64))
-    return scripted.scripted_action(np, cfg, obs[:, JOINTS], obs[:, TARGET])
+    return scripted.scripted_action(np, cfg, obs[:, joints_entries(cfg)], obs[:, target_entries(cfg)])
 
 
 @dataclass
@@ -156,10 +168,12 @@ class ActionSource:
 def make_source(name: str, cfg: EnvConfig, episodes: int, max_steps: int, rng: np.random.Generator,
                 policy: Any = None) -> ActionSource:
     if name == "random":
-        table = rng.uniform(-1.0, 1.0, (episodes, max_steps, robot.ARM_DOF))
+        dof = robot.load_robot(cfg.robot).dof
+        table = rng.uniform(-1.0, 1.0, (episodes, max_steps, dof))
         return ActionSource(name, lambda obs, t, ids: table[ids, t], open_loop=True)
     if name == "scripted":
-        noise = SCRIPTED_NOISE * rng.uniform(-1.0, 1.0, (episodes, max_steps, robot.ARM_DOF))
+        dof = robot.load_robot(cfg.robot).dof
+        noise = SCRIPTED_NOISE * rng.uniform(-1.0, 1.0, (episodes, max_steps, dof))
         return ActionSource(name, lambda obs, t, ids: np.clip(scripted_actions(cfg, obs) + noise[ids, t], -1.0, 1.0))
     if name == "policy":
         if policy is None:
@@ -186,11 +200,12 @@ class JaxSide:
         self.env = GraspEnv(cfg)
         self.batch = batch
         dynamic = cfg.control.mode == "dynamic"
+        dof = self.env.robot.dof
 
         def extract(state: Any) -> dict[str, Any]:
             ep = state.info["episode"]
-            q = state.pipeline_state.qpos[:, :robot.ARM_DOF] if dynamic else state.info["q_target"]
-            qd = state.pipeline_state.qvel[:, :robot.ARM_DOF] if dynamic else jnp.zeros_like(q)
+            q = state.pipeline_state.qpos[:, :dof] if dynamic else state.info["q_target"]
+            qd = state.pipeline_state.qvel[:, :dof] if dynamic else jnp.zeros_like(q)
             return {
                 "obs": state.obs, "reward": state.reward, "done": state.done,
                 **{key: state.metrics[key] for key in term_keys()},
@@ -221,7 +236,7 @@ class JaxSide:
         return state, self.jax.device_get(out)
 
     def step(self, state: Any, actions: np.ndarray) -> tuple[Any, dict[str, np.ndarray]]:
-        full = np.zeros((self.batch, robot.ARM_DOF))
+        full = np.zeros((self.batch, self.env.robot.dof))
         full[: len(actions)] = actions
         state, out = self._advance(state, self.jnp.asarray(full))
         return state, self.jax.device_get(out)
@@ -264,10 +279,10 @@ def _flags_of(done: float, success: float, collision: float, timeout: float) -> 
 
 
 def _compare_step(errs: Errors, j_obs: np.ndarray, j: dict[str, float], p_obs: np.ndarray, p: dict[str, float],
-                  j_flags: dict[str, bool], p_flags: dict[str, bool]) -> bool:
+                  j_flags: dict[str, bool], p_flags: dict[str, bool], gripper: slice) -> bool:
     """Record one step's errors; returns whether all flags agree (rewards are compared only then:
     a flag disagreement is counted once, as a flag disagreement)."""
-    errs.add("gripper_centre", np.linalg.norm(j_obs[GRIPPER] - p_obs[GRIPPER]))
+    errs.add("gripper_centre", np.linalg.norm(j_obs[gripper] - p_obs[gripper]))
     diff = np.abs(j_obs - p_obs)
     errs.add("obs", diff.max())
     errs.obs_entry_max = np.maximum(errs.obs_entry_max, diff)
@@ -293,6 +308,7 @@ class _SourceRun:
         self.source, self.jax_side, self.pb_envs, self.probes = source, jax_side, pb_envs, probes
         self.max_steps, self.seed = max_steps, seed
         size = jax_side.env.observation_size
+        self.gripper = gripper_entries(jax_side.env.cfg)  # the observation's gripper centre
         self.traj, self.single = Errors(size), Errors(size)
         self.reset_obs_err = 0.0
         self.agree_count = 0
@@ -357,10 +373,11 @@ class _SourceRun:
         p_flags = _flags_of(term, info["success"], info["collision"], info["timeout"])
         ok = True
         if comparing:
-            ok = _compare_step(self.traj, j_obs, j_row, obs, _pybullet_row(rew, info), j_flags, p_flags)
+            ok = _compare_step(self.traj, j_obs, j_row, obs, _pybullet_row(rew, info), j_flags, p_flags, self.gripper)
             if not ok and len(self.disagreements) < MAX_LISTED_DISAGREEMENTS:
                 self.disagreements.append({"episode": episode_id, "step": t + 1, "jax": j_flags, "pybullet": p_flags,
-                                           "gripper_gap": float(np.linalg.norm(j_obs[GRIPPER] - obs[GRIPPER]))})
+                                           "gripper_gap": float(np.linalg.norm(j_obs[self.gripper]
+                                                                               - obs[self.gripper]))})
             elif ok and j_flags["done"]:
                 for key in episode_keys():
                     diff = abs(float(jout["episode"][key][k]) - float(info[EPISODE_INFO][key]))
@@ -382,7 +399,7 @@ class _SourceRun:
         s_term = s_term or s_trunc
         s_flags = _flags_of(s_term, s_info["success"], s_info["collision"], s_info["timeout"])
         self.single_flag_agree[0] += int(_compare_step(self.single, j_obs, j_row, s_obs, _pybullet_row(s_rew, s_info),
-                                                       j_flags, s_flags))
+                                                       j_flags, s_flags, self.gripper))
         self.single_flag_agree[1] += 1
 
     def _rates(self, side: str) -> dict[str, float]:

@@ -84,18 +84,19 @@ ENV_ID = "SAGrasp-PyBullet-v0"
 # Refitted to the MJX env's servos by linear least squares over 19,200 physics substeps of scripted episodes
 # (the position-control fit, docs/parity.md).  That law cannot follow MuJoCo's force servo (pose-dependent inertia,
 # armature, torque limits), and parity fails with it (docs/parity.md); the default servo="mujoco" is exact.
-DYNAMIC_POSITION_GAINS = (0.126, 0.087, 0.115, 0.142, 0.134, 0.143)
+DYNAMIC_POSITION_GAINS = (0.126, 0.087, 0.115, 0.142, 0.134, 0.143)  # fitted to the AUBO-i5's servos only
 DYNAMIC_VELOCITY_GAINS = (0.636, 0.439, 0.584, 0.517, 0.493, 0.523)
+GAINS_FITTED_FOR = "aubo_i5"  # the robot these position_control gains were fitted to (others must pass their own)
 GRAVITY = 9.81  # m/s²: the world's gravity when the arm's weight is not left out (see _build_world)
 UNLIMITED = 1e3  # a joint range no motion reaches (rad or m)
 SERVOS = ("mujoco", "position_control")  # dynamic-mode motor models (PyBulletGraspEnv's ``servo``)
 FINGER_FORCE_FALLBACK = 20.0  # N, used only if the URDF gives a finger no effort limit
 
 
-def _as_numpy_spec(spec: sampling.ResetSpec) -> sampling.ResetSpec:
-    """A ResetSpec with plain float64 / bool / int NumPy leaves (it may come from JAX)."""
+def _as_numpy_spec(spec: sampling.ResetSpec, dof: int) -> sampling.ResetSpec:
+    """A ResetSpec with plain float64 / bool / int NumPy leaves (it may come from JAX); ``dof`` joints."""
     return sampling.ResetSpec(
-        q0=np.asarray(spec.q0, dtype=np.float64).reshape(robot.ARM_DOF),
+        q0=np.asarray(spec.q0, dtype=np.float64).reshape(dof),
         target_pos=np.asarray(spec.target_pos, dtype=np.float64).reshape(3),
         target_yaw=np.asarray(spec.target_yaw, dtype=np.float64).reshape(()),
         obstacle_active=np.asarray(spec.obstacle_active).astype(bool),
@@ -111,7 +112,7 @@ def _as_numpy_spec(spec: sampling.ResetSpec) -> sampling.ResetSpec:
 
 @dataclasses.dataclass(frozen=True)
 class ServoModel:
-    """The MJX env's arm position servos, read from ``sagrasp_jax/mjcf/aubo_i5_eg2.xml``.
+    """The MJX env's arm position servos, read from the robot's MJCF (``spec.mjcf_robot``, e.g. ``aubo_i5_eg2.xml``).
 
     MuJoCo's law per joint i (``mjx.forward.fwd_actuation``): f_i = clip(kp_i·(u_i − q_i) − kv_i·v_i,
     forcerange_i), plus the gravity torque where ``actgravcomp_i`` (the servo carries the arm's
@@ -130,15 +131,15 @@ class ServoModel:
     damping: np.ndarray
 
 
-def load_servo_model(xml_path: str | None = None) -> ServoModel:
-    """The servo constants of the MJCF the MJX env loads (one source: the robot's ``robots.RobotSpec.servo``, which
-    ``tools/urdf_to_mjcf.py`` writes into it)."""
+def load_servo_model(arm: robot.RobotModel, xml_path: str | None = None) -> ServoModel:
+    """The servo constants of ``arm``'s MJCF, the one the MJX env loads (one source: the robot's
+    ``robots.RobotSpec.servo``, which ``tools/urdf_to_mjcf.py`` writes into it)."""
     import mujoco
 
-    path = xml_path or assets.MJCF_ROBOT
+    path = xml_path or assets.path("mjcf", arm.spec.mjcf_robot)
     m = mujoco.MjModel.from_xml_path(path)
     rows = []
-    for name in robot.ARM_JOINTS:
+    for name in arm.spec.arm_joints:
         j = m.joint(name).id
         dof = int(m.jnt_dofadr[j])
         (act,) = [a for a in range(m.nu) if m.actuator_trnid[a, 0] == j]
@@ -207,11 +208,15 @@ class PyBulletGraspEnv(gym.Env if gym is not None else object):  # type: ignore[
         self.render_mode = render_mode
         self.robot = robot.load_robot(cfg.robot)
         self.n_uniforms = sampling.uniforms_needed(cfg.sampling, self.robot.dof)
-        self.position_gains = np.asarray(position_gains or DYNAMIC_POSITION_GAINS, dtype=float)
-        self.velocity_gains = np.asarray(velocity_gains or DYNAMIC_VELOCITY_GAINS, dtype=float)
+        fitted = self.robot.name == GAINS_FITTED_FOR
+        if servo == "position_control" and not fitted and (position_gains is None or velocity_gains is None):
+            raise ValueError(f"servo='position_control' has fitted gains for {GAINS_FITTED_FOR!r} only; robot "
+                             f"{self.robot.name!r} needs position_gains and velocity_gains ({self.robot.dof} each)")
+        self.position_gains = np.asarray(position_gains or (DYNAMIC_POSITION_GAINS if fitted else ()), dtype=float)
+        self.velocity_gains = np.asarray(velocity_gains or (DYNAMIC_VELOCITY_GAINS if fitted else ()), dtype=float)
         self.gravity_compensation = gravity_compensation
         self.servo = servo
-        self.servo_model = load_servo_model() if cfg.control.mode == "dynamic" and servo == "mujoco" else None
+        self.servo_model = load_servo_model(self.robot) if cfg.control.mode == "dynamic" and servo == "mujoco" else None
         self.progress = 0.0
 
         self.action_space = spaces.Box(-1.0, 1.0, (self.robot.dof,), dtype=np.float32)
@@ -290,13 +295,13 @@ class PyBulletGraspEnv(gym.Env if gym is not None else object):  # type: ignore[
             efforts[j] = float(info[10])
         movable = [j for j in range(self._pb(pb.getNumJoints, self.robot_body))
                    if self._pb(pb.getJointInfo, self.robot_body, j)[2] != pb.JOINT_FIXED]
-        self.arm_joints = [joints[name] for name in robot.ARM_JOINTS]
-        self.finger_joints = [joints[name] for name in robot.FINGER_JOINTS]
+        self.arm_joints = [joints[name] for name in self.robot.spec.arm_joints]
+        self.finger_joints = [joints[name] for name in self.robot.spec.finger_joints]
         self._movable = movable  # PyBullet's dof order (mass matrix, inverse dynamics)
         self._servo_dofs = np.array([movable.index(j) for j in self.arm_joints])
         self.arm_links = [links[name] for name in self.robot.link_names[1:]]
-        self.flange_link = joints["flange_joint"]  # a fixed joint's index is its child link's index
-        self.centre_link = joints["gripper_center_joint"]
+        self.flange_link = joints[self.robot.spec.flange_joint]  # a fixed joint's index is its child link's index
+        self.centre_link = joints[self.robot.spec.gripper_centre_joint]
         self._fk_links = self.arm_links + [self.flange_link, self.centre_link]
         self.arm_forces = [efforts[j] for j in self.arm_joints]
         self.finger_forces = [efforts[j] or FINGER_FORCE_FALLBACK for j in self.finger_joints]
@@ -346,7 +351,7 @@ class PyBulletGraspEnv(gym.Env if gym is not None else object):  # type: ignore[
 
     # -- robot state -----------------------------------------------------------------------
     def _set_joints(self, q: np.ndarray, qd: np.ndarray | None = None) -> None:
-        qd = np.zeros(robot.ARM_DOF) if qd is None else qd
+        qd = np.zeros(self.robot.dof) if qd is None else qd
         for j, value, vel in zip(self.arm_joints, q, qd):
             self._pb(pb.resetJointState, self.robot_body, j, float(value), float(vel))
         for j in self.finger_joints:
@@ -361,16 +366,16 @@ class PyBulletGraspEnv(gym.Env if gym is not None else object):  # type: ignore[
         states = self._pb(pb.getLinkStates, self.robot_body, self._fk_links, computeForwardKinematics=True)
         pos = np.array([s[4] for s in states], dtype=float)
         rot = quaternions_to_rotations(np.array([s[5] for s in states], dtype=float))
-        link_pos = np.concatenate([self._base_pos[None], pos[:robot.ARM_DOF]])
-        link_rot = np.concatenate([self._base_rot[None], rot[:robot.ARM_DOF]])
+        link_pos = np.concatenate([self._base_pos[None], pos[:self.robot.dof]])
+        link_rot = np.concatenate([self._base_rot[None], rot[:self.robot.dof]])
         return Kinematics(
             link_pos=link_pos,
             link_rot=link_rot,
             joint_axes=link_rot[1:, :, 2],  # every arm joint turns about its child link's local z
             joint_pos=link_pos[1:],
-            flange_pos=pos[robot.ARM_DOF],
-            gripper_centre=pos[robot.ARM_DOF + 1],
-            approach_axis=rot[robot.ARM_DOF][:, 2],  # flange local +z
+            flange_pos=pos[self.robot.dof],
+            gripper_centre=pos[self.robot.dof + 1],
+            approach_axis=rot[self.robot.dof][:, 2],  # flange local +z
         )
 
     def _servo_substep(self, ctrl: np.ndarray) -> None:
@@ -413,7 +418,7 @@ class PyBulletGraspEnv(gym.Env if gym is not None else object):  # type: ignore[
             return
         self._pb(
             pb.setJointMotorControlArray, self.robot_body, self.arm_joints, pb.POSITION_CONTROL,
-            targetPositions=q_target.tolist(), targetVelocities=[0.0] * robot.ARM_DOF, forces=self.arm_forces,
+            targetPositions=q_target.tolist(), targetVelocities=[0.0] * self.robot.dof, forces=self.arm_forces,
             positionGains=self.position_gains.tolist(), velocityGains=self.velocity_gains.tolist(),
         )
         self._pb(
@@ -425,7 +430,8 @@ class PyBulletGraspEnv(gym.Env if gym is not None else object):  # type: ignore[
 
     def _observe(self, q: np.ndarray, kin: Kinematics, col: collision.CollisionResult, tilt: Any) -> np.ndarray:
         task = self.cfg.task
-        noise = self.np_random.normal(size=robot.ARM_DOF) if observation.noise_std(task, self.progress) > 0 else np.zeros(robot.ARM_DOF)
+        dof = self.robot.dof
+        noise = self.np_random.normal(size=dof) if observation.noise_std(task, self.progress) > 0 else np.zeros(dof)
         assert self._spec is not None
         noisy_q = observation.noisy_joints(task, q, self.progress, noise)
         return observation.assemble(np, self.cfg, noisy_q, kin.gripper_centre, self._spec, col, tilt,
@@ -441,7 +447,7 @@ class PyBulletGraspEnv(gym.Env if gym is not None else object):  # type: ignore[
         if spec is None:
             u = self.np_random.random(self.n_uniforms)
             spec = sampling.sample_reset(np, self.robot, self.cfg.sampling, self.cfg.task, u)
-        spec = _as_numpy_spec(spec)
+        spec = _as_numpy_spec(spec, self.robot.dof)
         self._spec = spec
         self._place_episode_bodies(spec)
         self._set_joints(spec.q0)

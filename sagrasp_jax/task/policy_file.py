@@ -52,6 +52,7 @@ import numpy as np
 from sagrasp_jax import __version__
 from sagrasp_jax.base import fileio
 from sagrasp_jax.task import observation
+from sagrasp_jax.task import robots
 from sagrasp_jax.task.config import Config, ConfigError, EnvConfig, config_to_dict
 from sagrasp_jax.task.config_history import config_hash, env_dict_hash
 from sagrasp_jax.task.config_parse import config_from_dict, parse_json
@@ -150,6 +151,10 @@ class NumpyPolicy:
         if self.obs_layout != observation.layout_of(self.env_config()):
             raise PolicyFormatError(f"{self.path}: {input_mismatch(self.obs_layout, self.env_config())}; not a grasp "
                                     "policy, refused before anything connects")
+        arm = robots.get(self.env_config().robot)
+        if self.action_size != arm.dof:
+            raise PolicyFormatError(f"{self.path}: {self.action_size} actions, but its robot {arm.name!r} has "
+                                    f"{arm.dof} joints; refused before anything connects")
 
     def _check_obs(self, obs: Any) -> np.ndarray:
         obs = np.asarray(obs, dtype=np.float64)

@@ -24,7 +24,7 @@ _EPS = 1e-6  # central-difference step, rad
 
 def scripted_action(xp: Any, cfg: EnvConfig, q: Any, target: Any) -> Any:
     """Action(s) in [-1, 1]^dof for joints ``q`` (..., dof) and target centres (..., 3)."""
-    model = robot.load_robot()
+    model = robot.load_robot(cfg.robot)
     q = xp.asarray(q)
     target = xp.asarray(target, dtype=q.dtype)
     centre = robot.forward_kinematics(xp, model, q).gripper_centre

@@ -33,7 +33,6 @@ from sagrasp_jax.training import fixed_seed_eval as policy_eval
 from sagrasp_jax.training.agents.ppo import rollout
 from sagrasp_jax.training import run_dir
 from sagrasp_jax.training import restore
-from sagrasp_jax.task import robot
 from sagrasp_jax.task.config import SEED_RANGE, Config, ConfigError, blocking_sampling, check_range
 
 EvalEnvFactory = Callable[[Config], rollout.Env]
@@ -228,24 +227,24 @@ def replay_final_poses(run: str, episodes: int, seed: int, max_steps: int,
     first = jax.device_get(jax.jit(jax.vmap(env.reset))(keys).info)
     target_error = np.asarray(first["randomize"]["target_error"]) if "randomize" in first else np.zeros((episodes, 3))
     eps = {k: np.asarray(v) for k, v in result.episodes.items()}
-    q_final = np.stack([eps[f"final_q{i + 1}"] for i in range(_FinalPoseRecorder.ARM_DOF)], axis=-1)
+    q_final = np.stack([eps[f"final_q{i + 1}"] for i in range(env.dof)], axis=-1)
     return FinalPoses(eps, q_final, first["reset"], target_error, env_cfg)
 
 
 class _FinalPoseRecorder:
     """Env wrapper that copies the measured arm joints (``GraspEnv.measured_joints``) into ``info["episode"]``
-    as scalar entries ``final_q1..6`` (scalars, so ``fixed_seed_eval.evaluate_policy`` keeps them per episode)."""
-
-    ARM_DOF = robot.ARM_DOF
+    as scalar entries ``final_q1..N`` (N = the env's robot's joints; scalars, so ``fixed_seed_eval.evaluate_policy``
+    keeps them per episode)."""
 
     def __init__(self, env: Any) -> None:
         self.env = env
+        self.dof = env.robot.dof  # the env's arm (env.robot)
         self.observation_size = env.observation_size
         self.action_size = env.action_size
 
     def _record(self, state: Any) -> Any:
         q = self.env.measured_joints(state)
-        episode = dict(state.info["episode"], **{f"final_q{i + 1}": q[i] for i in range(self.ARM_DOF)})
+        episode = dict(state.info["episode"], **{f"final_q{i + 1}": q[i] for i in range(self.dof)})
         return state.replace(info=dict(state.info, episode=episode))
 
     def reset(self, rng: Any) -> Any:

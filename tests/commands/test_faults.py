@@ -1104,6 +1104,7 @@ def test_40_5_seed_lists_are_bounded_and_refused_before_any_folder(seeds, messag
 def _servo_log(latency: float = 1.0, steps: int = 300, offset: float = 0.0, seed: int = 0) -> Any:
     """A log of the lagged servo model itself (random-walk commands), any latency, no noise."""
     from sagrasp_jax.task import control
+    from sagrasp_jax.task.robot import load_robot
     from sagrasp_jax.deploy import sysid
     from sagrasp_jax.task.config import ControlConfig
 
@@ -1119,7 +1120,7 @@ def _servo_log(latency: float = 1.0, steps: int = 300, offset: float = 0.0, seed
         queue = np.concatenate([command[t][None], queue[:-1]])
         c, p, f = control.delayed_commands(np, queue, latency) if latency else (command[t], command[t], 0.0)
         w = control.held_command_weight(np, f, gain)
-        x, x_prev = control.servo_model_step(np, cfg, x, x_prev, (1 - w) * c + w * p, gain), x
+        x, x_prev = control.servo_model_step(np, load_robot(), cfg, x, x_prev, (1 - w) * c + w * p, gain), x
     return sysid.RobotLog(np.arange(steps) * cfg.control_dt, command, readings)
 
 

@@ -82,7 +82,7 @@ def test_a_bad_capture_file_is_refused_naming_the_problem(captures: dict[str, st
                            "intrinsics of a 640 × 480 image for a 480 × 300 cloud"),
         "camera.npz": ({"meta": np.array(json.dumps(meta | {"camera": "kinect"}))}, "camera 'kinect' is not one of"),
         "truth.npz": ({"meta": np.array(json.dumps(meta | {"truth": meta["truth"] | {"q0": [0.0] * 5}}))},
-                      r"meta.truth.q0 must be 6 finite numbers"),
+                      r"meta.truth.q0 must be one joint angle per joint of a registered robot \(6 or 7 numbers\)"),
         "rgb.npz": ({"rgb": np.load(src)["rgb"][:-1]}, r"image of shape \(299, 480, 3\) does not match"),
     }
     for name, (change, message) in bad.items():

@@ -40,7 +40,8 @@ def _env_cfg(*overrides: str) -> config.EnvConfig:
 def test_relative_lag_layout_entries_by_hand() -> None:
     cfg = _env_cfg("env.task.obs_layout=relative_lag")
     names = observation.layout_of(cfg)
-    assert len(names) == 35 and names[:29] == observation.layout("relative") and names[29:] == observation.PENDING_ENTRIES
+    assert len(names) == 35 and names[:29] == observation.layout("relative")
+    assert names[29:] == tuple(f"pending{j}" for j in range(1, 7))  # one per AUBO joint
     assert observation.hand_scaled_mask(names)[29:].all()  # the normaliser leaves them alone
     model = robot.load_robot()
     u = np.full(sampling.uniforms_needed(cfg.sampling), 0.5)
@@ -142,7 +143,7 @@ def _lagged_log(latency: float, offset: np.ndarray, noise: float, steps: int = 6
         queue = np.concatenate([command[t][None], queue[:-1]])
         c, p, f = control.delayed_commands(np, queue, latency)
         w = control.held_command_weight(np, f, gain)
-        x, x_prev = control.servo_model_step(np, cfg, x, x_prev, (1 - w) * c + w * p, gain), x
+        x, x_prev = control.servo_model_step(np, robot.load_robot(), cfg, x, x_prev, (1 - w) * c + w * p, gain), x
     return sysid.RobotLog(np.arange(steps) * cfg.control_dt, command, readings)
 
 

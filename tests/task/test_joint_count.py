@@ -102,5 +102,55 @@ def test_kinematics_follow_the_models_joint_count():
     np.testing.assert_allclose(short.joint_pos, full.joint_pos[:5], atol=1e-12)
 
 
+# What the layers above the env must not read: the default robot's constants and a robot loaded without a name
+# (issue 56, item 1: they take the model from the config or the policy, or a RobotModel argument).
+DEFAULT_ROBOT_USES = re.compile(r"\b(?:ARM_DOF|ARM_JOINTS|FINGER_JOINTS|HOME_Q|URDF_PATH)\b"
+                                r"|assets\.(?:MJCF_SCENE|MJCF_ROBOT|URDF)\b|load_robot\(\)")
+# A library helper's fallback for callers that name no robot (every caller in the package passes one).
+DEFAULT_FALLBACKS = ("or load_robot()", "or robot_mod.load_robot()", 'differ from robot.load_robot()"')
+BELOW_THE_CONFIG = ("task/", "envs/", "base/")  # the registry, the config and the MJX env that reads env.robot
+AUBO_ONLY = ("deploy/aubo.py",)  # the AUBO controller's driver: its joints are the AUBO-i5's
+
+
+def default_robot_uses(root: Path) -> list[str]:
+    """``path:line: text`` of every read of the default robot above the env under ``root`` (a package tree)."""
+    found = []
+    for path in sorted(root.rglob("*.py")):
+        rel = path.relative_to(root).as_posix()
+        if rel.startswith(BELOW_THE_CONFIG) or rel in AUBO_ONLY:
+            continue
+        for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+            stripped = line
+            for allowed in DEFAULT_FALLBACKS:
+                stripped = stripped.replace(allowed, "")
+            if DEFAULT_ROBOT_USES.search(stripped):
+                found.append(f"{rel}:{number}: {line.strip()}")
+    return found
+
+
+def test_no_layer_above_the_env_reads_the_default_robot():
+    found = default_robot_uses(PACKAGE) + default_robot_uses(Path(REPO) / "experiments")
+    assert not found, ("the default robot read above the env; load robot.load_robot(env_cfg.robot) from the config "
+                       "or the policy, or take a RobotModel:\n" + "\n".join(found))
+
+
+def test_the_default_robot_scan_sees_the_old_uses(tmp_path):
+    old = {
+        "deploy/twin.py": "        self.arm_joints = [joints[n] for n in robot_mod.ARM_JOINTS]",
+        "deploy/loop.py": "    model = load_robot()",
+        "reference/grasp_check.py": "SCENE_XML = assets.MJCF_SCENE",
+        "deploy/__main__.py": "from sagrasp_jax.task.config import HOME_Q",
+        "experiments/bench_env.py": "        arm = pb.loadURDF(robot.URDF_PATH, useFixedBase=True)",
+    }
+    for rel, line in old.items():
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / rel).write_text(f"x = 1\n{line}\n")
+    (tmp_path / "deploy" / "aubo.py").write_text("ARM_DOF = robots.AUBO_I5.dof\n")  # the driver: allowed
+    (tmp_path / "deploy" / "safety.py").write_text("        self.robot = robot or load_robot()\n")  # a fallback
+    (tmp_path / "task").mkdir()
+    (tmp_path / "task" / "config.py").write_text("HOME_Q = robots.AUBO_I5.home_q\n")  # below the config
+    assert sorted(f.split(":")[0] for f in default_robot_uses(tmp_path)) == sorted(old)
+
+
 if __name__ == "__main__":
     pytest.main([__file__, "-q"])
