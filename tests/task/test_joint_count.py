@@ -38,6 +38,13 @@ NOT_JOINT_COUNTS = {
 PENDING_IN_TRAINING: dict[tuple[str, str], str] = {}  # none left
 
 
+def _write_lines(root: Path, lines: dict[str, str]) -> None:
+    """One file per entry under ``root``, its line second (the scans' line numbers then read 2)."""
+    for rel, line in lines.items():
+        (root / rel).parent.mkdir(parents=True, exist_ok=True)
+        (root / rel).write_text(f"x = 1\n{line}\n")
+
+
 def joint_count_literals(root: Path) -> list[str]:
     """``path:line: text`` of every joint-count literal under ``root`` (a package tree) not allowed by name."""
     found = []
@@ -71,9 +78,7 @@ def test_the_scan_sees_the_old_shapes(tmp_path):
         "task/observation.py": 'PENDING = tuple(f"pending{j}" for j in range(1, 7))',
         "training/sa_schedule.py": "def t(n_actions: int = 6):",
     }
-    for rel, line in old.items():
-        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
-        (tmp_path / rel).write_text(f"x = 1\n{line}\n")
+    _write_lines(tmp_path, old)
     (tmp_path / "task").joinpath("camera.py").write_text("if v.shape != (6,) or bad:\n")  # allowed by name
     (tmp_path / "export.py").write_text("keys = jax.random.split(key, 6)\nz = zlib.compress(raw, 6)\n")  # calls
     found = joint_count_literals(tmp_path)
@@ -142,9 +147,7 @@ def test_the_default_robot_scan_sees_the_old_uses(tmp_path):
         "deploy/__main__.py": "from sagrasp_jax.task.config import HOME_Q",
         "experiments/bench_env.py": "        arm = pb.loadURDF(robot.URDF_PATH, useFixedBase=True)",
     }
-    for rel, line in old.items():
-        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
-        (tmp_path / rel).write_text(f"x = 1\n{line}\n")
+    _write_lines(tmp_path, old)
     (tmp_path / "deploy" / "aubo.py").write_text("ARM_DOF = robots.AUBO_I5.dof\n")  # the driver: allowed
     (tmp_path / "deploy" / "safety.py").write_text("        self.robot = robot or load_robot()\n")  # a fallback
     (tmp_path / "task").mkdir()
