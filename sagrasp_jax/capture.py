@@ -30,7 +30,7 @@ import numpy as np
 from sagrasp_jax.base import cli, extras, fileio
 from sagrasp_jax.deploy import capture_file
 from sagrasp_jax.deploy.cameras import CameraError, capture_once
-from sagrasp_jax.task.camera import CAMERA_MODELS, NOISE_MODELS
+from sagrasp_jax.task.camera import CHOICES, DEFAULT_CAMERA, NOISE_MODELS
 from sagrasp_jax.task import robots
 
 SOURCES = ("mecheye", "realsense", "twin")
@@ -57,8 +57,8 @@ def _parser() -> cli.Parser:
     twin.add_argument("--scene", type=int, default=0, help="the scene's index within the seed (default 0)")
     twin.add_argument("--scene-set", choices=("mix", "blocking"), default="mix",
                       help="mix (default: the evaluation mix) or blocking (an obstacle on every approach)")
-    twin.add_argument("--camera-model", choices=tuple(CAMERA_MODELS), default="mecheye_pro_m",
-                      help="the camera the twin renders (task.camera; default mecheye_pro_m)")
+    twin.add_argument("--camera-model", choices=CHOICES, default=DEFAULT_CAMERA,  # the registry when parsed
+                      help=f"the camera the twin renders (task.camera's registered models; default {DEFAULT_CAMERA})")
     twin.add_argument("--depth-noise", choices=tuple(NOISE_MODELS), default=None,
                       help="depth-noise model (default the camera model's: industrial for the Mech-Eye)")
     twin.add_argument("--camera-resolution", type=float, default=0.25,
@@ -85,7 +85,7 @@ def _twin(args: object) -> capture_file.Capture:
 def _check(args: object) -> None:
     if args.camera != "twin":
         given = [f for f, v in (("--seed", args.seed), ("--scene", args.scene), ("--scene-set", args.scene_set != "mix"),
-                                ("--depth-noise", args.depth_noise), ("--camera-model", args.camera_model != "mecheye_pro_m"),
+                                ("--depth-noise", args.depth_noise), ("--camera-model", args.camera_model != DEFAULT_CAMERA),
                                 ("--camera-resolution", args.camera_resolution != 0.25)) if v]
         if given:
             raise ValueError(f"{', '.join(given)} {'is' if len(given) == 1 else 'are'} only for --camera twin")

@@ -88,7 +88,7 @@ from sagrasp_jax.deploy.calibration import (
     validate_target,
 )
 from sagrasp_jax.base import cli, extras, fileio
-from sagrasp_jax.deploy.cameras import CameraError, capture_once
+from sagrasp_jax.deploy.cameras import CAMERAS, CameraError, capture_once
 from sagrasp_jax.task import shapes
 from sagrasp_jax.deploy.loop import (
     DeployError, Obstacle, format_report, plan_episode, run_episode, scene_spec, with_obstacle_kinds,
@@ -101,7 +101,7 @@ from sagrasp_jax.deploy.transfer import TransferErrors
 from sagrasp_jax.task.policy_file import POLICY_HELP, PRETRAINED, PolicyFormatError, load_policy
 
 BACKENDS = ("twin", "aubo")
-CAMERA_SOURCES = ("mecheye", "realsense", "replay")  # --camera for one deploy (twin: deploy.rehearse's many scenes)
+CAMERA_SOURCES = (*CAMERAS, "replay")  # --camera for one deploy (twin: deploy.rehearse's many scenes)
 UNITS = ("mm", "m")
 DETECTION_RANGE = (0.3, 3.0)  # m from the camera: where a depth camera over the table can see anything
 OBSTACLE_SIZE_RANGE = (0.005, 0.5)  # m, any obstacle dimension

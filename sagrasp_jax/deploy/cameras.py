@@ -78,9 +78,10 @@ import numpy as np
 
 from sagrasp_jax.base import extras
 from sagrasp_jax.base.native_output import held_native_output
-from sagrasp_jax.task.camera import CAMERA_MODELS, Intrinsics
+from sagrasp_jax.task import camera as camera_models
+from sagrasp_jax.task.camera import Intrinsics
 
-CAMERAS = ("mecheye", "realsense")
+CAMERAS = camera_models.DRIVERS  # the drivers open_camera has: task.camera keeps the list its models name
 
 
 class CameraError(RuntimeError):
@@ -334,7 +335,7 @@ def is_recording(address: str) -> bool:
 def realsense_model(device_name: str) -> str:
     """The ``task.camera`` model of a RealSense device (or recording) by its name: a model named in it (a twin
     recording's), else ``realsense_d435`` unless the name is of another RealSense product ("" then: not known)."""
-    for name in CAMERA_MODELS:
+    for name in camera_models.names():
         if name in device_name:
             return name
     other = re.search(r"\b(D4\d\d|D5\d\d|L5\d\d|SR3\d\d|T26\d)", device_name)

@@ -37,7 +37,8 @@ import numpy as np
 from sagrasp_jax.base import fileio
 from sagrasp_jax.deploy.cameras import Capture, checked_capture, CameraError
 from sagrasp_jax.task import shapes
-from sagrasp_jax.task.camera import CAMERA_MODELS, Intrinsics
+from sagrasp_jax.task import camera as camera_models
+from sagrasp_jax.task.camera import Intrinsics
 from sagrasp_jax.task.policy_file import read_npz
 from sagrasp_jax.task import robots
 
@@ -162,8 +163,9 @@ def load_capture(path: str) -> Capture:
         raise CaptureFormatError(f"{path}: meta is not JSON ({exc})") from None
     if not isinstance(meta, dict) or sorted(meta) != sorted(META_KEYS):
         raise CaptureFormatError(f"{path}: meta must hold exactly {', '.join(META_KEYS)}")
-    if meta["camera"] not in ("", *CAMERA_MODELS):
-        raise CaptureFormatError(f"{path}: camera {meta['camera']!r} is not one of {', '.join(CAMERA_MODELS)}")
+    if meta["camera"] not in ("", *camera_models.names()):
+        raise CaptureFormatError(f"{path}: camera {meta['camera']!r} is not one of {', '.join(camera_models.names())} "
+                                 "(task.camera's registered models)")
     if not all(isinstance(meta[k], str) for k in ("source", "time_utc")):
         raise CaptureFormatError(f"{path}: meta.source and meta.time_utc must be strings")
     rgb, cloud = arrays["rgb"], arrays["cloud_mm"]

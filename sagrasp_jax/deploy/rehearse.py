@@ -102,7 +102,7 @@ class CameraSettings(NamedTuple):
 
     noise: str = "industrial"  # depth-noise model (task.camera.NOISE_MODELS)
     resolution: float = 0.25  # fraction of the camera model's pixels (the Mech-Eye's 1920 × 1200; the view is kept)
-    model: str = "mecheye_pro_m"  # the camera (task.camera.CAMERA_MODELS)
+    model: str = "mecheye_pro_m"  # the camera (task.camera: a registered model)
     driver: str = "twin"  # how the render reaches perception: as rendered, or through librealsense
 
     def describe(self) -> dict[str, Any]:
@@ -430,10 +430,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def add_camera_arguments(p: argparse.ArgumentParser, prefix: str = "") -> None:
     """The twin camera's options (here and in ``deploy --camera twin --scenes N``); ``prefix`` starts each help."""
-    from sagrasp_jax.task.camera import CAMERA_MODELS
+    from sagrasp_jax.task.camera import CHOICES, DEFAULT_CAMERA
 
-    p.add_argument("--camera-model", choices=tuple(CAMERA_MODELS), default="mecheye_pro_m",
-                   help=f"{prefix}the camera the twin renders (task.camera; default mecheye_pro_m)")
+    p.add_argument("--camera-model", choices=CHOICES, default=DEFAULT_CAMERA,  # the registry when parsed
+                   help=f"{prefix}the camera the twin renders (task.camera's registered models; default {DEFAULT_CAMERA})")
     p.add_argument("--depth-noise", default=None, help=f"{prefix}depth-noise model (none, industrial, consumer; default "
                    "the camera model's: industrial for the Mech-Eye, consumer for the RealSense)")
     p.add_argument("--camera-resolution", type=float, default=0.25,

@@ -51,7 +51,7 @@ extras.require("twin", what="the twin camera")
 from sagrasp_jax.reference import bullet  # noqa: E402,F401  (imports pybullet with its banner kept off the terminal)
 import pybullet as pb  # noqa: E402
 
-MECH_EYE_PRO_M = CAMERA_MODELS["mecheye_pro_m"].intrinsics
+MECH_EYE_PRO_M = camera_model("mecheye_pro_m").intrinsics
 PARK_Z = -50.0  # m: where a hidden arm waits during a capture
 
 

@@ -6,6 +6,14 @@ render, the twin camera (``deploy.twin_camera``: what the model would report), t
 poses the camera sees), the capture file (the intrinsics a capture was taken with) and the camera drivers
 (``deploy.cameras``: which SDK opens a model).  NumPy only.
 
+The models are a registry, as the obstacle kinds (``task.shapes``) and the robots (``task.robots``) are:
+``register(model)`` adds one (refused, naming the problem, for a taken name, an unknown noise model or
+driver (``DRIVERS``), intrinsics that are not positive and finite, a depth range not 0 < near < far),
+``registered(*models)`` adds some for a block and restores the registry after, ``names()`` lists them and
+``camera_model(name)`` looks one up.  Every reader lists the registry when it is used (the ``--camera-model``
+choices of ``deploy.rehearse``, ``deploy --camera twin`` and ``capture``: ``CHOICES``; the capture file's
+check of the model it names), so a model registered later is accepted everywhere a model is named.
+
 * ``mecheye_pro_m`` (the default, the paper's camera): a Mech-Eye PRO M's factory intrinsics as Mech-Mind's
   SDK sample ``get_camera_intrinsics`` printed them for one unit (published in a public sample repository):
   1920 × 1200 px, fx 2425.48, fy 2425.33, cx 959.74, cy 632.70, no distortion (the camera delivers rectified
@@ -38,9 +46,10 @@ Depth noise (``NOISE_MODELS``, ``apply_depth_noise``), applied along each pixel'
 
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 
@@ -152,11 +161,11 @@ def noise_model(name: str | DepthNoise) -> DepthNoise:
 class CameraModel:
     """One depth camera the cell can carry (module docstring)."""
 
-    name: str  # the registry key (``CAMERA_MODELS``), written into capture files
+    name: str  # the registry key (``register``, ``names()``), written into capture files
     product: str  # what the vendor calls it
     intrinsics: Intrinsics  # nominal: what the twin renders; a real capture carries its unit's own
     noise: str  # the depth-noise model of its class (``NOISE_MODELS``)
-    driver: str  # the ``deploy.cameras`` driver that opens it ("mecheye" | "realsense")
+    driver: str  # the ``deploy.cameras`` driver that opens it (one of ``DRIVERS``)
     depth_range_m: tuple[float, float]  # where it reports anything (also the twin's clip planes)
 
     @property
@@ -164,6 +173,10 @@ class CameraModel:
         return self.intrinsics.fov_deg[1]
 
 
+DRIVERS: tuple[str, ...] = ("mecheye", "realsense")  # the drivers deploy.cameras has (open_camera): the one list
+
+# The registry (``register``; read it through ``names()`` and ``camera_model``).  ``CAMERA_MODELS`` is the registry
+# itself, not a copy: it follows ``register`` and ``registered``.
 CAMERA_MODELS: dict[str, CameraModel] = {
     "mecheye_pro_m": CameraModel("mecheye_pro_m", "Mech-Eye PRO M (Enhanced)",
                                  Intrinsics(1920, 1200, 2425.48, 2425.33, 959.74, 632.70), "industrial", "mecheye",
@@ -176,7 +189,94 @@ DEFAULT_CAMERA = "mecheye_pro_m"
 
 
 def camera_model(name: str | CameraModel) -> CameraModel:
+    """The registered model ``name`` (a ``CameraModel`` is returned as it is); ``ValueError`` naming the known ones."""
     return _entry(CAMERA_MODELS, name, "camera model")
+
+
+def names() -> tuple[str, ...]:
+    """The registered camera models, the default first."""
+    return tuple(CAMERA_MODELS)
+
+
+class RegisteredNames:
+    """The registered model names as the registry holds them when asked (``in``, iteration): an argparse
+    ``choices`` that a model registered after the parser was built is one of."""
+
+    def __contains__(self, name: object) -> bool:
+        return name in CAMERA_MODELS
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(names())
+
+    def __len__(self) -> int:
+        return len(CAMERA_MODELS)
+
+    def __repr__(self) -> str:
+        return f"RegisteredNames{names()}"
+
+
+CHOICES = RegisteredNames()  # the --camera-model choices
+
+
+def _problems(model: CameraModel) -> list[str]:
+    """What keeps ``model`` out of the registry (empty when nothing does)."""
+    problems = []
+    if not (isinstance(model.name, str) and model.name.isidentifier()):
+        problems.append(f"name {model.name!r} must be an identifier (it is a --camera-model choice and a capture "
+                        "file's camera)")
+    elif model.name in CAMERA_MODELS:
+        problems.append(f"name {model.name!r} is taken")
+    if model.noise not in NOISE_MODELS:
+        problems.append(f"noise model {model.noise!r} is not one of {', '.join(NOISE_MODELS)}")
+    if model.driver not in DRIVERS:
+        problems.append(f"driver {model.driver!r} is not one of {', '.join(DRIVERS)} (deploy.cameras)")
+    k = model.intrinsics
+    if not isinstance(k, Intrinsics):
+        problems.append(f"intrinsics must be a task.camera.Intrinsics, got {type(k).__name__}")
+    else:
+        try:  # checked again: an entry's fields can be changed after its own check (object.__setattr__)
+            values = [float(v) for v in k.as_list()]
+            if not all(math.isfinite(v) for v in values) or min(values[:4]) <= 0:
+                raise ValueError(f"intrinsics {values} (width, height, fx, fy, cx, cy) must be finite, the size and "
+                                 "the focal lengths positive")
+            Intrinsics(k.width, k.height, k.fx, k.fy, k.cx, k.cy)
+        except (TypeError, ValueError) as exc:
+            problems.append(str(exc))
+    try:
+        near, far = (float(v) for v in model.depth_range_m)
+        ok = math.isfinite(near) and math.isfinite(far) and 0 < near < far
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        problems.append(f"depth range {model.depth_range_m!r} must be two finite distances, m, with 0 < near < far")
+    return problems
+
+
+def register(model: CameraModel) -> CameraModel:
+    """Add a camera model defined outside this module (a plugin's, a test's); ``ValueError`` naming every problem.
+    Everything that names camera models then knows it: the ``--camera-model`` option of the rehearsal, of
+    ``deploy --camera twin`` and of ``capture``, the twin camera (``deploy.twin_camera.TwinCamera(model=...)``)
+    and capture files."""
+    if not isinstance(model, CameraModel):
+        raise ValueError(f"a camera model must be a task.camera.CameraModel, got {type(model).__name__}")
+    problems = _problems(model)
+    if problems:
+        raise ValueError(f"camera model {model.name!r} cannot be registered: " + "; ".join(problems))
+    CAMERA_MODELS[model.name] = model
+    return model
+
+
+@contextlib.contextmanager
+def registered(*models: CameraModel) -> Iterator[tuple[CameraModel, ...]]:
+    """The registry with ``models`` added for the block (``register``), restored after, whatever happens."""
+    before = dict(CAMERA_MODELS)
+    try:
+        for model in models:
+            register(model)
+        yield models
+    finally:
+        CAMERA_MODELS.clear()
+        CAMERA_MODELS.update(before)
 
 
 def _edge_pixels(depth: np.ndarray, jump: float) -> tuple[np.ndarray, np.ndarray]:

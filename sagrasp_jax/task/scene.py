@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sagrasp_jax.task.camera import DEFAULT_CAMERA, CAMERA_MODELS, CameraModel
+from sagrasp_jax.task.camera import DEFAULT_CAMERA, CameraModel, camera_model
 from sagrasp_jax.task.robot import BOX
 
 # Hand-eye calibration camera -> robot base, millimetres (paper Eq. 13, docs/task.md §5).
@@ -69,7 +69,7 @@ class CameraSpec:
 
     pos: tuple[float, float, float]
     rot: np.ndarray  # columns = camera axes in the world; optical axis = +z column (≈ world −z)
-    model: CameraModel = CAMERA_MODELS[DEFAULT_CAMERA]
+    model: CameraModel = camera_model(DEFAULT_CAMERA)
 
     @property
     def fovy_deg(self) -> float:
