@@ -203,11 +203,11 @@ def test_jitted_initial_state_is_the_eager_one_bit_for_bit():
     numbers would move."""
     from sagrasp_jax.task import observation
     from sagrasp_jax.task.config import get_config
-    from sagrasp_jax.task.control import ACTION_SIZE
+    from sagrasp_jax.task import robots
 
     cfg = get_config("cpu-quick")
     obs_size = len(observation.layout_of(cfg.env))
-    nets = actor_critic.make_networks(cfg.ppo.network, obs_size, ACTION_SIZE, cfg.ppo.obs_clip,
+    nets = actor_critic.make_networks(cfg.ppo.network, obs_size, robots.get(cfg.env.robot).dof, cfg.ppo.obs_clip,
                                       observation.critic_extra_size(cfg))
     opt = actor_critic.make_optimizer(cfg.ppo)
     key = jax.random.split(jax.random.PRNGKey(cfg.train.seed), 3)[0]
