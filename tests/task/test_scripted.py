@@ -5,9 +5,8 @@ toward home)."""
 
 import numpy as np
 
+from sagrasp_jax.reference.parity import SCRIPTED_NOISE  # the harness's uniform noise on every scripted action
 from sagrasp_jax.task import config, config_parse, control, robot, sampling, scripted
-
-NOISE = 0.3  # the parity harness's SCRIPTED_NOISE: uniform noise on every action
 # Of 200 scenes drawn from seed 0, the five where a 1e-9 rad difference grew past 1e-4 rad without the pull.
 CHAOTIC_PANDA_SCENES = (116, 69, 114, 97, 26)
 
@@ -19,7 +18,7 @@ def _closed_loop_gap(name: str, scenes: tuple[int, ...], steps: int = 200) -> fl
     rng = np.random.default_rng(0)
     u = rng.random((200, sampling.uniforms_needed(cfg.sampling, model.dof)))
     specs = [sampling.sample_reset(np, model, cfg.sampling, cfg.task, u[i]) for i in range(200)]
-    noise = NOISE * rng.uniform(-1.0, 1.0, (200, steps, model.dof))[list(scenes)]
+    noise = SCRIPTED_NOISE * rng.uniform(-1.0, 1.0, (200, steps, model.dof))[list(scenes)]
     target = np.stack([np.asarray(specs[i].target_pos) for i in scenes])
     q0 = np.stack([np.asarray(specs[i].q0) for i in scenes])
 
