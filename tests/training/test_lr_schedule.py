@@ -242,7 +242,8 @@ def test_rule_of_reads_one_initial_lr() -> None:
 
 def test_default_presets_keep_their_schedule_numbers() -> None:
     # the paper's SA from lr 3e-4, decaying ×0.98; cpu-quick starts at 6e-4 and decays ×0.96 (docs/results-archive.md §10)
-    start = {"paper": (3e-4, 0.98), "cpu-quick": (6e-4, 0.96), "gpu": (3e-4, 0.98)}
+    start = {"paper": (3e-4, 0.98), "cpu-quick": (6e-4, 0.96), "gpu": (3e-4, 0.98), "cpu-physics": (6e-4, 0.96),
+             "gpu-physics": (3e-4, 0.98)}
     assert set(start) == set(config.PRESETS)
     for preset in config.PRESETS:
         cfg = config.get_config(preset)

@@ -160,7 +160,7 @@ def test_ppo_baseline_keeps_a_constant_learning_rate(tmp_path):
 
 
 @pytest.mark.parametrize("argv,message", [
-    (["--preset", "nope"], "valid presets: paper, cpu-quick, gpu"),
+    (["--preset", "nope"], "valid presets: paper, cpu-quick, gpu, cpu-physics, gpu-physics"),
     (["--algo", "a2c"], "valid algos: sa-ppo, ppo"),
     (["--set", "ppo.nonsense=3"], "--list-keys lists every key"),
     (["--set", "ppo.num_envs=many"], "bad value 'many' for ppo.num_envs"),
