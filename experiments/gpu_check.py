@@ -40,20 +40,23 @@ section runs in fresh processes of its own.
    ``results.md``).  At 16 envs per seed it cannot finish in this budget on one GPU: the row says how far
    it got; ``--sections paper --budget-s 540`` gives it a command of its own.
 
-**Policies come back.**  Every trained run's small files (``policy.npz``, ``config.json``, ``metrics.jsonl``,
-evaluation JSONs; not checkpoints, nothing over ``MAX_COPY_BYTES``) are copied to ``--policies`` (default
-``policies/`` beside ``--out``): ``policies/<section>/`` and ``policies/paper/<algo>/seed<S>/``, folders that
+**Policies come back.**  Every trained run's small files, a stopped or failed section's too (``policy.npz``,
+``config.json``, ``metrics.jsonl``, evaluation JSONs; not checkpoints, nothing over ``MAX_COPY_BYTES``), are
+copied to ``--policies`` (default ``policies/`` beside ``--out``): ``policies/<section>/`` and
+``policies/paper/<algo>/seed<S>/`` (the study's ``results.json`` / ``.md`` in ``policies/paper/``), folders that
 ``python -m sagrasp_jax.deploy.rehearse --policy FOLDER`` (and ``evaluate --backend twin --policy``) take as
 they are (a folder means its ``policy.npz``).  A run stopped before its end has a checkpoint but no
 ``policy.npz`` yet: its folder holds the rest.
 
 **Budget** (``--budget-s``, default 540 s): every section sees what is left of it less what the sections after
 it need at least (``MIN_S``); a training is SIGTERMed at its section's end (killed ``GRACE_S`` later), and a
-section with less than its minimum left is skipped with the reason.  Estimated from v1's H200 numbers (the
-``gpu`` preset 27.4 s training + 26.2 s compile, 99.0 %; at 16,384 envs 10.3 s + 27.3 s; the dynamic mode
-60.0 s + 28.1 s), each with ≈ 10 s of process start and imports: device 5 s, dynamic 30 s, cold 65 s,
-warm 45 s, envs16k 50 s, physics 100 s of training + 2 × 30 s of evaluation, and the paper what is left
-(≈ 185 s, stopped).  The whole check ends within the budget plus ``GRACE_S``.
+section with less than its minimum left is skipped with the reason.  The JSON (``"complete": false`` until the
+end) and the policies are written after every section, so a check killed from outside still leaves them.
+Estimated from v1's H200 numbers (the ``gpu`` preset 27.4 s training + 26.2 s compile, 99.0 %; at 16,384 envs
+10.3 s + 27.3 s; the dynamic mode 60.0 s + 28.1 s), each with ≈ 10 s of process start and imports: device 5 s,
+dynamic 30 s, cold 65 s, warm 45 s (its compiles cache loads), envs16k 50 s, physics 100 s of training + 2 × 30 s
+of evaluation, and the paper what is left (≈ 185 s, stopped).  The whole check ends within the budget plus
+``GRACE_S``.
 
 ``--quick`` runs every section at CPU-smoke size (``tests/test_gpu_check.py`` in the normal suite): the
 dynamic rate at batch 16; cold, warm and the second env count with ``tests/tiny_run.py``'s training
@@ -94,7 +97,7 @@ Then on the GPU machine, with ``.whl`` carried, one command (the check's own chi
 ``PYTHONPATH``):
 
     python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .whl/*.whl && \\
-    PYTHONPATH=/tmp/site timeout 590 python3 -m experiments.gpu_check --out $OUT/gpu_check.json
+    PYTHONPATH=/tmp/site timeout 580 python3 -m experiments.gpu_check --out $OUT/gpu_check.json
 
 (``--out $OUT/...`` puts the policies in ``$OUT/policies``, so they come back with the JSON.)
 """
@@ -133,6 +136,7 @@ PAPER_TINY = ("ppo.network.policy_hidden=32,32,32,32", "ppo.learning_rate=3e-4",
               "ppo.num_epochs=1", "ppo.num_minibatches=1", "env.task.max_steps=50", "eval.episodes=8",
               "eval.num_cycles=4")
 SECTIONS = ("dynamic", "cold", "warm", "envs16k", "physics", "paper")
+TRAINING_SECTIONS = ("cold", "warm", "envs16k", "physics")  # each trains one run, into W/<section>
 # (full, --quick) sizes of every section
 SIZES: dict[str, tuple[Any, Any]] = {
     "dynamic_batch": (4096, 16), "dynamic_steps": (100, 10), "equal_envs": (8, 4), "equal_steps": (4, 4),
@@ -527,16 +531,19 @@ def paper_section(quick: bool, work: str, cache_dir: str | None, end: float) -> 
     log = os.path.join(work, "paper.log")
     rows, stopped, code, wall = watch_trainer([sys.executable, "-m", "experiments.reproduce_paper", *args], ROOT, log,
                                               first, 2.0, stop, env=child_env(cache_dir), grace_s=GRACE_S)
-    if stopped is None and code != 0:
+    total = size("paper_steps", quick) or config.get_config(size("paper_preset", quick)).train.total_steps
+    progress = paper_progress(runs_dir, seeds)
+    if stopped is None and code != 0:  # e.g. the report's plots without matplotlib, after every run trained
         with open(log, encoding="utf-8") as f:
             tail = f.read().strip().splitlines()[-4:]
-        raise RuntimeError(f"`python -m experiments.reproduce_paper {' '.join(args)}` exited {code}: {' | '.join(tail)}")
-    total = size("paper_steps", quick) or config.get_config(size("paper_preset", quick)).train.total_steps
+        reached = "; ".join(f"{a} " + ", ".join(f"{r['env_steps']:,}" for r in runs.values()) for a, runs in progress.items())
+        raise RuntimeError(f"`python -m experiments.reproduce_paper {' '.join(args)}` exited {code} (env steps "
+                           f"reached: {reached} of {total:,} per run): {' | '.join(tail)}")
     out: dict[str, Any] = {"command": "python -m experiments.reproduce_paper " + " ".join(args),
                            "finished": stopped is None, "stopped_by": stopped or "finished", "exit": code,
                            "wall_s": wall, "env_steps_per_run": total, "seeds": seeds, "runs_dir": runs_dir,
                            "out_dir": out_dir, "cache": cache_label(cache_dir, entries_before),
-                           "progress": paper_progress(runs_dir, seeds)}
+                           "progress": progress}
     out["table"] = paper_table(out_dir) if stopped is None else None
     return out
 
@@ -560,24 +567,27 @@ def copy_run_files(run: str, dest: str) -> dict[str, list[str]]:
     return {"copied": copied, "left_out": left_out}
 
 
-def collect_policies(sections: dict[str, Any], policies: str) -> dict[str, Any]:
-    """Every trained run of ``sections`` into ``policies/<section>/`` (the paper's runs into
-    ``policies/paper/<algo>/seed<S>/``, its results beside them): folder -> what was copied."""
-    out: dict[str, Any] = {}
-    for name, row in sections.items():
-        if row.get("status") != "ok":
-            continue
-        if row.get("run"):
-            out[name] = copy_run_files(row["run"], os.path.join(policies, name))
-        if name == "paper":
-            for algo, seeds in row["progress"].items():
-                for seed in seeds:
-                    folder = os.path.join(algo, study.SEED_FOLDER.format(seed=seed))
-                    out[os.path.join(name, folder)] = copy_run_files(os.path.join(row["runs_dir"], folder),
-                                                                     os.path.join(policies, name, folder))
-            for file in ("results.json", "results.md"):
-                if os.path.isfile(os.path.join(row["out_dir"], file)):
-                    shutil.copy2(os.path.join(row["out_dir"], file), os.path.join(policies, name, file))
+def run_folders(work: str) -> dict[str, str]:
+    """Every run folder the check's sections trained under ``work`` (whatever their status: a stopped or
+    failed run's files are results too), by the folder its files go to under ``--policies``:
+    ``<section>`` for the recorded trainings, ``paper/<algo>/seed<S>`` for the paper's runs."""
+    out = {name: os.path.join(work, name) for name in TRAINING_SECTIONS if os.path.isdir(os.path.join(work, name))}
+    runs = os.path.join(work, "paper", "runs")
+    for algo in sorted(os.listdir(runs)) if os.path.isdir(runs) else []:
+        for seed in sorted(os.listdir(os.path.join(runs, algo))):
+            if os.path.isdir(os.path.join(runs, algo, seed)):
+                out[f"paper/{algo}/{seed}"] = os.path.join(runs, algo, seed)
+    return out
+
+
+def collect_policies(work: str, policies: str) -> dict[str, Any]:
+    """Every run folder of ``work`` (``run_folders``) copied into ``policies``, and the paper's results beside
+    its runs: folder -> what was copied."""
+    out = {dest: copy_run_files(run, os.path.join(policies, dest)) for dest, run in run_folders(work).items()}
+    for file in ("results.json", "results.md"):
+        if os.path.isfile(os.path.join(work, "paper", file)):
+            os.makedirs(os.path.join(policies, "paper"), exist_ok=True)
+            shutil.copy2(os.path.join(work, "paper", file), os.path.join(policies, "paper", file))
     return out
 
 
@@ -702,7 +712,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     own_cache = lambda name: None if quick else os.path.join(work, f"cache-{name}")  # noqa: E731
     info = child_json("device_info()", 120.0)
     result: dict[str, Any] = {
-        "quick": quick, **info, "machine": f"{platform.node()} {study.machine()}", "budget_s": args.budget_s,
+        "complete": False, "quick": quick, **info, "machine": f"{platform.node()} {study.machine()}", "budget_s": args.budget_s,
         "command": study.command("gpu_check", argv), "git": study.git_state(), "work": work, "sections": {},
         "load_before": os.getloadavg(),
     }
@@ -715,11 +725,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         "physics": lambda end: physics_section(quick, work, own_cache("physics"), end),
         "paper": lambda end: paper_section(quick, work, own_cache("paper"), end),
     }
+    result["policies_dir"] = policies
     for name in chosen:
         end = budget.section_end(name)
         result["sections"][name] = section(name, lambda: runs[name](end), budget.skip_reason(name, time.perf_counter()))
-    result["policies_dir"] = policies
-    result["policies"] = collect_policies(result["sections"], policies)
+        # after every section: a check killed from outside (the device call's limit) still leaves what it measured
+        result["policies"] = collect_policies(work, policies)
+        study.write_json(args.out, {**result, "complete": False, "wall_s": time.perf_counter() - budget.start})
+    result["complete"] = True
     result["wall_s"] = time.perf_counter() - budget.start
     result["load_after"] = os.getloadavg()
     text = table(result)

@@ -83,6 +83,22 @@ def test_copy_run_files_takes_the_small_files_and_no_checkpoint(tmp_path: pytest
     assert g.copy_run_files(str(tmp_path / "missing"), str(tmp_path / "p2")) == {"copied": [], "left_out": []}
 
 
+def test_collect_policies_finds_every_run_folder_whatever_its_sections_status(tmp_path: pytest.TempPathFactory) -> None:
+    work, policies = tmp_path / "work", tmp_path / "policies"
+    for folder in ("cold", "physics", "paper/runs/ppo/seed0", "paper/runs/sa-ppo/seed3", "cache-gpu", "unrelated"):
+        (work / folder).mkdir(parents=True)
+        (work / folder / "policy.npz").write_bytes(b"x")
+    (work / "paper" / "runs" / "ppo" / "group.lock").write_bytes(b"")  # a file beside the seed folders: no run
+    (work / "paper" / "results.md").write_text("| PPO |")
+    assert g.run_folders(str(work)) == {"cold": str(work / "cold"), "physics": str(work / "physics"),
+                                        "paper/ppo/seed0": str(work / "paper/runs/ppo/seed0"),
+                                        "paper/sa-ppo/seed3": str(work / "paper/runs/sa-ppo/seed3")}
+    copied = g.collect_policies(str(work), str(policies))
+    assert set(copied) == {"cold", "physics", "paper/ppo/seed0", "paper/sa-ppo/seed3"}
+    assert all(v == {"copied": ["policy.npz"], "left_out": []} for v in copied.values())
+    assert (policies / "paper" / "results.md").read_text() == "| PPO |" and not (policies / "unrelated").exists()
+
+
 def test_a_stopped_command_that_ignores_sigterm_is_killed_after_the_grace(tmp_path: pytest.TempPathFactory) -> None:
     cmd = [sys.executable, "-c", "import signal, time; signal.signal(signal.SIGTERM, signal.SIG_IGN); "
            "print('up', flush=True); time.sleep(60)"]
@@ -123,6 +139,7 @@ def test_gpu_check_quick_writes_sane_json(tmp_path: pytest.TempPathFactory) -> N
     with open(out, encoding="utf-8") as f:
         result = json.load(f)
     assert result["quick"] is True and result["backend"] == "cpu" and 0 < result["wall_s"] <= result["budget_s"] == 900
+    assert result["complete"] is True
     sections = result["sections"]
     assert set(sections) == set(g.SECTIONS)  # the JSON sorts its keys; the table keeps the order
 
