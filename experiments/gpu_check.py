@@ -389,6 +389,11 @@ def recorded_training(work: str, name: str, args: Sequence[str], cache_dir: str 
                                               env=child_env(cache_dir), grace_s=GRACE_S)
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     clock.stamp(rows, wall)  # rows written after the last poll: seen at the exit
+    record = None
+    if os.path.isfile(record_path):
+        with open(record_path, encoding="utf-8") as f:
+            record = json.load(f)
+        code = record["exit"] if code == 0 else code  # the recorder's process ends 0 whatever train.main returned
     if stopped is None and code != 0:
         with open(log, encoding="utf-8") as f:
             tail = f.read().strip().splitlines()[-4:]
@@ -405,9 +410,7 @@ def recorded_training(work: str, name: str, args: Sequence[str], cache_dir: str 
         "load": os.getloadavg(), "clock": f"metrics rows stamped when first seen, polled every {POLL_S} s",
         **run_summary(rows, clock.seen_at),
     }
-    if os.path.isfile(record_path):
-        with open(record_path, encoding="utf-8") as f:
-            record = json.load(f)
+    if record is not None:
         record.update(process_wall_s=wall, process_user_s=after.ru_utime - before.ru_utime,
                       process_sys_s=after.ru_stime - before.ru_stime)
         out["compile"] = compile_breakdown(record)
@@ -710,7 +713,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     os.makedirs(work, exist_ok=True)
     quick = args.quick
     own_cache = lambda name: None if quick else os.path.join(work, f"cache-{name}")  # noqa: E731
-    info = child_json("device_info()", 120.0)
+    try:
+        info = child_json("device_info()", 120.0)
+    except (RuntimeError, TimeoutError) as exc:  # the sections still run and say what they can
+        info = {"device": f"unknown ({str(exc)[-300:]})", "backend": "unknown", "device_count": None, "versions": {}}
     result: dict[str, Any] = {
         "complete": False, "quick": quick, **info, "machine": f"{platform.node()} {study.machine()}", "budget_s": args.budget_s,
         "command": study.command("gpu_check", argv), "git": study.git_state(), "work": work, "sections": {},

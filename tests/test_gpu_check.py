@@ -109,6 +109,15 @@ def test_a_stopped_command_that_ignores_sigterm_is_killed_after_the_grace(tmp_pa
     assert 2.0 <= wall < 10.0 and time.perf_counter() - t < 10.0
 
 
+def test_a_recorded_training_that_fails_raises_with_the_trainers_own_status(tmp_path: pytest.TempPathFactory) -> None:
+    """The recorder's process ends 0 whatever ``train.main`` returned: the check reads the status from its record."""
+    with pytest.raises(RuntimeError, match=r"--preset nope .*exited 2: .*unknown preset 'nope'"):
+        g.recorded_training(str(tmp_path), "bad", ["--preset", "nope", "--seed", "0"], str(tmp_path / "cache"),
+                            time.perf_counter() + 120.0)
+    with open(tmp_path / "bad.record.json", encoding="utf-8") as f:
+        assert json.load(f)["exit"] == 2
+
+
 # ---------------------------------------------------------------------- --quick end to end
 
 def _training(row: dict, preset: str, num_envs: int) -> None:
@@ -128,7 +137,7 @@ def _training(row: dict, preset: str, num_envs: int) -> None:
     assert all(p["cache"] in ("hit", "miss", "off") for p in programs)
     assert any((p["called_at"] or "").startswith("training/trainer.py") for p in programs)
     assert max(p["hlo_instructions"] or 0 for p in programs) > 1000  # the training program itself
-    assert row["cache_entries_after"] >= row["cache_entries_before"] > 0
+    assert row["cache_entries_after"] >= row["cache_entries_before"] and row["cache_entries_after"] > 0
 
 
 def test_gpu_check_quick_writes_sane_json(tmp_path: pytest.TempPathFactory) -> None:
