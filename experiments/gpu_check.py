@@ -529,7 +529,7 @@ def paper_section(quick: bool, work: str, cache_dir: str | None, end: float) -> 
         os.makedirs(cache_dir, exist_ok=True)
     entries_before = readme_line.cache_files(cache_dir or os.environ["JAX_COMPILATION_CACHE_DIR"])[0]
     first = os.path.join(runs_dir, "ppo", study.SEED_FOLDER.format(seed=0), run_dir.METRICS_FILE)
-    stop = lambda rows, since: (f"the budget ({since:.0f} s after launch)"  # noqa: E731
+    stop = lambda rows, since: ("the budget"  # noqa: E731
                                 if time.perf_counter() >= end else None)
     log = os.path.join(work, "paper.log")
     rows, stopped, code, wall = watch_trainer([sys.executable, "-m", "experiments.reproduce_paper", *args], ROOT, log,
@@ -653,8 +653,8 @@ def table(result: dict[str, Any]) -> str:
             done = sum(r["env_steps"] for seeds in row["progress"].values() for r in seeds.values())
             reach = "; ".join(f"{algo} " + ", ".join(f"{r['env_steps']:,}" for r in seeds.values())
                               for algo, seeds in row["progress"].items())
-            head = ("finished" if row["finished"] else f"STOPPED at {row['stopped_by']}, NOT finished: no table") + \
-                f" after {row['wall_s']:.0f} s"
+            head = (f"finished in {row['wall_s']:.0f} s" if row["finished"] else
+                    f"STOPPED at {row['stopped_by']} after {row['wall_s']:.0f} s, NOT finished (no table)")
             lines.append(f"paper     {row['seeds']} seeds x 2 algorithms, {row['env_steps_per_run']:,} env steps per run: "
                          f"{head}; env steps reached {reach} ({done:,} in all)")
             if row["table"] is not None:

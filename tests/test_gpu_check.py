@@ -118,6 +118,30 @@ def test_a_recorded_training_that_fails_raises_with_the_trainers_own_status(tmp_
         assert json.load(f)["exit"] == 2
 
 
+def test_a_recorded_training_is_stopped_at_its_end(tmp_path: pytest.TempPathFactory) -> None:
+    """SIGTERMed 3 s after launch (before its first iteration can end): the trainer's status 143, or killed
+    before its handler was up, and the row says it was the budget."""
+    row = g.recorded_training(str(tmp_path), "cold", g.training_args(True), None, time.perf_counter() + 3.0)
+    assert row["stopped_by"].startswith("the budget (its section's end") and row["exit"] in (143, -15), row
+    assert row["env_steps"] == 0 and row["first_99"] is None and row["process_wall_s"] < 3.0 + g.GRACE_S + 5.0
+    assert (row["compile"] is None) == (row["exit"] == -15)
+
+
+def test_the_budget_skips_a_section_saying_why(tmp_path: pytest.TempPathFactory) -> None:
+    """``--budget-s 0.5`` is spent by the device probe: every section is a skipped row with its reason, and the
+    JSON is complete."""
+    out = str(tmp_path / "g.json")
+    assert g.main(["--quick", "--sections", "warm,cold", "--budget-s", "0.5", "--out", out,
+                   "--work", str(tmp_path / "work")]) == 0
+    with open(out, encoding="utf-8") as f:
+        result = json.load(f)
+    assert result["complete"] is True and result["backend"] == "cpu" and result["wall_s"] > 0.5
+    for name in ("cold", "warm"):
+        row = result["sections"][name]
+        assert row["status"] == "skipped" and row["reason"].startswith("skipped: 0 s of --budget-s 0 left for it")
+    assert any(line.startswith("warm      skipped: 0 s") for line in result["table"])
+
+
 # ---------------------------------------------------------------------- --quick end to end
 
 def _training(row: dict, preset: str, num_envs: int) -> None:
