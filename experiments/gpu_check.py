@@ -118,7 +118,7 @@ import sys
 import time
 import traceback
 from dataclasses import dataclass
-from typing import Any, Callable, NamedTuple, Sequence
+from typing import Any, Callable, Sequence
 
 from experiments import readme_line, study
 from experiments.study import watch_trainer

@@ -67,6 +67,17 @@ def test_rows_are_timed_from_the_launch_at_which_they_were_first_seen() -> None:
     assert g.run_summary([], [])["first_99"] is None
 
 
+def test_quick_trains_the_suites_own_runs_so_the_compilation_cache_serves_it() -> None:
+    from test_experiments import TINY_SETS
+    from tiny_run import TINY_ARGS
+
+    assert sorted(g.TINY) == sorted(TINY_ARGS[i + 1] for i, a in enumerate(TINY_ARGS) if a == "--set")
+    assert TINY_ARGS[TINY_ARGS.index("--total-steps") + 1] == str(g.size("train_steps", True)) == "1024"
+    assert TINY_ARGS[TINY_ARGS.index("--preset") + 1] == g.size("train_preset", True)
+    assert list(g.PAPER_TINY) == TINY_SETS  # test_reproduce_paper_smoke's study: 8,192 steps, 2 seeds, 16 episodes
+    assert (g.size("paper_steps", True), g.size("paper_seeds", True), g.size("paper_eval_episodes", True)) == (8192, 2, 16)
+
+
 def test_copy_run_files_takes_the_small_files_and_no_checkpoint(tmp_path: pytest.TempPathFactory,
                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
     run, dest = tmp_path / "run", tmp_path / "policies" / "cold"
