@@ -416,7 +416,7 @@ def recorded_training(work: str, name: str, args: Sequence[str], cache_dir: str 
         out["compile"] = compile_breakdown(record)
         out["peak_device_memory_bytes"] = record.get("peak_device_memory_bytes")
     else:  # killed before the recorder wrote its record
-        out["compile"] = None
+        out["compile"] = out["peak_device_memory_bytes"] = None
     return out
 
 

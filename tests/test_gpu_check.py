@@ -135,7 +135,7 @@ def test_a_recorded_training_is_stopped_at_its_end(tmp_path: pytest.TempPathFact
     row = g.recorded_training(str(tmp_path), "cold", g.training_args(True), None, time.perf_counter() + 3.0)
     assert row["stopped_by"].startswith("the budget (its section's end") and row["exit"] in (143, -15), row
     assert row["env_steps"] == 0 and row["first_99"] is None and row["process_wall_s"] < 3.0 + g.GRACE_S + 5.0
-    assert (row["compile"] is None) == (row["exit"] == -15)
+    assert (row["compile"] is None) == (row["exit"] == -15) and row["peak_device_memory_bytes"] is None
 
 
 def test_the_budget_skips_a_section_saying_why(tmp_path: pytest.TempPathFactory) -> None:
