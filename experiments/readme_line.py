@@ -489,6 +489,7 @@ def _compile_once(command: str, args: list[str], out: str, serial: bool = False)
     t2, c2 = time.perf_counter(), time.process_time()
     rows = recorder.programs()
     cache_dir = jax.config.jax_compilation_cache_dir
+    memory = jax.devices()[0].memory_stats()  # None on CPUs
     for row in rows:
         recorder.sizes(row, cache_dir)
     with open(out, "w") as f:
@@ -499,22 +500,30 @@ def _compile_once(command: str, args: list[str], out: str, serial: bool = False)
                    "programs": rows, "unmatched_events": recorder.unmatched,
                    "versions": {"jax": jax.__version__, "jaxlib": importlib.metadata.version("jaxlib"),
                                 "mujoco": importlib.metadata.version("mujoco")},
-                   "xla_flags": os.environ.get("XLA_FLAGS", ""), "devices": jax.device_count()}, f, indent=1)
+                   "xla_flags": os.environ.get("XLA_FLAGS", ""), "devices": jax.device_count(),
+                   "device": str(jax.devices()[0]),
+                   "peak_device_memory_bytes": memory.get("peak_bytes_in_use") if memory else None}, f, indent=1)
 
 
-def _cache_files(cache_dir: str) -> tuple[int, int]:
+def cache_files(cache_dir: str) -> tuple[int, int]:
     """(entries, bytes) of a compilation cache folder."""
     files = [os.path.join(cache_dir, f) for f in os.listdir(cache_dir)] if os.path.isdir(cache_dir) else []
     files = [f for f in files if f.endswith("-cache")]
     return len(files), sum(os.path.getsize(f) for f in files)
 
 
+def record_command(command: str, args: list[str], out: str, serial: bool = False) -> list[str]:
+    """The argv of a fresh Python that runs ``command`` (train / evaluate) with ``args`` under the
+    ``CompileRecorder`` and writes its record to ``out`` (``_compile_once``); run it from ``ROOT``."""
+    code = f"import experiments.readme_line as m; m._compile_once({command!r}, {args!r}, {out!r}, {serial!r})"
+    return [sys.executable, "-c", code]
+
+
 def _run_recorded(command: str, args: list[str], cache_dir: str, out: str, serial: bool = False) -> dict[str, Any]:
     """``command`` in a fresh process on ``cache_dir``; its record, with the process's wall and CPU seconds."""
     env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=cache_dir)
-    code = f"import experiments.readme_line as m; m._compile_once({command!r}, {args!r}, {out!r}, {serial!r})"
     before, load_before, t = resource.getrusage(resource.RUSAGE_CHILDREN), os.getloadavg(), time.perf_counter()
-    done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True)
+    done = subprocess.run(record_command(command, args, out, serial), cwd=ROOT, env=env, capture_output=True, text=True)
     wall = time.perf_counter() - t
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     if done.returncode:
@@ -535,7 +544,7 @@ def measure_compile(cycles: int, cache: str, evaluate: bool, cache_dir: str | No
     commands = readme_commands(os.path.join(ROOT, "README.md"))
     tmp = tempfile.mkdtemp(prefix="compile_breakdown_")
     cache_dir = os.path.abspath(cache_dir or os.path.join(tmp, "jax-cache"))
-    filled = _cache_files(cache_dir)[0] > 0
+    filled = cache_files(cache_dir)[0] > 0
     passes = {"cold": ["cold"], "both": ["cold", "warm"], "warm": ["warm"] if filled else ["fill", "warm"]}[cache]
     if "cold" in passes and filled:
         raise SystemExit(f"{cache_dir} holds cache entries: a cold pass needs an empty folder")
@@ -558,14 +567,14 @@ def measure_compile(cycles: int, cache: str, evaluate: bool, cache_dir: str | No
             metrics = [json.loads(r) for r in open(os.path.join(run, "metrics.jsonl"))]
             records["train"]["trainer_compile"] = {k: metrics[-1].get(k) for k in
                                                    ("compile_s", "compile_iteration_s", "compile_eval_s")}
-            records["cache_after"] = dict(zip(("entries", "bytes"), _cache_files(cache_dir)))
+            records["cache_after"] = dict(zip(("entries", "bytes"), cache_files(cache_dir)))
             out["passes"][label] = records
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return out
 
 
-def _compile_totals(record: dict[str, Any]) -> dict[str, Any]:
+def compile_totals(record: dict[str, Any]) -> dict[str, Any]:
     rows = record["programs"]
     total = lambda key: sum(r[key] or 0.0 for r in rows)  # noqa: E731
     return {"programs": len(rows), "hits": sum(r["cache"] == "hit" for r in rows),
@@ -613,7 +622,7 @@ def print_compile(data: dict[str, Any], smallest_s: float = 0.5) -> None:
                 print(f"{f'{len(rest)} programs under {smallest_s} s':57s} {s('trace_wall_s'):7.2f} "
                       f"{s('lower_wall_s'):7.2f} {s('own_compile_s'):9.2f} {s('own_compile_cpu_s'):7.2f}  {hits:6d} hits "
                       f"{s('stablehlo_ops'):9.0f} {s('hlo_instructions'):9.0f}")
-            t = _compile_totals(record)
+            t = compile_totals(record)
             print(f"{'all ' + str(t['programs']) + ' programs':57s} {t['trace_s']:7.2f} {t['lower_s']:7.2f} "
                   f"{t['compile_s']:9.2f} {'':8s} {t['hits']:6d} hits")
             for r in rows:

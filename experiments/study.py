@@ -424,11 +424,13 @@ def load_curves(study: Study, variant: str) -> list[list[dict[str, Any]]]:
 def watch_trainer(cmd: list[str], cwd: str, log_path: str, metrics_path: str, poll_s: float,
                   stop_reason: Callable[[list[dict[str, Any]], float], str | None],
                   env: dict[str, str] | None = None, on_poll: Callable[[int], None] | None = None,
-                  ) -> tuple[list[dict[str, Any]], str | None, int | None, float]:
+                  grace_s: float = 120.0) -> tuple[list[dict[str, Any]], str | None, int | None, float]:
     """Run a trainer command (output to ``log_path``), reading its ``metrics.jsonl`` every ``poll_s``
     seconds; ``stop_reason(rows, seconds since launch)`` returning a reason SIGTERMs it (it
-    checkpoints and exits).  ``on_poll(pid)`` samples the process (e.g. its memory).  Returns the
-    final metric rows, the stop reason (None: it exited by itself), its exit code and the wall time."""
+    checkpoints and exits), and one still running ``grace_s`` later is killed (a caller under a deadline
+    cannot wait long).  ``on_poll(pid)`` samples the process (e.g. its memory).  Returns the final metric
+    rows, the stop reason (None: it exited by itself), its exit code (negative: the signal that ended it)
+    and the wall time."""
     stopped: str | None = None
     t0 = time.perf_counter()
     with open(log_path, "w", encoding="utf-8") as log:
@@ -443,7 +445,11 @@ def watch_trainer(cmd: list[str], cwd: str, log_path: str, metrics_path: str, po
                 if stopped:
                     proc.send_signal(signal.SIGTERM)
                     break
-            proc.wait(timeout=120)
+            try:
+                proc.wait(timeout=grace_s)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
         finally:
             if proc.poll() is None:
                 proc.kill()
