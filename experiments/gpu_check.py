@@ -86,12 +86,13 @@ Here, from the repository root (``.whl/`` kept out of git by ``.git/info/exclude
         --platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64 \\
         --platform manylinux2014_x86_64 --platform manylinux1_x86_64 -d .whl \\
         mujoco==3.17.0 mujoco-mjx==3.17.0 brax==0.14.2 jaxopt==0.8.5 trimesh==5.2.0 glfw==2.11.0 \\
-        tensorboardX==2.6.5 warp-lang==1.18.0
+        tensorboardX==2.6.5 warp-lang==1.18.0 matplotlib contourpy cycler fonttools kiwisolver pyparsing \\
+        python-dateutil six packaging
 
 (the distributions that ``sagrasp_jax.train``, ``evaluate`` and ``env`` import, less what the machine
-has; the paper section's plots need matplotlib too: add ``matplotlib`` and its small dependencies, or its
-row is an error after the training).  Sizes: mujoco 26.7 MB, mujoco-mjx 7.3 MB, the others under 1 MB each,
-36 MB in all, under the 64 MiB that one device call carries; warp-lang is 149 MB, over it, so leave it out
+has; matplotlib and the packages after it are the paper section's plots: without them its row is an error
+after the training).  Sizes: mujoco 26.7 MB, mujoco-mjx 7.3 MB, matplotlib 9.9 MB, fonttools 5.4 MB, kiwisolver
+1.5 MB, the others under 1 MB each, 53 MB in all, under the 64 MiB that one device call carries; warp-lang is 149 MB, over it, so leave it out
 (delete it from ``.whl``) and the warp rows say "not installed", unless it reaches the machine another way.
 Then on the GPU machine, with ``.whl`` carried, one command (the check's own children inherit
 ``PYTHONPATH``):
