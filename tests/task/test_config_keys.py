@@ -27,9 +27,10 @@ def test_list_keys_shows_meaning_value_and_valid_values(capsys):
     for key, doc in config.key_descriptions().items():
         assert f"\n{key} = " in text, key
         assert doc.split()[0] in text
-    assert "ppo.num_envs = 4096  (int; in [1, 16777216])  [paper 16; cpu-quick 256]" in text
+    assert "ppo.num_envs = 4096  (int; in [1, 16777216])  [paper 16; cpu-quick 256; cpu-physics 256]" in text
     assert "env.sampling.obstacle_kinds = sphere,cylinder,box  (list of str; each one of sphere, cylinder, box, capsule)" in text
-    assert "env.control.mode = lagged  (str; one of kinematic, dynamic, lagged)  [paper kinematic]" in text
+    assert ("env.control.mode = lagged  (str; one of kinematic, dynamic, lagged)  [paper kinematic; cpu-physics dynamic; "
+            "gpu-physics dynamic]") in text
     assert f"eval.episodes = {cfg.eval.episodes}" in text
 
 
