@@ -540,7 +540,7 @@ def _physics(base: Config) -> Config:
     armature, damping and contacts) instead of the ``lagged`` mode's fitted servo model, with the robot-grade
     transfer errors on top, so the policy meets in training the physics it is judged in (the ``robot``
     condition, the twin).  On a GPU the physics step costs little (docs/results.md); on 2 CPU cores it
-    trains at ≈ 0.4× the lagged mode's env-steps/s."""
+    trains at ≈ 0.7× the lagged mode's env-steps/s (docs/results-archive.md §25)."""
     return dataclasses.replace(base, env=dataclasses.replace(
         base.env, control=dataclasses.replace(base.env.control, mode="dynamic")))
 
