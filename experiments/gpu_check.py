@@ -251,6 +251,21 @@ def child_env(cache_dir: str | None) -> dict[str, str]:
     return dict(os.environ) if cache_dir is None else dict(os.environ, JAX_COMPILATION_CACHE_DIR=cache_dir)
 
 
+def cache_before(cache_dir: str | None) -> tuple[str, int]:
+    """The compilation cache folder a command will use (``cache_dir``, made if missing, or the shared one
+    ``sagrasp_jax`` chose) and how many entries it holds before the command runs."""
+    if cache_dir is not None:
+        os.makedirs(cache_dir, exist_ok=True)
+    path = cache_dir or os.environ["JAX_COMPILATION_CACHE_DIR"]
+    return path, readme_line.cache_files(path)[0]
+
+
+def log_tail(log: str, lines: int = 4) -> str:
+    """A command log's last lines, joined for an error message."""
+    with open(log, encoding="utf-8") as f:
+        return " | ".join(f.read().strip().splitlines()[-lines:])
+
+
 def cache_label(cache_dir: str | None, entries_before: int) -> str:
     """What a run's compilation cache was at its launch: ``shared`` (the user's), ``empty`` or ``filled``."""
     return "shared" if cache_dir is None else ("empty" if entries_before == 0 else "filled")
@@ -271,12 +286,13 @@ def joint_rollout(impl: str, envs: int, steps: int) -> Any:
         "env.control.mode=dynamic", f"env.control.impl={impl}", "env.task.obs_noise_std=0",
         "env.sampling.obstacle_prob=0"])
     env = GraspEnv(cfg.env)
-    actions = jax.random.uniform(jax.random.PRNGKey(3), (steps, envs, 6), minval=-1.0, maxval=1.0)
+    dof = env.action_size  # one action per arm joint
+    actions = jax.random.uniform(jax.random.PRNGKey(3), (steps, envs, dof), minval=-1.0, maxval=1.0)
 
     def run(keys: jax.Array) -> jax.Array:
         def body(st: Any, action: jax.Array) -> tuple[Any, jax.Array]:
             st = jax.vmap(env.step)(st, action)
-            return st, st.pipeline_state.qpos[:, :6]
+            return st, st.pipeline_state.qpos[:, :dof]
 
         return jax.lax.scan(body, jax.vmap(env.reset)(keys), actions)[1]
 
@@ -336,6 +352,11 @@ def first_at_level(rows: Sequence[dict[str, Any]], seen_at: Sequence[float], lev
     return None
 
 
+def last_eval_success(rows: Sequence[dict[str, Any]]) -> float | None:
+    """The latest fixed-seed evaluation's success among a run's metrics rows (None: none yet)."""
+    return next((r["eval_success"] for r in reversed(rows) if r.get("eval_success") is not None), None)
+
+
 def run_summary(rows: Sequence[dict[str, Any]], seen_at: Sequence[float]) -> dict[str, Any]:
     """A training's numbers from its metrics rows and their launch-relative stamps."""
     if not rows:
@@ -348,20 +369,18 @@ def run_summary(rows: Sequence[dict[str, Any]], seen_at: Sequence[float]) -> dic
         "compile_eval_s": last.get("compile_eval_s"),
         "median_iteration_env_steps_per_s": rates[len(rates) // 2] if rates else None,
         "overall_env_steps_per_s": last["env_steps"] / last["time_s"] if last.get("time_s") else None,
-        "last_eval_success": next((r["eval_success"] for r in reversed(rows) if r.get("eval_success") is not None),
-                                  None),
+        "last_eval_success": last_eval_success(rows),
         **{f"first_{round(100 * lv)}": first_at_level(rows, seen_at, lv) for lv in LEVELS},
     }
 
 
 def compile_breakdown(record: dict[str, Any]) -> dict[str, Any]:
     """The recorder's programs (longest first) and totals, in the check's compact form."""
-    spent = lambda r: sum(r[k] or 0.0 for k in ("trace_wall_s", "lower_wall_s", "own_compile_s"))  # noqa: E731
     programs = [{"program": r["program"], "called_at": r["called_at"], "trace_s": r["trace_wall_s"],
                  "lower_s": r["lower_wall_s"], "compile_s": r["own_compile_s"], "compile_cpu_s": r["own_compile_cpu_s"],
                  "cache": r["cache"], "stablehlo_ops": r.get("stablehlo_ops"),
                  "hlo_instructions": r.get("hlo_instructions"), "cache_entry_bytes": r.get("cache_entry_bytes")}
-                for r in sorted(record["programs"], key=lambda r: -spent(r))]
+                for r in sorted(record["programs"], key=lambda r: -readme_line.spent(r))]
     return {"programs": programs, "totals": readme_line.compile_totals(record), "imports_s": record["imports_s"],
             "main_s": record["main_s"], "exit": record["exit"], "devices": record["devices"],
             "device": record.get("device"), "versions": record["versions"],
@@ -374,10 +393,7 @@ def recorded_training(work: str, name: str, args: Sequence[str], cache_dir: str 
     run = os.path.join(work, name)
     record_path, log = os.path.join(work, f"{name}.record.json"), os.path.join(work, f"{name}.log")
     train_args = [*args, "--out", run, "--no-progress"]
-    if cache_dir is not None:
-        os.makedirs(cache_dir, exist_ok=True)
-    cache_path = cache_dir or os.environ["JAX_COMPILATION_CACHE_DIR"]
-    entries_before = readme_line.cache_files(cache_path)[0]
+    cache_path, entries_before = cache_before(cache_dir)
     clock = RowClock()
 
     def stop(rows: list[dict[str, Any]], since: float) -> str | None:
@@ -396,9 +412,7 @@ def recorded_training(work: str, name: str, args: Sequence[str], cache_dir: str 
             record = json.load(f)
         code = record["exit"] if code == 0 else code  # the recorder's process ends 0 whatever train.main returned
     if stopped is None and code != 0:
-        with open(log, encoding="utf-8") as f:
-            tail = f.read().strip().splitlines()[-4:]
-        raise RuntimeError(f"`python -m sagrasp_jax.train {' '.join(train_args)}` exited {code}: {' | '.join(tail)}")
+        raise RuntimeError(f"`python -m sagrasp_jax.train {' '.join(train_args)}` exited {code}: {log_tail(log)}")
     config_file = os.path.join(run, run_dir.CONFIG_FILE)
     out: dict[str, Any] = {
         "command": "python -m sagrasp_jax.train " + " ".join(train_args), "run": run,
@@ -498,8 +512,7 @@ def paper_progress(runs_dir: str, seeds: int) -> dict[str, dict[str, Any]]:
             rows = run_dir.read_metrics(file) if os.path.exists(file) else []
             out[algo][str(seed)] = {"env_steps": rows[-1]["env_steps"] if rows else 0,
                                     "policy": os.path.isfile(os.path.join(folder, run_dir.POLICY_FILE)),
-                                    "last_eval_success": next((r["eval_success"] for r in reversed(rows)
-                                                               if r.get("eval_success") is not None), None)}
+                                    "last_eval_success": last_eval_success(rows)}
     return out
 
 
@@ -526,9 +539,7 @@ def paper_section(quick: bool, work: str, cache_dir: str | None, end: float) -> 
     out_dir = args[args.index("--out-dir") + 1]
     runs_dir = os.path.join(out_dir, "runs")
     seeds = size("paper_seeds", quick)
-    if cache_dir is not None:
-        os.makedirs(cache_dir, exist_ok=True)
-    entries_before = readme_line.cache_files(cache_dir or os.environ["JAX_COMPILATION_CACHE_DIR"])[0]
+    entries_before = cache_before(cache_dir)[1]
     first = os.path.join(runs_dir, "ppo", study.SEED_FOLDER.format(seed=0), run_dir.METRICS_FILE)
     stop = lambda rows, since: ("the budget"  # noqa: E731
                                 if time.perf_counter() >= end else None)
@@ -538,11 +549,9 @@ def paper_section(quick: bool, work: str, cache_dir: str | None, end: float) -> 
     total = size("paper_steps", quick) or config.get_config(size("paper_preset", quick)).train.total_steps
     progress = paper_progress(runs_dir, seeds)
     if stopped is None and code != 0:  # e.g. the report's plots without matplotlib, after every run trained
-        with open(log, encoding="utf-8") as f:
-            tail = f.read().strip().splitlines()[-4:]
         reached = "; ".join(f"{a} " + ", ".join(f"{r['env_steps']:,}" for r in runs.values()) for a, runs in progress.items())
         raise RuntimeError(f"`python -m experiments.reproduce_paper {' '.join(args)}` exited {code} (env steps "
-                           f"reached: {reached} of {total:,} per run): {' | '.join(tail)}")
+                           f"reached: {reached} of {total:,} per run): {log_tail(log)}")
     out: dict[str, Any] = {"command": "python -m experiments.reproduce_paper " + " ".join(args),
                            "finished": stopped is None, "stopped_by": stopped or "finished", "exit": code,
                            "wall_s": wall, "env_steps_per_run": total, "seeds": seeds, "runs_dir": runs_dir,

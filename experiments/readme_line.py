@@ -585,7 +585,8 @@ def compile_totals(record: dict[str, Any]) -> dict[str, Any]:
             "process_cpu_s": record["process_user_s"] + record["process_sys_s"]}
 
 
-def _spent(row: dict[str, Any]) -> float:
+def spent(row: dict[str, Any]) -> float:
+    """A program's trace + lower + compile (or cache load) seconds, wall: what it cost the start-up."""
     return sum(row[k] or 0.0 for k in ("trace_wall_s", "lower_wall_s", "own_compile_s"))
 
 
@@ -606,16 +607,16 @@ def print_compile(data: dict[str, Any], smallest_s: float = 0.5) -> None:
                   f"{record['load_after'][0]:.1f})")
             print(f"{'program':22s} {'called at':34s} {'trace s':>7s} {'lower s':>7s} {'compile s':>9s} {'(CPU s)':>8s} "
                   f"{'cache':>11s} {'StableHLO':>9s} {'HLO instr':>9s} {'entry kB':>8s}")
-            rows = sorted(record["programs"], key=lambda r: -_spent(r))
+            rows = sorted(record["programs"], key=lambda r: -spent(r))
             for r in rows:
-                if _spent(r) < smallest_s:
+                if spent(r) < smallest_s:
                     continue
                 kb = "-" if r.get("cache_entry_bytes") is None else f"{r['cache_entry_bytes'] / 1e3:.0f}"
                 cpu = f(r["own_compile_cpu_s"]) + ("*" if r["beside"] else " ")
                 print(f"{r['program'][:22]:22s} {(r['called_at'] or '-')[:34]:34s} {f(r['trace_wall_s']):>7s} "
                       f"{f(r['lower_wall_s']):>7s} {f(r['own_compile_s']):>9s} {cpu:>8s} {r['cache']:>11s} "
                       f"{r.get('stablehlo_ops', 0):9d} {r.get('hlo_instructions', 0):9d} {kb:>8s}")
-            rest = [r for r in rows if _spent(r) < smallest_s]
+            rest = [r for r in rows if spent(r) < smallest_s]
             if rest:
                 s = lambda k: sum(r.get(k) or 0.0 for r in rest)  # noqa: E731
                 hits = sum(r["cache"] == "hit" for r in rest)
