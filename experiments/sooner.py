@@ -34,9 +34,10 @@ from experiments import compare_schedules
 
 # Every lever is measured over the shape `cpu-quick` had when these studies ran (4 epochs, entropy 1e-3, a 32×4
 # policy; 256 envs × 16-step unrolls, 4 minibatches, SA from lr 3e-4 decaying ×0.98): the preset now carries the
-# levers that won, and pinning the old shape keeps every recorded run of this table valid (same configs, same hashes).
+# levers that won, and pinning the old shape keeps every recorded run of this table valid (same configs, same hashes;
+# they compiled with the legacy CPU fusion emitter, as every run before docs/results-archive.md §26 did).
 BEFORE: tuple[str, ...] = ("ppo.num_epochs=4", "ppo.entropy_coef=1e-3", "ppo.network.policy_hidden=32,32,32,32",
-                           "ppo.learning_rate=3e-4", "sa.decay=0.98", "ppo.late_epochs=0")
+                           "ppo.learning_rate=3e-4", "sa.decay=0.98", "ppo.late_epochs=0", "train.cpu_fusion_emitters=legacy")
 
 # lever -> its overrides of BEFORE
 _LEVERS: dict[str, tuple[str, ...]] = {

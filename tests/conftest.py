@@ -59,9 +59,10 @@ def x64():
 # The PPO shape `cpu-quick` had before its time-to-quality levers (experiments.sooner.BEFORE): 4 epochs, entropy
 # 1e-3, a 32×4 policy, SA from lr 3e-4 decaying ×0.98, the same passes throughout.  The suite's short runs keep it: their checks were sized
 # with it, and eight epochs of a policy twice as wide would make every short run half again as slow without
-# testing anything more.
+# testing anything more.  They keep the legacy CPU fusion emitter too (the numbers their checks were sized on);
+# tests/training/test_train.py checks that the preset's new emitters reach every program the trainer compiles.
 SUITE_PPO = ["ppo.num_epochs=4", "ppo.entropy_coef=1e-3", "ppo.network.policy_hidden=32,32,32,32",
-             "ppo.learning_rate=3e-4", "sa.decay=0.98", "ppo.late_epochs=0"]
+             "ppo.learning_rate=3e-4", "sa.decay=0.98", "ppo.late_epochs=0", "train.cpu_fusion_emitters=legacy"]
 
 
 def toy_config(cycles: int = 6, algo: str = "sa-ppo", extra: list[str] | None = None,

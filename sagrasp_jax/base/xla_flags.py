@@ -141,3 +141,24 @@ def apply(environ: "os._Environ[str] | dict[str, str]" = os.environ) -> str | No
     if value is not None:
         environ["XLA_FLAGS"] = value
     return value
+
+
+# Per program, the other way (config key ``train.cpu_fusion_emitters``): the trainer's programs of the lagged and
+# kinematic env run 15-20 % faster per cycle on 2 cores with XLA's new fusion emitters (docs/results-archive.md
+# §25), which MJX's physics step does not; a compile option overrides the process's flag for one program.  jaxlib
+# < 0.11 has it as a DebugOptions field; jaxlib >= 0.11 keeps the switch in the backend-options map, which a
+# compile option cannot set ("is not a valid message value"), so there the process's emitter stays.
+NEW_EMITTERS_OPTION: dict[str, bool] = {"xla_cpu_use_fusion_emitters": True}
+
+
+def emitter_options(choice: str, backend: str, jaxlib_version: str | None) -> tuple[dict[str, bool], str | None]:
+    """The XLA compile options that give one program ``choice``'s CPU fusion emitters ("legacy": the
+    process's, nothing to add; "new"), and a note for the log where the choice cannot be honoured."""
+    if choice not in ("legacy", "new"):
+        raise ValueError(f"cpu fusion emitters {choice!r}: valid are legacy, new")
+    if choice == "legacy" or backend != "cpu":
+        return {}, None
+    if jaxlib_version is not None and parse_version(jaxlib_version) >= (0, 11):
+        return {}, (f"train.cpu_fusion_emitters=new: jaxlib {jaxlib_version} cannot choose the emitter per program; "
+                    "the trainer compiles with the process's (XLA_FLAGS)")
+    return dict(NEW_EMITTERS_OPTION), None

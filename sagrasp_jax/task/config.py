@@ -39,6 +39,7 @@ PhysicsImpl = Literal["jax", "warp"]  # env.control.impl
 RcMode = Literal["entry", "per_step"]  # env.reward.rc_mode (reward.py)
 NearMissMode = Literal["change", "per_step"]  # env.reward.near_miss_mode (reward.py)
 ObsLayout = Literal["paper", "relative", "relative_lag"]  # env.task.obs_layout (observation.py)
+FusionEmitters = Literal["legacy", "new"]  # train.cpu_fusion_emitters (training/trainer.py, base/xla_flags.py)
 ObstacleGeometry = Literal["fine", "cover"]  # env.task.obstacle_geometry (collision.py)
 ShapeName = Literal[shapes.NAMES]  # type: ignore[valid-type]  # env.sampling.obstacle_kinds (shapes.py; live: _kinds_changed)
 RobotName = Literal[robots.names()]  # type: ignore[valid-type]  # env.robot (robots.py; live: _robots_changed)
@@ -447,6 +448,13 @@ class TrainConfig:
         "", "Run folder whose final checkpoint's policy, value network and observation normaliser start this run "
         "(train --init-from; e.g. a kinematic run fine-tuned in dynamic mode); optimizer and SA schedule start "
         'fresh.  "" = none')
+    cpu_fusion_emitters: FusionEmitters = key(
+        "legacy", "XLA's CPU fusion emitters for the trainer's programs (the training call, the SA evaluation, the first "
+        "reset, the initial state): new = XLA's fusion emitters, 15-20 %% less time per cycle of the lagged or kinematic "
+        "env on 2 cores for a few seconds more compile, other numbers than legacy at the same quality over 5 seeds "
+        "(docs/results-archive.md §25-26); legacy = the process's emitter, which the package sets to XLA's legacy one "
+        "because MJX's physics step (the dynamic mode) runs 1.5x faster with it.  The CPU only; a jaxlib >= 0.11 "
+        "cannot set it per program, and the trainer says so and keeps the process's".replace("%%", "%"))
 
 
 @dataclass(frozen=True)
@@ -520,11 +528,13 @@ def _cpu_quick() -> Config:
     # five seeds, better than constant lr on every seed (docs/results-archive.md §10, "SA from lr 6e-4 with a
     # twice-as-steep plateau decay" and the README command's rows after it). After 30 % of the budget (the climb
     # to 98 % is over by then on every seed) four of the eight passes: the same policy over five seeds at 0.68x
-    # the iteration's time (docs/results-archive.md §15).
-    return _sized(_robot_grade(_obstacle_aware(_upright_approach(Config()))), num_envs=256, num_minibatches=4,
-                  network=NetworkConfig(policy_hidden=(64, 64, 64, 64), value_hidden=(64, 64, 64)),
-                  eval_episodes=128, total_steps=10_000_000, num_epochs=8, entropy_coef=3e-3,
-                  learning_rate=6e-4, sa_decay=0.96, late_epochs=4)  # ppo.late_from: its default, 0.3
+    # the iteration's time (docs/results-archive.md §15). The trainer's programs compile with XLA's new fusion
+    # emitters: 15-20 % less time per cycle on 2 cores, the same quality over 5 seeds (docs/results-archive.md §25-26).
+    sized = _sized(_robot_grade(_obstacle_aware(_upright_approach(Config()))), num_envs=256, num_minibatches=4,
+                   network=NetworkConfig(policy_hidden=(64, 64, 64, 64), value_hidden=(64, 64, 64)),
+                   eval_episodes=128, total_steps=10_000_000, num_epochs=8, entropy_coef=3e-3,
+                   learning_rate=6e-4, sa_decay=0.96, late_epochs=4)  # ppo.late_from: its default, 0.3
+    return dataclasses.replace(sized, train=dataclasses.replace(sized.train, cpu_fusion_emitters="new"))
 
 
 def _gpu() -> Config:
@@ -542,7 +552,8 @@ def _physics(base: Config) -> Config:
     condition, the twin).  On a GPU the physics step costs little (docs/results.md); on 2 CPU cores it
     trains at ≈ 0.7× the lagged mode's env-steps/s (docs/results-archive.md §25)."""
     return dataclasses.replace(base, env=dataclasses.replace(
-        base.env, control=dataclasses.replace(base.env.control, mode="dynamic")))
+        base.env, control=dataclasses.replace(base.env.control, mode="dynamic")),
+        train=dataclasses.replace(base.train, cpu_fusion_emitters="legacy"))  # MJX's physics: the legacy emitter
 
 
 def _cpu_physics() -> Config:

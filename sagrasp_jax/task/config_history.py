@@ -53,7 +53,8 @@ RESPELLED_VALUES: dict[str, tuple[Any, Any]] = {"train.obstacle_prob": (-1.0, No
 ADDED_KEYS: dict[str, Any] = {"env.reward.tilt_weight": 0.0, "env.reward.tilt_free_deg": 5.0, "env.reward.tilt_near": 0.0,
                               "train.curriculum_replay": 0.0, "train.curriculum_max_replays": 8,
                               "env.task.obs_obstacle_shape": False, "train.stop_success": 0.0, "train.stop_cycles": 20,
-                              "ppo.late_epochs": 0, "ppo.late_from": 0.3, "env.robot": "aubo_i5"}
+                              "ppo.late_epochs": 0, "ppo.late_from": 0.3, "env.robot": "aubo_i5",
+                              "train.cpu_fusion_emitters": "legacy"}
 
 
 def current_name(name: str) -> str:

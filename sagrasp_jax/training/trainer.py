@@ -17,6 +17,7 @@ from typing import Any, Callable, TextIO
 
 import jax
 
+from sagrasp_jax.base import xla_flags
 from sagrasp_jax.task import observation
 from sagrasp_jax.task.config import Config, ConfigError, training_env_config
 from sagrasp_jax.training import (
@@ -68,6 +69,11 @@ class Trainer:
         if cfg.ppo.num_envs % self.mesh.size:
             raise ConfigError(f"ppo.num_envs={cfg.ppo.num_envs} must be divisible by the {self.mesh.size} devices")
         self.train_env, self.eval_env = (env_factory or default_envs)(cfg)
+        # XLA options of every program the trainer compiles (train.cpu_fusion_emitters); seeds of a group share them
+        self.compiler_options, note = xla_flags.emitter_options(cfg.train.cpu_fusion_emitters, jax.default_backend(),
+                                                                xla_flags.installed_jaxlib_version())
+        if note and self.primary:
+            print(note, file=self.stream)
         self.obs_size, self.action_size = self.train_env.observation_size, self.train_env.action_size
         self.schedule = cycles.make_schedule(cfg)
         self.critic_extra = observation.critic_extra_size(cfg)  # privileged critic inputs (0: none)
@@ -96,8 +102,9 @@ class Trainer:
         self._compiled_eval: Any = None
         self.compile_s: dict[str, float] = {}
         resumed = resume if isinstance(resume, list) else [resume] * len(self.seeds)
-        self._reset = rollout.make_reset(self.train_env, self.mesh)
-        self._init_state = actor_critic.jitted_init_training_state(self.networks, self.optimizer, self.obs_size)
+        self._reset = rollout.make_reset(self.train_env, self.mesh, self.compiler_options)
+        self._init_state = actor_critic.jitted_init_training_state(self.networks, self.optimizer, self.obs_size,
+                                                                   self.compiler_options)
         self.runner = self.seed_group.place(self._fresh_one(c, r) for c, r in zip(self.cfgs, resumed))
         if any(resumed):
             group_checkpoint.load(self.seed_group, group_checkpoint.paths(self.seed_group, resumed), self.rule)
@@ -148,9 +155,10 @@ class Trainer:
             t = time.perf_counter()
             lowered = self._cycle.lower(*self._cycle_args([1] * len(self.seeds)))
             with concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="compile-training-call") as pool:
-                cycle = pool.submit(lambda: (lowered.compile(), time.perf_counter() - t))
+                options = self.compiler_options or None
+                cycle = pool.submit(lambda: (lowered.compile(compiler_options=options), time.perf_counter() - t))
                 ts = self.seed_group.train_state_of(0)
-                compiled_eval = self._evaluate.lower(ts.params, ts.normaliser, self.eval_keys).compile()
+                compiled_eval = self._evaluate.lower(ts.params, ts.normaliser, self.eval_keys).compile(options)
                 eval_s = time.perf_counter() - t
                 self._compiled_cycle, cycle_s = cycle.result()  # re-raises the worker's error here
             self._compiled_eval = compiled_eval

@@ -33,6 +33,47 @@ def test_user_flags_are_kept_and_a_user_choice_wins():
     assert xla_flags.choose_flags({}, None, ()) is None  # no jaxlib: the robot side
 
 
+@pytest.mark.parametrize("choice, backend, version, options, noted", [
+    ("legacy", "cpu", "0.10.2", {}, False),
+    ("new", "cpu", "0.10.2", {"xla_cpu_use_fusion_emitters": True}, False),
+    ("new", "cpu", None, {"xla_cpu_use_fusion_emitters": True}, False),
+    ("new", "gpu", "0.10.2", {}, False),  # a GPU compiles with its own emitters: nothing to choose
+    ("new", "cpu", "0.11.2", {}, True),  # the switch is a backend-options map entry there: not per program
+    ("new", "cpu", "0.12.0.1", {}, True),
+])
+def test_emitter_options_per_program(choice, backend, version, options, noted):
+    got, note = xla_flags.emitter_options(choice, backend, version)
+    assert got == options
+    assert (note is not None) == noted
+    if noted:
+        assert version in note and "cpu_fusion_emitters" in note
+
+
+def test_emitter_options_refuse_an_unknown_choice():
+    with pytest.raises(ValueError, match="'fast'.*legacy, new"):
+        xla_flags.emitter_options("fast", "cpu", "0.10.2")
+
+
+def test_the_per_program_option_reaches_this_jaxlibs_xla():
+    """The option changes the compiled program on the installed jaxlib (a program of elementwise chains, as the
+    env's are): were it ignored, "new" would quietly train with the process's emitter."""
+    import jax
+    import jax.numpy as jnp
+
+    def chain(x):
+        for i in range(8):
+            x = jnp.sin(x) * jnp.cos(x * 1.0001 + i) + jnp.tanh(x)
+        return x.sum()
+
+    x = jnp.linspace(0.0, 1.0, 4096)
+    options, _ = xla_flags.emitter_options("new", jax.default_backend(), xla_flags.installed_jaxlib_version())
+    assert options, "the suite runs on a CPU with jaxlib < 0.11"
+    legacy = jax.jit(chain).lower(x).compile()
+    new = jax.jit(chain).lower(x).compile(compiler_options=options)
+    assert legacy.as_text() != new.as_text()
+    assert abs(float(legacy(x)) - float(new(x))) <= 1e-4 * abs(float(legacy(x)))
+
+
 def test_only_where_jax_runs_on_the_cpu():
     assert xla_flags.choose_flags({}, "0.11.2", ("xla_cuda12",)) is None
     assert xla_flags.choose_flags({"JAX_PLATFORMS": "cuda"}, "0.11.2", ()) is None

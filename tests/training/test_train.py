@@ -109,6 +109,23 @@ def test_the_trainer_traces_the_training_envs_reset_once(tmp_path):
     assert tuple(tr.runner.window["values"]) == tr.window_keys
 
 
+def test_the_emitter_choice_reaches_every_program_the_trainer_compiles(tmp_path):
+    """train.cpu_fusion_emitters=new compiles the training call, the SA evaluation, the first reset and the
+    initial state with XLA's new fusion emitters (other executables than legacy's); legacy adds no option."""
+    texts = {}
+    for choice in ("legacy", "new"):
+        cfg = toy_config(extra=[f"train.cpu_fusion_emitters={choice}"])
+        tr = train.Trainer(cfg, str(tmp_path / choice), env_factory=toy_factory(), progress=False)
+        assert tr.compiler_options == ({} if choice == "legacy" else {"xla_cpu_use_fusion_emitters": True})
+        tr.compile()
+        keys = jax.random.split(jax.random.PRNGKey(0), cfg.ppo.num_envs)
+        texts[choice] = (tr._compiled_cycle.as_text(), tr._compiled_eval.as_text(),
+                         tr._reset.lower(keys).compile().as_text(),
+                         tr._init_state.lower(jax.random.PRNGKey(0)).compile().as_text())
+    for program, legacy, new in zip(("training call", "evaluation", "reset", "initial state"), *texts.values()):
+        assert legacy != new, program
+
+
 def test_sa_reject_restores_the_snapshot_bit_for_bit(tmp_path):
     cfg = toy_config(extra=["sa.max_rollbacks=3", "sa.patience=5"])
     tr = train.Trainer(cfg, str(tmp_path), env_factory=toy_factory(), progress=False)

@@ -138,12 +138,14 @@ def init_training_state(key: jax.Array, networks: PPONetworks, optimizer: optax.
 RUN_ONCE_COMPILE = {"xla_backend_optimization_level": 0}
 
 
-def jitted_init_training_state(networks: PPONetworks, optimizer: optax.GradientTransformation,
-                               obs_size: int) -> Callable[[jax.Array], TrainingState]:
+def jitted_init_training_state(networks: PPONetworks, optimizer: optax.GradientTransformation, obs_size: int,
+                               compiler_options: dict[str, Any] | None = None) -> Callable[[jax.Array], TrainingState]:
     """``init_training_state`` as one jitted program of the key: eagerly it compiles ~40 small ops one by one
     (≈ 1 s cold).  Once placed on a device its state is the eager one bit for bit (the normaliser's
-    ``std_eps``, a Python float eagerly, comes out a weakly typed array); compiled with ``RUN_ONCE_COMPILE``."""
-    return jax.jit(lambda key: init_training_state(key, networks, optimizer, obs_size), compiler_options=RUN_ONCE_COMPILE)
+    ``std_eps``, a Python float eagerly, comes out a weakly typed array); compiled with ``RUN_ONCE_COMPILE``
+    and ``compiler_options`` (the trainer's other XLA options)."""
+    return jax.jit(lambda key: init_training_state(key, networks, optimizer, obs_size),
+                   compiler_options={**(compiler_options or {}), **RUN_ONCE_COMPILE})
 
 
 def sample_action(networks: PPONetworks, params: Params, normaliser: Normaliser, obs: jax.Array,

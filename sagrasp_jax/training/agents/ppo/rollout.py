@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import sagrasp_jax  # noqa: F401  (sets XLA_FLAGS before jax is imported)
 
-from typing import Callable, NamedTuple, Protocol
+from typing import Any, Callable, NamedTuple, Protocol
 
 import jax
 import jax.numpy as jnp
@@ -79,7 +79,9 @@ def rollout(env: Env, networks: PPONetworks, params: Params, normaliser: Normali
     return env_state, data, episodes
 
 
-def make_reset(env: Env, mesh: Mesh) -> Callable[[jax.Array], State]:
-    """Jitted batched reset whose output is split over the mesh (keys: [B] PRNG keys)."""
+def make_reset(env: Env, mesh: Mesh, compiler_options: dict[str, Any] | None = None) -> Callable[[jax.Array], State]:
+    """Jitted batched reset whose output is split over the mesh (keys: [B] PRNG keys); ``compiler_options``:
+    XLA's, as the trainer's other programs get them."""
     shard = batch_sharding(mesh)
-    return jax.jit(lambda keys: jax.lax.with_sharding_constraint(jax.vmap(env.reset)(keys), shard))
+    return jax.jit(lambda keys: jax.lax.with_sharding_constraint(jax.vmap(env.reset)(keys), shard),
+                   compiler_options=compiler_options or None)
