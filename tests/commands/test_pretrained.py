@@ -24,7 +24,7 @@ def test_pretrained_policy_by_name_is_the_file_its_provenance_names() -> None:
             assert hashlib.sha256(fh.read()).hexdigest() == prov["policy_sha256"]
         assert policy.path == pretrained_path(name)
         assert policy.env_config().task.obs_layout == "relative_lag"
-        assert "--seed 0" in prov["training_command"] and prov["config_identity"] == "a8896aa7668619c4"
+        assert "--seed 0" in prov["training_command"] and prov["config_identity"] == "b3d87b3b19f173a7"
         measured = prov["measured"]
         assert measured["mjx_robot_success"] >= 0.99 and measured["twin_robot_held"] >= 0.98, measured
     action = load_policy("pretrained")(np.zeros(load_policy("pretrained").obs_size))
