@@ -102,7 +102,7 @@ _OVER_ROUND_2: dict[str, tuple[str, ...]] = {
     "late-epochs-2": ("ppo.late_epochs=2",),  # a quarter of the passes after the climb
 }
 LEVERS: dict[str, tuple[str, ...]] = {**{name: BEFORE + sets for name, sets in _LEVERS.items()},
-                                      "adopted": (),  # the preset unchanged: today's cpu-quick (= round-2+late-epochs-4)
+                                      "adopted": (),  # the preset unchanged: today's cpu-quick (= round-2+late-epochs-4 with the new fusion emitters)
                                       **{f"adopted+{name}": ROUND_1 + sets for name, sets in _OVER_ADOPTED.items()},
                                       **{f"round-2+{name}": ROUND_2 + sets for name, sets in _OVER_ROUND_2.items()}}
 REFERENCE = "baseline"
