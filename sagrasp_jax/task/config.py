@@ -450,11 +450,11 @@ class TrainConfig:
         'fresh.  "" = none')
     cpu_fusion_emitters: FusionEmitters = key(
         "legacy", "XLA's CPU fusion emitters for the trainer's programs (the training call, the SA evaluation, the first "
-        "reset, the initial state): new = XLA's fusion emitters, 15-20 %% less time per cycle of the lagged or kinematic "
+        "reset, the initial state): new = XLA's fusion emitters, 15-20 % less time per cycle of the lagged or kinematic "
         "env on 2 cores for a few seconds more compile, other numbers than legacy at the same quality over 5 seeds "
         "(docs/results-archive.md §25-26); legacy = the process's emitter, which the package sets to XLA's legacy one "
         "because MJX's physics step (the dynamic mode) runs 1.5x faster with it.  The CPU only; a jaxlib >= 0.11 "
-        "cannot set it per program, and the trainer says so and keeps the process's".replace("%%", "%"))
+        "cannot set it per program, and the trainer says so and keeps the process's")
 
 
 @dataclass(frozen=True)
