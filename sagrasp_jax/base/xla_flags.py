@@ -145,9 +145,9 @@ def apply(environ: "os._Environ[str] | dict[str, str]" = os.environ) -> str | No
 
 # Per program, the other way (config key ``train.cpu_fusion_emitters``): the trainer's programs of the lagged and
 # kinematic env run 15-20 % faster per cycle on 2 cores with XLA's new fusion emitters (docs/results-archive.md
-# §25), which MJX's physics step does not; a compile option overrides the process's flag for one program.  jaxlib
-# < 0.11 has it as a DebugOptions field; jaxlib >= 0.11 keeps the switch in the backend-options map, which a
-# compile option cannot set ("is not a valid message value"), so there the process's emitter stays.
+# §25), which MJX's physics step does not; a compile option overrides the process's flag for one program.  Where
+# the switch is ``LEGACY_FLAG`` (RULES) it is a DebugOptions field a compile option can set; where it is the
+# backend-options map entry, a compile option cannot ("is not a valid message value"), so the process's stays.
 NEW_EMITTERS_OPTION: dict[str, bool] = {"xla_cpu_use_fusion_emitters": True}
 
 
@@ -158,7 +158,7 @@ def emitter_options(choice: str, backend: str, jaxlib_version: str | None) -> tu
         raise ValueError(f"cpu fusion emitters {choice!r}: valid are legacy, new")
     if choice == "legacy" or backend != "cpu":
         return {}, None
-    if jaxlib_version is not None and parse_version(jaxlib_version) >= (0, 11):
+    if jaxlib_version is not None and flag_for(jaxlib_version) != LEGACY_FLAG:
         return {}, (f"train.cpu_fusion_emitters=new: jaxlib {jaxlib_version} cannot choose the emitter per program; "
                     "the trainer compiles with the process's (XLA_FLAGS)")
     return dict(NEW_EMITTERS_OPTION), None

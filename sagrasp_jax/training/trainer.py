@@ -158,7 +158,7 @@ class Trainer:
                 options = self.compiler_options or None
                 cycle = pool.submit(lambda: (lowered.compile(compiler_options=options), time.perf_counter() - t))
                 ts = self.seed_group.train_state_of(0)
-                compiled_eval = self._evaluate.lower(ts.params, ts.normaliser, self.eval_keys).compile(options)
+                compiled_eval = self._evaluate.lower(ts.params, ts.normaliser, self.eval_keys).compile(compiler_options=options)
                 eval_s = time.perf_counter() - t
                 self._compiled_cycle, cycle_s = cycle.result()  # re-raises the worker's error here
             self._compiled_eval = compiled_eval
