@@ -48,6 +48,7 @@ import hashlib
 import importlib.metadata
 import json
 import logging
+import math
 import os
 import platform
 import resource
@@ -373,11 +374,13 @@ class CompileRecorder:
             row["start_s"] = None if first is None else first["end_s"] - first["wall_s"]
             row["end_s"] = None if done is None else done["end_s"]
             # the compile alone (after the serial lock): its wall and the process's CPU seconds meanwhile; others:
-            # the compiles that ran beside it (their CPU is in its own_cpu_s too)
-            row["own_compile_s"] = entry["own_end_s"] - entry["own_start_s"]
-            row["own_compile_cpu_s"] = entry["own_cpu_s"]
-            row["beside"] = [other["module"] for other in self.compiles if other is not entry
-                             and other["own_start_s"] < entry["own_end_s"] and other["own_end_s"] > entry["own_start_s"]]
+            # the compiles that ran beside it (their CPU is in its own_cpu_s too).  A compile the run's stop
+            # (SIGTERM's Terminated) interrupted has no end: None, and it ran beside everything after its start.
+            span = _own_span(entry)
+            row["own_compile_s"] = None if span is None or "own_end_s" not in entry else span[1] - span[0]
+            row["own_compile_cpu_s"] = entry.get("own_cpu_s")
+            row["beside"] = [other["module"] for other in self.compiles if other is not entry and span is not None
+                             and (o := _own_span(other)) is not None and o[0] < span[1] and o[1] > span[0]]
             row["cache_write_s"] = None if "write_from_s" not in entry else entry["end_s"] - entry["write_from_s"]
             row["cache_retrieval_s"] = entry.get("cache_retrieval_time_sec")
             row["compile_time_saved_s"] = entry.get("compile_time_saved_sec")
@@ -412,6 +415,14 @@ class CompileRecorder:
         row["hlo_in_transpose"] = sum(1 for line in text.splitlines() if " = " in line and "transpose(jvp(" in line)
         entry = os.path.join(cache_dir or "", f"{row.get('cache_key')}-cache")
         row["cache_entry_bytes"] = os.path.getsize(entry) if cache_dir and os.path.isfile(entry) else None
+
+
+def _own_span(entry: dict[str, Any]) -> tuple[float, float] | None:
+    """A compile's own (start, end) seconds; one interrupted by the run's stop ends never (inf), one stopped
+    before it began (waiting for the serial lock) has none."""
+    if "own_start_s" not in entry:
+        return None
+    return entry["own_start_s"], entry.get("own_end_s", math.inf)
 
 
 def hlo_by_source(texts: list[str], top: int = 15) -> dict[str, int]:

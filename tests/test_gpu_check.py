@@ -129,6 +129,30 @@ def test_a_recorded_training_that_fails_raises_with_the_trainers_own_status(tmp_
         assert json.load(f)["exit"] == 2
 
 
+def test_the_compile_recorder_keeps_a_compile_the_stop_interrupted() -> None:
+    """SIGTERM's ``Terminated`` raised inside a compile leaves its entry without an end (and one waiting for the serial
+    lock without a start): the record still has every program, the interrupted one's compile seconds unknown and
+    beside the compiles after its start, instead of a KeyError that lost the whole record (exit 1)."""
+    from experiments.readme_line import CompileRecorder
+
+    recorder = CompileRecorder(0.0)
+    base = {"thread": "MainThread", "cache": "miss", "cache_lines": []}
+    recorder.compiles = [
+        {**base, "module": "jit_done", "start_s": 1.0, "own_start_s": 1.0, "own_end_s": 2.0, "own_cpu_s": 0.9,
+         "end_s": 2.0, "kept": 0},
+        {**base, "module": "jit_cut", "start_s": 3.0, "own_start_s": 3.0},  # Terminated during the compile
+        {**base, "module": "jit_beside", "start_s": 3.5, "own_start_s": 3.5, "own_end_s": 4.0, "own_cpu_s": 0.4,
+         "end_s": 4.0, "kept": 1},
+        {**base, "module": "jit_waiting", "start_s": 3.6},  # Terminated while it waited for the serial lock
+    ]
+    rows = {r["module"]: r for r in recorder.programs()}
+    assert list(rows) == ["jit_done", "jit_cut", "jit_beside", "jit_waiting"]
+    assert rows["jit_done"]["own_compile_s"] == 1.0 and rows["jit_done"]["beside"] == []
+    assert rows["jit_cut"]["own_compile_s"] is None and rows["jit_cut"]["own_compile_cpu_s"] is None
+    assert rows["jit_cut"]["beside"] == ["jit_beside"] and rows["jit_beside"]["beside"] == ["jit_cut"]
+    assert rows["jit_waiting"]["own_compile_s"] is None and rows["jit_waiting"]["beside"] == []
+
+
 def test_a_recorded_training_is_stopped_at_its_end(tmp_path: pytest.TempPathFactory) -> None:
     """SIGTERMed 3 s after launch (before its first iteration can end): the trainer's status 143, or killed
     before its handler was up, and the row says it was the budget."""
