@@ -172,6 +172,11 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+# after a dropped Terminated, the delay before the signal is raised again: the hook has long returned by then
+# (and where the signal lands in a gc callback again, it is dropped and raised again once more)
+REDELIVER_S = 0.05
+
+
 class Terminated(KeyboardInterrupt):
     """SIGTERM during a training (``train.main``): stops it like Ctrl-C, at any point."""
 
@@ -179,21 +184,39 @@ class Terminated(KeyboardInterrupt):
 @contextlib.contextmanager
 def _sigterm_as_interrupt() -> Any:
     """SIGTERM raises ``Terminated`` (a KeyboardInterrupt) for the block: the run stops as on Ctrl-C,
-    with its message and exit status 143, and resumes from its last checkpoint."""
+    with its message and exit status 143, and resumes from its last checkpoint.
+
+    Where the handler ran inside code whose exceptions Python drops (a gc callback such as jax's
+    ``_xla_gc_callback``, a ``__del__``) the ``Terminated`` reaches ``sys.unraisablehook`` instead, and the
+    run went on to its end.  The hook has the signal raised again from a short timer thread
+    (``_thread.interrupt_main``; asked from the hook itself, the handler would run inside the hook and be
+    dropped again), so the run stops at the main thread's next Python line outside such code."""
+    import _thread
     import signal
+    import threading
 
     def handler(signum: int, frame: Any) -> None:
         raise Terminated()
+
+    def unraisable(info: Any) -> None:
+        if isinstance(info.exc_value, Terminated):
+            again = threading.Timer(REDELIVER_S, _thread.interrupt_main, (signal.SIGTERM,))
+            again.daemon = True
+            again.start()
+        else:
+            previous_hook(info)
 
     try:
         previous = signal.signal(signal.SIGTERM, handler)
     except ValueError:  # not the main thread: leave SIGTERM alone
         yield
         return
+    previous_hook, sys.unraisablehook = sys.unraisablehook, unraisable
     try:
         yield
     finally:
         signal.signal(signal.SIGTERM, previous)
+        sys.unraisablehook = previous_hook
 
 
 if __name__ == "__main__":

@@ -202,6 +202,36 @@ def test_existing_output_and_resume_without_checkpoint_are_refused(tmp_path, cap
     assert os.listdir(out) == ["notes.txt"]
 
 
+def test_a_sigterm_that_lands_in_a_gc_callback_still_stops_the_run():
+    """The handler's ``Terminated`` raised inside a gc callback (where jax's ``_xla_gc_callback`` runs) is dropped by
+    Python, and the run went on to its end (the check's stop then waited for its kill); the block raises it again
+    in ordinary code, and restores the hook it replaced."""
+    import gc
+    import signal
+    import sys
+    import time
+
+    sent = []
+
+    def callback(phase, info):
+        if not sent:
+            sent.append(phase)
+            signal.raise_signal(signal.SIGTERM)  # the handler runs here, inside the gc
+
+    hook = sys.unraisablehook
+    gc.callbacks.append(callback)
+    try:
+        with pytest.raises(train.Terminated):
+            with train._sigterm_as_interrupt():
+                gc.collect()
+                end = time.monotonic() + 5.0
+                while time.monotonic() < end:  # ordinary code, where the signal raised again lands
+                    pass
+    finally:
+        gc.callbacks.remove(callback)
+    assert sent and sys.unraisablehook is hook
+
+
 def test_resume_refuses_a_corrupt_checkpoint_and_changes_nothing(toy_run, tmp_path):
     import shutil
 
