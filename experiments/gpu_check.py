@@ -73,15 +73,17 @@ No environment variable is needed anywhere: importing ``sagrasp_jax`` adds its C
 runs on the CPU, in the form the installed jaxlib knows (``sagrasp_jax/base/xla_flags.py``; a GPU machine's
 CUDA plugin keeps it off).
 
-**On a bare GPU machine** (the lent H200: Python 3.12 with jax 0.11 and its CUDA plugin, flax, optax,
-numpy, absl-py, etils, scipy, pillow, tqdm, protobuf, but nothing else of the project's) the
-checkout travels with the command and ``python3 -m`` from its root imports ``sagrasp_jax`` and
-``experiments`` from it (a wheel of the project, ``pip wheel --no-deps -w .whl .``, is needed only
-where the checkout is not).  Carry the third-party wheels it imports that the machine lacks and install
-them offline without dependency resolution (pip would otherwise try to replace the machine's jax).
-Here, from the repository root (``.whl/`` kept out of git by ``.git/info/exclude``):
+**On a bare GPU machine** (the lent H200's documented image: Python 3.12.3, jax and jaxlib 0.11.2 with
+the CUDA plugin, numpy 2.5.2, flax, optax, chex, absl-py, etils, scipy, pillow, tqdm, protobuf, matplotlib
+and its dependencies, tensorboard, orbax-checkpoint and a few more; no mujoco, mujoco-mjx, brax, jaxopt,
+trimesh, glfw or tensorboardX, and no network) the checkout travels with the command and ``python3 -m``
+from its root imports ``sagrasp_jax`` and ``experiments`` from it (a wheel of the project,
+``pip wheel --no-deps -w .whl .``, is needed only where the checkout is not).  Carry the third-party wheels
+it imports that the machine lacks and install them offline without dependency resolution (pip would otherwise
+try to replace the machine's jax).
+Here, from the repository root (``.gitignore`` keeps ``.whl/`` out of git already: a device call takes it
+only where named in its carry):
 
-    echo /.whl/ >> .git/info/exclude
     python -m pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \\
         --platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64 \\
         --platform manylinux2014_x86_64 --platform manylinux1_x86_64 -d .whl \\
@@ -91,9 +93,14 @@ Here, from the repository root (``.whl/`` kept out of git by ``.git/info/exclude
 
 (the distributions that ``sagrasp_jax.train``, ``evaluate`` and ``env`` import, less what the machine
 has; matplotlib and the packages after it are the paper section's plots: without them its row is an error
-after the training).  Sizes: mujoco 26.7 MB, mujoco-mjx 7.3 MB, matplotlib 9.9 MB, fonttools 5.4 MB, kiwisolver
-1.5 MB, the others under 1 MB each, 53 MB in all, under the 64 MiB that one device call carries; warp-lang is 149 MB, over it, so leave it out
-(delete it from ``.whl``) and the warp rows say "not installed", unless it reaches the machine another way.
+after the training.  The documented image has them; carried, they shadow its copies through ``PYTHONPATH``,
+which was harmless as rehearsed (matplotlib 3.11.2 on numpy 2.5.2).  brax's and mujoco's declared
+dependencies that the image lacks, flask, flask-cors, jinja2, ml-collections, pyopengl and websockets, are
+imported on none of the check's paths: ``--quick`` ran every section on this image's packages without
+them).  Sizes: mujoco 26.7 MB, mujoco-mjx 7.3 MB, matplotlib 9.9 MB, fonttools 5.4 MB, kiwisolver 1.5 MB, the
+others under 1 MB each, 53 MB in all, under the 64 MiB that one device call carries; warp-lang is 149 MB, over
+it, so leave it out (delete it from ``.whl``) and the warp rows say "not installed", unless it reaches the
+machine another way.
 Then on the GPU machine, with ``.whl`` carried, one command (the check's own children inherit
 ``PYTHONPATH``):
 
