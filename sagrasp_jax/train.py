@@ -172,7 +172,7 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-# after a dropped Terminated, the delay before the signal is raised again: the hook has long returned by then
+# after a dropped Terminated or Ctrl-C, the delay before the signal is raised again: the hook has long returned by then
 # (and where the signal lands in a gc callback again, it is dropped and raised again once more)
 REDELIVER_S = 0.05
 
@@ -188,9 +188,10 @@ def _sigterm_as_interrupt() -> Any:
 
     Where the handler ran inside code whose exceptions Python drops (a gc callback such as jax's
     ``_xla_gc_callback``, a ``__del__``) the ``Terminated`` reaches ``sys.unraisablehook`` instead, and the
-    run went on to its end.  The hook has the signal raised again from a short timer thread
-    (``_thread.interrupt_main``; asked from the hook itself, the handler would run inside the hook and be
-    dropped again), so the run stops at the main thread's next Python line outside such code."""
+    run went on to its end; so did a Ctrl-C's ``KeyboardInterrupt`` there.  The hook has the signal (SIGTERM
+    or SIGINT) raised again from a short timer thread (``_thread.interrupt_main``; asked from the hook itself,
+    the handler would run inside the hook and be dropped again), so the run stops at the main thread's next
+    Python line outside such code."""
     import _thread
     import signal
     import threading
@@ -199,8 +200,9 @@ def _sigterm_as_interrupt() -> Any:
         raise Terminated()
 
     def unraisable(info: Any) -> None:
-        if isinstance(info.exc_value, Terminated):
-            again = threading.Timer(REDELIVER_S, _thread.interrupt_main, (signal.SIGTERM,))
+        if isinstance(info.exc_value, KeyboardInterrupt):  # Terminated is one
+            signum = signal.SIGTERM if isinstance(info.exc_value, Terminated) else signal.SIGINT
+            again = threading.Timer(REDELIVER_S, _thread.interrupt_main, (signum,))
             again.daemon = True
             again.start()
         else:

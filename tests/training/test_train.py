@@ -232,6 +232,35 @@ def test_a_sigterm_that_lands_in_a_gc_callback_still_stops_the_run():
     assert sent and sys.unraisablehook is hook
 
 
+def test_a_ctrl_c_that_lands_in_a_gc_callback_still_stops_the_run():
+    """Ctrl-C's ``KeyboardInterrupt`` raised inside a gc callback is dropped by Python as SIGTERM's was: the block
+    raises SIGINT again in ordinary code, a plain ``KeyboardInterrupt`` (not ``Terminated``: exit 130, not 143)."""
+    import gc
+    import signal
+    import time
+
+    sent = []
+
+    def callback(phase, info):
+        if not sent:
+            sent.append(phase)
+            signal.raise_signal(signal.SIGINT)  # Python's own handler raises KeyboardInterrupt here, inside the gc
+
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)  # a test worker may ignore SIGINT
+    gc.callbacks.append(callback)
+    try:
+        with pytest.raises(KeyboardInterrupt) as caught:
+            with train._sigterm_as_interrupt():
+                gc.collect()
+                end = time.monotonic() + 5.0
+                while time.monotonic() < end:
+                    pass
+    finally:
+        gc.callbacks.remove(callback)
+        signal.signal(signal.SIGINT, previous)
+    assert sent and not isinstance(caught.value, train.Terminated)
+
+
 def test_resume_refuses_a_corrupt_checkpoint_and_changes_nothing(toy_run, tmp_path):
     import shutil
 
