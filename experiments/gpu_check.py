@@ -88,19 +88,17 @@ only where named in its carry):
         --platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64 \\
         --platform manylinux2014_x86_64 --platform manylinux1_x86_64 -d .whl \\
         mujoco==3.17.0 mujoco-mjx==3.17.0 brax==0.14.2 jaxopt==0.8.5 trimesh==5.2.0 glfw==2.11.0 \\
-        tensorboardX==2.6.5 warp-lang==1.18.0 matplotlib contourpy cycler fonttools kiwisolver pyparsing \\
-        python-dateutil six packaging
+        tensorboardX==2.6.5 warp-lang==1.18.0
 
 (the distributions that ``sagrasp_jax.train``, ``evaluate`` and ``env`` import, less what the machine
-has; matplotlib and the packages after it are the paper section's plots: without them its row is an error
-after the training.  The documented image has them; carried, they shadow its copies through ``PYTHONPATH``,
-which was harmless as rehearsed (matplotlib 3.11.2 on numpy 2.5.2).  brax's and mujoco's declared
-dependencies that the image lacks, flask, flask-cors, jinja2, ml-collections, pyopengl and websockets, are
-imported on none of the check's paths: ``--quick`` ran every section on this image's packages without
-them).  Sizes: mujoco 26.7 MB, mujoco-mjx 7.3 MB, matplotlib 9.9 MB, fonttools 5.4 MB, kiwisolver 1.5 MB, the
-others under 1 MB each, 53 MB in all, under the 64 MiB that one device call carries; warp-lang is 149 MB, over
-it, so leave it out (delete it from ``.whl``) and the warp rows say "not installed", unless it reaches the
-machine another way.
+has.  The paper section's plots take the image's own matplotlib: ``--quick --sections paper,physics`` ran
+on the rehearsed image with only these wheels carried.  Carrying matplotlib and its dependencies as well
+(an earlier form of this list) shadows the image's copies through ``PYTHONPATH``: packaging, six and
+python-dateutil among them, which the image's other packages import too.  brax's and mujoco's declared
+dependencies that the image lacks, flask, flask-cors, ml-collections, pyopengl and websockets, are imported
+on none of the check's paths.)  Sizes: mujoco 26.7 MB, mujoco-mjx 7.3 MB, the others under 1 MB each,
+36 MB in all, under the 64 MiB that one device call carries; warp-lang is 149 MB, over it, so leave it out
+(delete it from ``.whl``) and the warp rows say "not installed", unless it reaches the machine another way.
 Then on the GPU machine, with ``.whl`` carried, one command (the check's own children inherit
 ``PYTHONPATH``):
 
