@@ -278,9 +278,18 @@ class CompileRecorder:
             def emit(self, record: logging.LogRecord) -> None:
                 recorder._line(record)
 
+        class Warnings(logging.Handler):  # what jax's compiler says at WARNING and above, on its usual way
+            def emit(self, record: logging.LogRecord) -> None:
+                if log.parent is not None:
+                    log.parent.handle(record)
+
+        # DEBUG for the recorder only: where something set up a root handler (mujoco-mjx logs a root-level debug
+        # message, which gives root a stderr handler), the compiler's debug lines would flood the command's log
         log = logging.getLogger("jax._src.compiler")
         log.setLevel(logging.DEBUG)
+        log.propagate = False
         log.addHandler(Lines(logging.DEBUG))
+        log.addHandler(Warnings(logging.WARNING))
         original = compiler.compile_or_get_cached
 
         def compile_or_get_cached(backend: Any, computation: Any, *args: Any, **kwargs: Any) -> Any:

@@ -153,6 +153,31 @@ def test_the_compile_recorder_keeps_a_compile_the_stop_interrupted() -> None:
     assert rows["jit_waiting"]["own_compile_s"] is None and rows["jit_waiting"]["beside"] == []
 
 
+def test_the_compile_recorder_keeps_the_compilers_debug_lines_out_of_the_commands_log() -> None:
+    """Recording turns jax's compiler logger to DEBUG; with a root handler up (mujoco-mjx's root-level debug message
+    sets one) its lines flooded the section's log (78-90 in the physics log). Only WARNING and above reach it now,
+    and the recorder still reads the debug lines. In a fresh process: installing patches jax for good."""
+    code = """
+import logging
+from experiments.readme_line import CompileRecorder
+seen = []
+class Keep(logging.Handler):
+    def emit(self, record):
+        seen.append(record.levelname)
+logging.getLogger().addHandler(Keep())
+recorder = CompileRecorder(0.0).install()
+read = []
+recorder._line = lambda record: read.append(record.levelname)
+log = logging.getLogger("jax._src.compiler")
+log.debug("Persistent compilation cache hit for 'jit_x' with key 'k'")
+log.warning("a warning")
+print(seen, read)
+"""
+    done = subprocess.run([sys.executable, "-c", code], cwd=g.ROOT, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.strip().splitlines()[-1] == "['WARNING'] ['DEBUG', 'WARNING']"
+
+
 def test_a_recorded_training_is_stopped_at_its_end(tmp_path: pytest.TempPathFactory) -> None:
     """SIGTERMed 3 s after launch (before its first iteration can end): the trainer's status 143, or killed
     before its handler was up, and the row says it was the budget."""
