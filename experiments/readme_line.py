@@ -386,7 +386,7 @@ class CompileRecorder:
             # the compiles that ran beside it (their CPU is in its own_cpu_s too).  A compile the run's stop
             # (SIGTERM's Terminated) interrupted has no end: None, and it ran beside everything after its start.
             span = _own_span(entry)
-            row["own_compile_s"] = None if span is None or "own_end_s" not in entry else span[1] - span[0]
+            row["own_compile_s"] = entry["own_end_s"] - entry["own_start_s"] if "own_end_s" in entry else None
             row["own_compile_cpu_s"] = entry.get("own_cpu_s")
             row["beside"] = [other["module"] for other in self.compiles if other is not entry and span is not None
                              and (o := _own_span(other)) is not None and o[0] < span[1] and o[1] > span[0]]

@@ -202,50 +202,26 @@ def test_existing_output_and_resume_without_checkpoint_are_refused(tmp_path, cap
     assert os.listdir(out) == ["notes.txt"]
 
 
-def test_a_sigterm_that_lands_in_a_gc_callback_still_stops_the_run():
-    """The handler's ``Terminated`` raised inside a gc callback (where jax's ``_xla_gc_callback`` runs) is dropped by
-    Python, and the run went on to its end (the check's stop then waited for its kill); the block raises it again
-    in ordinary code, and restores the hook it replaced."""
+@pytest.mark.parametrize("signal_name, raised", [("SIGTERM", train.Terminated), ("SIGINT", KeyboardInterrupt)])
+def test_a_stop_that_lands_in_a_gc_callback_still_stops_the_run(signal_name, raised):
+    """SIGTERM's ``Terminated`` or Ctrl-C's ``KeyboardInterrupt`` raised inside a gc callback (where jax's
+    ``_xla_gc_callback`` runs) is dropped by Python, and the run went on to its end (the check's stop then waited for
+    its kill); the block raises the same signal again in ordinary code (SIGINT a plain ``KeyboardInterrupt``, exit
+    130, not ``Terminated``'s 143), and restores the hook it replaced."""
     import gc
     import signal
     import sys
     import time
 
+    signum = getattr(signal, signal_name)
     sent = []
 
     def callback(phase, info):
         if not sent:
             sent.append(phase)
-            signal.raise_signal(signal.SIGTERM)  # the handler runs here, inside the gc
+            signal.raise_signal(signum)  # the handler runs here, inside the gc
 
     hook = sys.unraisablehook
-    gc.callbacks.append(callback)
-    try:
-        with pytest.raises(train.Terminated):
-            with train._sigterm_as_interrupt():
-                gc.collect()
-                end = time.monotonic() + 5.0
-                while time.monotonic() < end:  # ordinary code, where the signal raised again lands
-                    pass
-    finally:
-        gc.callbacks.remove(callback)
-    assert sent and sys.unraisablehook is hook
-
-
-def test_a_ctrl_c_that_lands_in_a_gc_callback_still_stops_the_run():
-    """Ctrl-C's ``KeyboardInterrupt`` raised inside a gc callback is dropped by Python as SIGTERM's was: the block
-    raises SIGINT again in ordinary code, a plain ``KeyboardInterrupt`` (not ``Terminated``: exit 130, not 143)."""
-    import gc
-    import signal
-    import time
-
-    sent = []
-
-    def callback(phase, info):
-        if not sent:
-            sent.append(phase)
-            signal.raise_signal(signal.SIGINT)  # Python's own handler raises KeyboardInterrupt here, inside the gc
-
     previous = signal.signal(signal.SIGINT, signal.default_int_handler)  # a test worker may ignore SIGINT
     gc.callbacks.append(callback)
     try:
@@ -253,12 +229,12 @@ def test_a_ctrl_c_that_lands_in_a_gc_callback_still_stops_the_run():
             with train._sigterm_as_interrupt():
                 gc.collect()
                 end = time.monotonic() + 5.0
-                while time.monotonic() < end:
+                while time.monotonic() < end:  # ordinary code, where the signal raised again lands
                     pass
     finally:
         gc.callbacks.remove(callback)
         signal.signal(signal.SIGINT, previous)
-    assert sent and not isinstance(caught.value, train.Terminated)
+    assert sent and type(caught.value) is raised and sys.unraisablehook is hook
 
 
 def test_resume_refuses_a_corrupt_checkpoint_and_changes_nothing(toy_run, tmp_path):
